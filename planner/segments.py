@@ -1,0 +1,136 @@
+"""Assignment of the face model's bone-attachment nodes to the patient's bone segments.
+
+The generic model marks the soft-tissue nodes tied to bone (`attach_*` node sets). After
+registration these nodes lie on the patient's bone, and which segment they follow during surgery
+is decided by the patient's anatomy and the plan, not by the generic labels: each attachment node
+goes to the bone surface closest to it (point-to-triangle distance, `trimesh.proximity`), and a
+segment defined by cut planes (plan `cut_planes`, `from`) takes over the nodes of its source
+surface that lie on the kept side of all its planes (Payan et al.: nodes attached to the
+osteotomised segment follow its rigid movement, the others stay fixed with the skull).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from planner.errors import InputError
+from planner.plan import FIXED_SEGMENT, Plan
+
+ATTACH_PREFIX = "attach_"
+
+
+def as_trimesh(surface) -> trimesh.Trimesh:
+    """A bone surface given as trimesh.Trimesh, (vertices, faces) or an object with both."""
+    if isinstance(surface, trimesh.Trimesh):
+        return surface
+    if isinstance(surface, (tuple, list)) and len(surface) >= 2:
+        return trimesh.Trimesh(np.asarray(surface[0], float), np.asarray(surface[1], int), process=False)
+    if hasattr(surface, "vertices") and hasattr(surface, "faces"):
+        return trimesh.Trimesh(np.asarray(surface.vertices, float), np.asarray(surface.faces, int),
+                               process=False)
+    raise TypeError(f"not a surface: {type(surface).__name__}")
+
+
+@dataclass(frozen=True)
+class SegmentAssignment:
+    node_sets: dict[str, np.ndarray]       # "attach_<segment>" -> node ids
+    distance_mm: np.ndarray                # per attachment node: distance to its bone surface
+    nodes: np.ndarray                      # the attachment node ids (union of the generic sets)
+    segment_of_node: np.ndarray            # per attachment node: segment name
+
+    def summary(self) -> dict:
+        out = {}
+        for seg in sorted(set(self.segment_of_node)):
+            sel = self.segment_of_node == seg
+            d = self.distance_mm[sel]
+            out[seg] = {"nodes": int(sel.sum()), "median_distance_mm": round(float(np.median(d)), 3),
+                        "max_distance_mm": round(float(d.max()), 3)}
+        return out
+
+
+def _cut_order(plan: Plan) -> list[str]:
+    """Segments with cut planes, each after the segment it is cut from."""
+    cut = {n: sp.source or n for n, sp in plan.segments.items() if sp.cut_planes}
+    order: list[str] = []
+    visiting: set[str] = set()
+
+    def visit(n):
+        if n in order:
+            return
+        if n in visiting:
+            raise InputError(f"cut planes form a cycle through segment {n!r}", file=plan.path,
+                             field=f"segments.{n}.from")
+        visiting.add(n)
+        if cut[n] in cut and cut[n] != n:
+            visit(cut[n])
+        visiting.discard(n)
+        order.append(n)
+
+    for n in cut:
+        visit(n)
+    return order
+
+
+def assign_segments(model, bones: dict, plan: Plan, segments: tuple[str, ...] | None = None
+                    ) -> SegmentAssignment:
+    """Assign every attachment node of `model` to a bone segment of the patient.
+
+    `bones` maps surface names (preop/bone/<name>) to surfaces; `segments` defaults to
+    `model.segments`. A generic attachment set of a segment without any patient surface keeps
+    the label of the nearest surface found.
+    """
+    segments = tuple(segments or model.segments)
+    generic = {k[len(ATTACH_PREFIX):]: np.asarray(v, int) for k, v in model.node_sets.items()
+               if k.startswith(ATTACH_PREFIX)}
+    nodes = np.unique(np.concatenate([v for v in generic.values()] or [np.zeros(0, int)]))
+    if nodes.size == 0:
+        raise InputError("the face model has no bone-attachment nodes (attach_* node sets)")
+    if not bones:
+        raise InputError("the case has no bone surfaces (preop/bone/<segment>.stl)")
+    x = np.asarray(model.nodes, float)[nodes]
+
+    names = sorted(bones)
+    dist = np.empty((len(names), nodes.size))
+    for i, name in enumerate(names):
+        mesh = as_trimesh(bones[name])
+        _, d, _ = trimesh.proximity.closest_point(mesh, x)
+        dist[i] = d
+    nearest = np.argmin(dist, axis=0)
+    label = np.array(names, dtype=object)[nearest]
+    distance = dist[nearest, np.arange(nodes.size)]
+
+    for seg in _cut_order(plan):
+        sp = plan.segments[seg]
+        source = sp.source or seg
+        keep = label == source
+        for cp in sp.cut_planes:
+            keep &= cp.keeps(x)
+        label[keep] = seg
+
+    # Surfaces that are not segments (e.g. a whole-skull CT surface only used as a cut source)
+    # give their remaining nodes to the generic segment of the node, else to the fixed skull.
+    generic_of = {}
+    for seg, ids in generic.items():
+        for i in ids:
+            generic_of.setdefault(int(i), seg)
+    for k in np.flatnonzero(~np.isin(label, segments)):
+        g = generic_of.get(int(nodes[k]), FIXED_SEGMENT)
+        label[k] = g if g in segments else FIXED_SEGMENT
+
+    for seg in plan.motions():
+        if not np.any(label == seg):
+            raise InputError(f"no soft-tissue attachment node lies on the bone of segment {seg!r}: "
+                             "check its bone surface and cut planes", file=plan.path,
+                             field=f"segments.{seg}")
+    node_sets = {ATTACH_PREFIX + seg: np.sort(nodes[label == seg]) for seg in segments}
+    return SegmentAssignment(node_sets, distance, nodes, label.astype(str))
+
+
+def with_segments(model, assignment: SegmentAssignment):
+    """A copy of the (frozen) face model with the attachment sets replaced."""
+    node_sets = dict(model.node_sets)
+    node_sets.update(assignment.node_sets)
+    return dataclasses.replace(model, node_sets=node_sets)

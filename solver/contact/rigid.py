@@ -1,0 +1,228 @@
+"""Node-to-rigid-surface contact and sliding (penalty / augmented Lagrangian `Term`s).
+
+Nodes of a deformable body (the slave facets' nodes) against a rigid triangulated surface that
+moves with a prescribed rigid motion T(load) = [R | t] during the solve (teeth with their bone
+segment, a bone surface under sliding tissue, a press plate). The surface's search structure is
+built once in its own frame: a node x is pulled back, y = R^T (x - t), its closest point c on
+the fixed surface and the pseudo-normal sign give the signed gap g(x) = s |y - c| (outward
+positive), with gradient dg/dx = R n and Hessian (I - n n) / g off the face interiors (zero
+inside a face). With the node's penalty eps_i = eps * A_i (eps in kPa/mm, A_i the node's
+tributary area, so that eps * g is a pressure) and multiplier lambda_i (mN) the potential is
+
+    E_i = ( <lambda_i - eps_i g>^2 - lambda_i^2 ) / (2 eps_i)      unilateral contact,
+    E_i = ( (lambda_i - eps_i g)^2 - lambda_i^2 ) / (2 eps_i)      bilateral (sliding),
+
+the contact force on the node p_i n with p_i = <lambda_i - eps_i g> (Macaulay bracket for
+contact), the tangent eps_i n (x) n - p_i d2g/dx2 (Wriggers 2006, ch. 5-6; Laursen 2002). After a
+converged step `end_step` applies the Uzawa update lambda_i <- p_i (Simo & Laursen 1992) until
+the largest penetration (contact) or gap (sliding) is below `tolerance`.
+Frictionless; optional `stick=True` adds a tangential penalty that ties a node to the surface
+point where it first touched (sticking, the infinite-friction limit).
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial.transform import Rotation
+
+from solver.contact._geometry import FACE, TriangleSurface, nodal_areas
+
+__all__ = ["RigidSurfaceContact", "ramped_rigid_motion"]
+
+
+def ramped_rigid_motion(T, load: float) -> np.ndarray:
+    """Rigid motion at a load fraction: rotation vector and translation scaled by `load`."""
+    T = np.asarray(T, dtype=float)
+    rv = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(load * rv).as_matrix()
+    out[:3, 3] = load * T[:3, 3]
+    return out
+
+
+class RigidSurfaceContact:
+    """Contact (or bilateral sliding) of slave nodes against a moving rigid surface.
+
+    nodes: (n, 3) reference coordinates of the whole mesh (for the slave areas and the dof
+    count). slave_facets: (k, 3|4) facets of the deformable body whose nodes are tested
+    (their tributary areas scale the penalty), or `slave_nodes` with `slave_areas`.
+    vertices, faces: the rigid surface in its reference position, outward normals.
+    motion: a 4x4 rigid matrix reached at load 1 (ramped with `ramped_rigid_motion`), a
+    callable load -> 4x4, or None (fixed). penalty: eps in kPa/mm. bilateral: sliding
+    constraint (the nodes stay on the surface, free tangentially) instead of contact.
+    search_radius: nodes farther than this from the surface are ignored (mm); max_depth:
+    contact is only detected up to this penetration (for open surfaces). tolerance: largest
+    penetration/gap accepted at convergence (mm); max_augmentations bounds the Uzawa loop.
+    """
+
+    def __init__(self, nodes, vertices, faces, *, slave_facets=None, slave_nodes=None,
+                 slave_areas=None, motion=None, penalty: float = 100.0,
+                 bilateral: bool = False, augmented: bool = True, tolerance: float = 0.05,
+                 max_augmentations: int = 20, search_radius: float = 5.0,
+                 max_depth: float = np.inf, stick: bool = False):
+        nodes = np.asarray(nodes, dtype=float)
+        self.n_nodes = len(nodes)
+        if slave_facets is not None:
+            slave_facets = np.asarray(slave_facets, dtype=np.int64)
+            areas = nodal_areas(nodes, slave_facets, self.n_nodes)
+            slave_nodes = np.unique(slave_facets)
+            slave_areas = areas[slave_nodes]
+        elif slave_nodes is None:
+            raise ValueError("give slave_facets or slave_nodes")
+        self.slaves = np.asarray(slave_nodes, dtype=np.int64)
+        if slave_areas is None:
+            slave_areas = np.ones(len(self.slaves))
+        self.areas = np.asarray(slave_areas, dtype=float)
+        if len(self.areas) != len(self.slaves) or np.any(self.areas <= 0):
+            raise ValueError("slave_areas must be positive, one per slave node")
+        if not penalty > 0:
+            raise ValueError(f"penalty must be > 0, got {penalty}")
+        self.surface = TriangleSurface(vertices, faces)
+        self.motion = motion
+        self.penalty = float(penalty)
+        self.eps = self.penalty * self.areas
+        self.bilateral = bool(bilateral)
+        self.augmented = bool(augmented)
+        self.tolerance = float(tolerance)
+        self.max_augmentations = int(max_augmentations)
+        self.search_radius = float(search_radius)
+        self.max_depth = float(max_depth)
+        self.stick = bool(stick)
+        self.multipliers = np.zeros(len(self.slaves))
+        self.n_augmentations = 0
+        self.anchor = np.full((len(self.slaves), 3), np.nan)     # stick points, surface frame
+        self.last = None
+
+    # ------------------------------------------------------------------ geometry
+    def transform(self, load: float) -> np.ndarray:
+        if self.motion is None:
+            return np.eye(4)
+        if callable(self.motion):
+            return np.asarray(self.motion(load), dtype=float)
+        return ramped_rigid_motion(self.motion, load)
+
+    def moved_surface(self, load: float):
+        """Vertices of the rigid surface at `load` (for output and rendering)."""
+        T = self.transform(load)
+        return self.surface.vertices @ T[:3, :3].T + T[:3, 3]
+
+    def gaps(self, x, load):
+        """Signed gaps of all slave nodes (nan where farther than the search radius).
+
+        Returns (g (s,), normal (s, 3) current, region (s,), y (s, 3) pulled-back positions).
+        """
+        T = self.transform(load)
+        R, t = T[:3, :3], T[:3, 3]
+        y = (np.asarray(x)[self.slaves] - t) @ R
+        radius = self.search_radius + float(np.max(self.multipliers / self.eps, initial=0.0))
+        idx, c, face, region, dist = self.surface.closest(y, radius)
+        g = np.full(len(self.slaves), np.nan)
+        n0 = np.zeros((len(self.slaves), 3))
+        reg = np.full(len(self.slaves), -1)
+        pn = self.surface.pseudo_normal(face, region)
+        d = y[idx] - c
+        inside_face = region == FACE
+        gi = np.where(inside_face, np.einsum("ij,ij->i", d, pn), 0.0)
+        # off the face interiors the gradient is the unit vector to the closest point, signed
+        s = np.where(np.einsum("ij,ij->i", d, pn) >= 0.0, 1.0, -1.0)
+        safe = np.maximum(dist, 1e-300)[:, None]
+        ni = np.where(inside_face[:, None], pn, s[:, None] * d / safe)
+        gi = np.where(inside_face, gi, s * dist)
+        g[idx], n0[idx], reg[idx] = gi, ni, region
+        return g, n0 @ R.T, reg, y
+
+    # ------------------------------------------------------------------ Term protocol
+    def _pressure(self, g):
+        p = self.multipliers - self.eps * np.nan_to_num(g, nan=np.inf)
+        if not self.bilateral:
+            p = np.maximum(p, 0.0)
+            p[~(g > -self.max_depth)] = 0.0
+        p[np.isnan(g)] = 0.0
+        return p
+
+    def assemble(self, x, load):
+        g, n, reg, y = self.gaps(x, load)
+        p = self._pressure(g)
+        active = p > 0.0 if not self.bilateral else ~np.isnan(g)
+        f = np.zeros(3 * self.n_nodes)
+        nodes = self.slaves[active]
+        na, pa, ga, ea = n[active], p[active], g[active], self.eps[active]
+        dofs = 3 * nodes[:, None] + np.arange(3)
+        np.add.at(f, dofs.ravel(), (-pa[:, None] * na).ravel())
+        Kb = ea[:, None, None] * na[:, :, None] * na[:, None, :]
+        off = reg[active] != FACE
+        if np.any(off):
+            # curvature of the distance to an edge or vertex: (I - n n)/g, bounded by eps so
+            # that a node passing very close to an edge keeps a well-conditioned tangent
+            P = np.eye(3) - na[off, :, None] * na[off, None, :]
+            coef = np.minimum(np.abs(pa[off] / np.where(ga[off] == 0, 1e-300, ga[off])), ea[off])
+            coef = coef * np.sign(-pa[off] * np.where(ga[off] == 0, -1.0, ga[off]))
+            Kb[off] += coef[:, None, None] * P
+        if self.stick:
+            fs, Ks = self._stick_terms(x, load, active, y)
+            f += fs
+            Kb += Ks
+        rows = np.repeat(dofs, 3, axis=1).ravel()
+        cols = np.tile(dofs, (1, 3)).ravel()
+        K = sp.csr_matrix((Kb.ravel(), (rows, cols)), shape=(3 * self.n_nodes,) * 2)
+        self.last = dict(gap=g, pressure=p, normal=n, active=active)
+        return f, K
+
+    def _stick_terms(self, x, load, active, y):
+        """Tangential tie of active nodes to their first contact point (penalty eps_i)."""
+        T = self.transform(load)
+        R = T[:3, :3]
+        new = active & np.isnan(self.anchor[:, 0])
+        self.anchor[new] = y[new]
+        fs = np.zeros(3 * self.n_nodes)
+        Ks = np.zeros((int(active.sum()), 3, 3))
+        ia = np.nonzero(active)[0]
+        _, n, _, _ = self.gaps(x, load)
+        na = n[ia]
+        Pt = np.eye(3) - na[:, :, None] * na[:, None, :]
+        d = (y[ia] - self.anchor[ia]) @ R.T
+        ft = self.eps[ia, None] * np.einsum("kij,kj->ki", Pt, d)
+        dofs = 3 * self.slaves[ia][:, None] + np.arange(3)
+        np.add.at(fs, dofs.ravel(), ft.ravel())
+        Ks[:] = self.eps[ia, None, None] * Pt
+        return fs, Ks
+
+    def energy(self, x, load) -> float:
+        g, n, _, y = self.gaps(x, load)
+        p = self._pressure(g)
+        lam = self.multipliers
+        e = float(np.sum((p * p - lam * lam) / (2.0 * self.eps)))
+        if self.stick:
+            ia = np.nonzero((p > 0) & ~np.isnan(self.anchor[:, 0]))[0]
+            R = self.transform(load)[:3, :3]
+            d = (y[ia] - self.anchor[ia]) @ R.T
+            dt = d - np.einsum("ij,ij->i", d, n[ia])[:, None] * n[ia]
+            e += float(0.5 * np.sum(self.eps[ia] * np.einsum("ij,ij->i", dt, dt)))
+        return e
+
+    def end_step(self, x, load) -> bool:
+        g, _, _, _ = self.gaps(x, load)
+        p = self._pressure(g)
+        if self.bilateral:
+            err = np.nanmax(np.abs(g), initial=0.0)
+        else:
+            err = float(np.max(-g[p > 0], initial=0.0))
+        self.last_error = err
+        if not self.augmented or err <= self.tolerance \
+                or self.n_augmentations >= self.max_augmentations:
+            self.n_augmentations = 0
+            return False
+        self.multipliers = p
+        self.n_augmentations += 1
+        return True
+
+    # ------------------------------------------------------------------ results
+    def contact_forces(self, x, load) -> np.ndarray:
+        """Force (s, 3) that the rigid surface exerts on each slave node (mN)."""
+        g, n, _, _ = self.gaps(x, load)
+        return self._pressure(g)[:, None] * n
+
+    def contact_pressure(self, x, load) -> np.ndarray:
+        """Contact pressure (kPa) at each slave node: force / tributary area."""
+        g, _, _, _ = self.gaps(x, load)
+        return self._pressure(g) / self.areas

@@ -1,0 +1,153 @@
+"""Contact terms on their own: geometry kernels and consistency of energy, force and tangent."""
+import numpy as np
+import pytest
+
+from solver.contact import (RigidSurfaceContact, SurfaceContact, TriangleSurface,
+                            closest_point_on_triangles, plane_gap, ramped_rigid_motion)
+
+
+def test_closest_point_on_triangles_matches_dense_sampling():
+    rng = np.random.default_rng(0)
+    k = 200
+    a, b, c = (rng.standard_normal((k, 3)) for _ in range(3))
+    p = 2.0 * rng.standard_normal((k, 3))
+    q, region = closest_point_on_triangles(p, a, b, c)
+    d = np.linalg.norm(p - q, axis=1)
+    # dense barycentric sampling (step 1/200): sampled distance >= exact, within a step's size
+    s = np.linspace(0, 1, 201)
+    u, v = np.meshgrid(s, s)
+    m = u + v <= 1
+    u, v = u[m], v[m]
+    pts = (a[:, None] + (b - a)[:, None] * u[None, :, None] + (c - a)[:, None] * v[None, :, None])
+    dmin = np.linalg.norm(pts - p[:, None], axis=2).min(axis=1)
+    h = 1.0 / 200 * np.maximum(np.linalg.norm(b - a, axis=1), np.linalg.norm(c - a, axis=1))
+    assert np.all(d <= dmin + 1e-12)
+    assert np.all(dmin - d <= 2 * h)
+    assert set(np.unique(region)) >= {0}
+
+
+def test_plane_gap_gradient_and_hessian_by_finite_differences():
+    rng = np.random.default_rng(1)
+    X = rng.standard_normal((8, 12))
+
+    def f(X):
+        return plane_gap(X[:, 0:3], X[:, 3:6], X[:, 6:9], X[:, 9:12])
+
+    g, G, H, n, bc = f(X)
+    h = 1e-6
+    for i in range(12):
+        E = np.zeros(12)
+        E[i] = h
+        gp, Gp, *_ = f(X + E)
+        gm, Gm, *_ = f(X - E)
+        # central differences, h = 1e-6 on O(1) geometry: error ~1e-10; tolerance 1e-7
+        assert np.allclose((gp - gm) / (2 * h), G[:, i], atol=1e-7)
+        assert np.allclose((Gp - Gm) / (2 * h), H[:, :, i], atol=1e-7)
+    # the projection point reconstructs the node: x_s - g n = x_1 + xi a + eta b
+    proj = X[:, 3:6] + bc[:, :1] * (X[:, 6:9] - X[:, 3:6]) + bc[:, 1:] * (X[:, 9:12] - X[:, 3:6])
+    assert np.allclose(X[:, 0:3] - g[:, None] * n, proj, atol=1e-12)
+
+
+def _sphere(r=1.0, n=3):
+    """Icosphere-like closed surface (outward normals) by subdividing an octahedron."""
+    V = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    F = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+                  [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+    for _ in range(n):
+        verts = list(V)
+        cache = {}
+
+        def mid(i, j):
+            key = (min(i, j), max(i, j))
+            if key not in cache:
+                m = (verts[i] + verts[j]) / 2
+                verts.append(m / np.linalg.norm(m))
+                cache[key] = len(verts) - 1
+            return cache[key]
+        newF = []
+        for a, b, c in F:
+            ab, bc_, ca = mid(a, b), mid(b, c), mid(c, a)
+            newF += [[a, ab, ca], [ab, b, bc_], [ca, bc_, c], [ab, bc_, ca]]
+        V, F = np.array(verts), np.array(newF)
+    return r * V, F
+
+
+def test_signed_distance_to_closed_surface_has_the_right_sign():
+    V, F = _sphere(2.0, 3)
+    surf = TriangleSurface(V, F)
+    rng = np.random.default_rng(2)
+    d = rng.standard_normal((300, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = rng.uniform(0.5, 3.5, 300)
+    pts = d * r[:, None]
+    term = RigidSurfaceContact(np.vstack([pts]), V, F, slave_nodes=np.arange(300),
+                               search_radius=10.0)
+    g, n, reg, _ = term.gaps(pts, 1.0)
+    # the polyhedron lies inside the sphere of radius 2 and outside the one of radius
+    # 2 cos(angle of the finest facet) ~ 1.98: the sign is exact away from that thin shell
+    far = np.abs(r - 2.0) > 0.05
+    assert np.all(np.sign(g[far]) == np.sign(r[far] - 2.0))
+    assert np.allclose(np.abs(g[far]), np.abs(r[far] - 2.0), atol=0.05)
+
+
+def _fd_check(term, x, load, h=1e-6):
+    """Force = dE/dx and tangent = df/dx by central differences on every dof."""
+    f, K = term.assemble(x, load)
+    K = K.toarray()
+    n = x.size
+    for i in range(n):
+        dx = np.zeros(n)
+        dx[i] = h
+        xp, xm = x + dx.reshape(x.shape), x - dx.reshape(x.shape)
+        fe = (term.energy(xp, load) - term.energy(xm, load)) / (2 * h)
+        fp, _ = term.assemble(xp, load)
+        fm, _ = term.assemble(xm, load)
+        # h = 1e-6 on forces of order 1-100 mN: FD error ~1e-8; tolerance 1e-5 (relative)
+        scale = max(1.0, np.abs(f).max())
+        assert fe == pytest.approx(f[i], abs=1e-5 * scale)
+        assert np.allclose((fp - fm) / (2 * h), K[:, i], atol=1e-5 * max(1.0, np.abs(K).max()))
+    return f, K
+
+
+@pytest.mark.parametrize("bilateral", [False, True])
+def test_rigid_contact_force_and_tangent_are_consistent(bilateral):
+    V, F = _sphere(2.0, 2)
+    rng = np.random.default_rng(3)
+    d = rng.standard_normal((6, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    x = d * rng.uniform(1.7, 2.1, 6)[:, None]
+    T = np.eye(4)
+    T[:3, :3] = ramped_rigid_motion(np.block([[np.eye(3), np.zeros((3, 1))],
+                                              [np.zeros((1, 3)), 1]]), 1)[:3, :3]
+    motion = np.eye(4)
+    motion[:3, 3] = [0.1, -0.05, 0.02]
+    term = RigidSurfaceContact(x, V, F, slave_nodes=np.arange(6),
+                               slave_areas=rng.uniform(0.5, 1.5, 6), motion=motion,
+                               penalty=30.0, bilateral=bilateral)
+    term.multipliers[:] = rng.uniform(0, 3, 6)
+    f, K = _fd_check(term, x, 0.7)
+    assert np.abs(f).max() > 0
+    assert np.allclose(K, K.T)
+
+
+def test_deformable_contact_force_and_tangent_are_consistent():
+    """Two facing wavy patches: slaves of each against the other's triangles."""
+    nx = 4
+    s = np.linspace(0, 3, nx)
+    gx, gy = np.meshgrid(s, s, indexing="ij")
+    bottom = np.stack([gx.ravel(), gy.ravel(), 0.1 * np.sin(gx + gy).ravel()], axis=1)
+    top = bottom.copy()
+    top[:, :2] += [0.37, 0.21]  # off the quads diagonals
+    top[:, 2] = -0.05 + 0.1 * np.cos(gx - gy).ravel()
+    x = np.vstack([bottom, top])
+    q = np.array([[i * nx + j, (i + 1) * nx + j, (i + 1) * nx + j + 1, i * nx + j + 1]
+                  for i in range(nx - 1) for j in range(nx - 1)])
+    quads_bottom = q                                   # normal +z
+    quads_top = q[:, ::-1] + nx * nx                   # normal -z
+    term = SurfaceContact(x, quads_bottom, quads_top, penalty=50.0, search_radius=1.0)
+    for ps in term.passes:
+        ps.multipliers[:] = 0.3
+    f, K = _fd_check(term, x, 1.0)
+    assert np.abs(f).max() > 0
+    # action and reaction: contact forces sum to zero
+    assert np.allclose(f.reshape(-1, 3).sum(axis=0), 0.0, atol=1e-10)

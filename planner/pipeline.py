@@ -1,0 +1,541 @@
+"""From a case folder and its plan to a predicted face: the faceplan prediction pipeline.
+
+Stages (Payan et al., "Facial soft-tissue prediction in orthognathic surgery" method): load the
+case and the plan -> Mesh-Match-and-Repair of the generic face mesh onto the patient (cached by
+input hash, reused on re-runs) -> assignment of the attachment nodes to the patient's bone
+segments (`planner.segments`) -> the plan's rigid segment movements imposed on the attached nodes
+(tied, or sliding on the bone as an option), teeth moved with their segments, muscles at the
+plan's activations, lip contact on -> nonlinear FE solve (`facemodel.simulation.simulate`, load
+steps with a convergence log) -> outputs written into a temporary folder and moved into place
+only when complete (`planner.atomic`): `prediction.vtu`, `skin_predicted.{stl,ply,vtp}`, renders,
+`report.json` and `report.html`. Solver failures become `SolveError` (exit 3), bad input
+`InputError` (exit 2).
+"""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from planner import report as rep
+from planner.errors import InputError, SolveError
+from planner.plan import EFFECTS, Plan, check_against_bones, load_plan
+from planner.segments import as_trimesh, assign_segments, with_segments
+
+# Effects `--effect NAME=VALUE` can add to a prediction, and how each maps onto the model.
+# sliding: 0/1 (1: every attachment slides on its bone); muscle_tone: resting activation of the
+# perioral muscles in [0, 1]; stiffness: factor on every tissue's stiffness parameters.
+SUPPORTED_EFFECTS = ("sliding", "muscle_tone", "stiffness")
+PERIORAL_MUSCLES = ("orbicularis_oris", "mentalis", "depressor_labii_inferioris",
+                    "depressor_anguli_oris", "levator_labii_superioris", "zygomaticus_major",
+                    "risorius", "buccinator")
+
+
+def parse_effects(items: list[str] | None) -> dict[str, float]:
+    """`NAME=VALUE` strings (VALUE defaults to 1) -> {name: value}; InputError if unknown."""
+    out = {}
+    for item in items or []:
+        name, _, value = item.partition("=")
+        name = name.strip()
+        if name not in EFFECTS:
+            raise InputError(f"unknown effect {name!r} (known: {', '.join(EFFECTS)})", field="--effect")
+        if name not in SUPPORTED_EFFECTS:
+            raise InputError(f"effect {name!r} is not available in predictions yet "
+                             f"(available: {', '.join(SUPPORTED_EFFECTS)})", field="--effect")
+        try:
+            v = float(value) if value.strip() else 1.0
+        except ValueError:
+            raise InputError(f"effect {name}: value must be a number, got {value!r}", field="--effect") from None
+        if not np.isfinite(v):
+            raise InputError(f"effect {name}: value must be finite", field="--effect")
+        if name in ("sliding", "muscle_tone") and not 0.0 <= v <= 1.0:
+            raise InputError(f"effect {name}: value must be in [0, 1], got {v:g}", field="--effect")
+        if name == "stiffness" and not 0.1 <= v <= 10.0:
+            raise InputError(f"effect stiffness: factor must be in [0.1, 10], got {v:g}", field="--effect")
+        out[name] = v
+    return out
+
+
+class Progress:
+    """Stage timings and a one-line-per-event progress display on stderr."""
+
+    def __init__(self, echo: bool | Callable[[str], None] = True):
+        self.timings: dict[str, float] = {}
+        self.log: list[str] = []
+        self._echo = echo
+        self._t0 = time.perf_counter()
+
+    def say(self, message: str) -> None:
+        line = f"[{time.perf_counter() - self._t0:6.1f} s] {message}"
+        self.log.append(line)
+        if callable(self._echo):
+            self._echo(line)
+        elif self._echo:
+            print(line, file=sys.stderr, flush=True)
+
+    def stage(self, name: str):
+        progress = self
+
+        class _Stage:
+            def __enter__(self):
+                progress.say(f"{name} ...")
+                self.t = time.perf_counter()
+                return self
+
+            def __exit__(self, exc_type, exc, tb):
+                dt = time.perf_counter() - self.t
+                progress.timings[name] = progress.timings.get(name, 0.0) + dt
+                if exc_type is None:
+                    progress.say(f"{name} done in {dt:.2f} s")
+                return False
+
+        return _Stage()
+
+
+@dataclass
+class Prediction:
+    """A solved prediction on a patient model."""
+
+    model: object                         # patient FaceModel with attachment sets per segment
+    plan: Plan
+    displacement: np.ndarray              # (n, 3) mm
+    stress: np.ndarray | None             # (m, 3, 3) Cauchy stress per element, kPa, if given
+    solver: dict
+    bone_vertices: dict[str, np.ndarray] = field(default_factory=dict)
+    assignment: dict = field(default_factory=dict)
+    effects: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def predicted_nodes(self) -> np.ndarray:
+        return np.asarray(self.model.nodes, float) + self.displacement
+
+
+# --------------------------------------------------------------------------- model options
+
+def default_materials(model, overrides: dict[str, dict[str, float]] | None = None, stiffness: float = 1.0):
+    """The per-label materials table with the plan's overrides and a stiffness factor, or None
+    when neither changes anything (the simulation then uses its own defaults)."""
+    if not overrides and stiffness == 1.0:
+        return None
+    from facemodel import materials as fm_materials
+
+    table = _materials_table(fm_materials, model)
+    out = {}
+    for label, mat in table.items():
+        params = {k: v for k, v in _params_of(mat).items()}
+        for k, v in (overrides or {}).get(label, {}).items():
+            if k not in params:
+                raise InputError(f"material {label!r} has no parameter {k!r} "
+                                 f"(parameters: {', '.join(sorted(params))})", field=f"model.materials.{label}")
+            params[k] = v
+        if stiffness != 1.0:
+            params = {k: (v * stiffness if _is_stiffness(k) else v) for k, v in params.items()}
+        out[label] = _rebuild(mat, params)
+    for label in overrides or {}:
+        if label not in table:
+            raise InputError(f"unknown tissue label {label!r} (labels: {', '.join(table)})",
+                             field=f"model.materials.{label}")
+    return out
+
+
+def _materials_table(fm_materials, model) -> dict:
+    for name in ("default_materials", "materials_table", "default_table"):
+        fn = getattr(fm_materials, name, None)
+        if callable(fn):
+            try:
+                return dict(fn(model))
+            except TypeError:
+                return dict(fn())
+    for name in ("DEFAULT_MATERIALS", "MATERIALS", "TABLE"):
+        if isinstance(getattr(fm_materials, name, None), dict):
+            return dict(getattr(fm_materials, name))
+    raise InputError("material overrides are not available: facemodel.materials has no table")
+
+
+def _params_of(mat) -> dict[str, float]:
+    p = getattr(mat, "parameters", None)
+    if isinstance(p, dict):
+        return {k: float(v[0] if isinstance(v, tuple) else v) for k, v in p.items()}
+    if dataclasses.is_dataclass(mat):
+        return {f.name: float(getattr(mat, f.name)) for f in dataclasses.fields(mat)
+                if isinstance(getattr(mat, f.name), (int, float))}
+    raise InputError(f"cannot read the parameters of material {mat!r}")
+
+
+def _is_stiffness(name: str) -> bool:
+    # Yeoh C10/C20/C30, shear/bulk moduli, active stress: all scale; stretches and flags do not.
+    n = name.lower()
+    return n.startswith(("c1", "c2", "c3", "mu", "k", "bulk", "shear", "t_max", "tmax", "e"))
+
+
+def _rebuild(mat, params: dict[str, float]):
+    if dataclasses.is_dataclass(mat):
+        fields = {f.name for f in dataclasses.fields(mat)}
+        return dataclasses.replace(mat, **{k: v for k, v in params.items() if k in fields})
+    try:
+        return type(mat)(**params)
+    except TypeError as exc:
+        raise InputError(f"cannot override parameters of {type(mat).__name__}: {exc}") from None
+
+
+def _sliding_sets(model, segments: tuple[str, ...]) -> tuple[str, ...]:
+    return tuple(s for s in segments if len(model.node_sets.get("attach_" + s, ())) > 0)
+
+
+# --------------------------------------------------------------------------- solve
+
+def _call_simulate(model, motions, *, activations, contact, sliding, materials, progress: Progress):
+    from facemodel.simulation import simulate
+
+    kwargs = dict(activations=activations, contact=contact, sliding=sliding, materials=materials)
+    sig = inspect.signature(simulate)
+    accepts_var = any(p.kind is p.VAR_KEYWORD for p in sig.parameters.values())
+    for name in ("progress", "callback", "log", "verbose"):
+        if name in sig.parameters or accepts_var:
+            if name in ("progress", "callback", "log"):
+                kwargs[name] = progress.say
+            else:
+                kwargs[name] = False
+            break
+    kwargs = {k: v for k, v in kwargs.items() if k in sig.parameters or accepts_var}
+    return simulate(model, motions, **kwargs)
+
+
+def _unpack_result(result, model) -> tuple[np.ndarray, np.ndarray | None, dict]:
+    """(displacement (n,3), Cauchy stress per element or None, solver statistics)."""
+    n = len(model.nodes)
+    if isinstance(result, tuple):
+        result = {"displacement": result[0], **(result[1] if len(result) > 1 and isinstance(result[1], dict) else {})}
+    get = (lambda k: result.get(k)) if isinstance(result, dict) else (lambda k: getattr(result, k, None))
+    u = None
+    for k in ("displacement", "u", "displacements"):
+        if get(k) is not None:
+            u = np.asarray(get(k), float).reshape(n, 3)
+            break
+    if u is None:
+        for k in ("x", "nodes", "positions", "deformed_nodes"):
+            if get(k) is not None:
+                u = np.asarray(get(k), float).reshape(n, 3) - np.asarray(model.nodes, float)
+                break
+    if u is None:
+        raise SolveError("the simulation returned no displacement field")
+    stress = None
+    for k in ("cauchy", "stress", "cauchy_stress", "sigma"):
+        s = get(k)
+        if s is not None:
+            s = np.asarray(s, float)
+            if s.shape[-2:] == (3, 3):
+                stress = s.reshape(-1, *s.shape[-2:]) if s.ndim > 3 else s
+                if stress.ndim == 4:
+                    stress = stress.mean(axis=1)
+            break
+    stats = {}
+    for k in ("stats", "statistics", "info", "solver", "log", "history", "convergence"):
+        v = get(k)
+        if v is not None:
+            stats[k] = _jsonable(v)
+    for k in ("converged", "iterations", "steps", "n_steps", "newton_iterations", "time_s", "residual"):
+        v = get(k)
+        if v is not None:
+            stats[k] = _jsonable(v)
+    return u, stress, stats
+
+
+def _jsonable(v, depth=0):
+    if depth > 4:
+        return str(v)
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x, depth + 1) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x, depth + 1) for x in v][:1000]
+    if isinstance(v, np.ndarray):
+        return _jsonable(v.tolist(), depth + 1) if v.size <= 1000 else f"array{v.shape}"
+    if isinstance(v, (np.floating, np.integer, np.bool_)):
+        return v.item()
+    if isinstance(v, (int, float, str, bool)) or v is None:
+        return v
+    if dataclasses.is_dataclass(v):
+        return _jsonable(dataclasses.asdict(v), depth + 1)
+    return str(v)
+
+
+def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[str, float] | None = None,
+               progress: Progress | None = None) -> Prediction:
+    """Assign attachments, impose the plan's movements and solve. `bones`: surfaces by name."""
+    progress = progress or Progress(echo=False)
+    effects = dict(plan.model.effects, **(effects or {}))
+    bone_vertices = {k: np.asarray(as_trimesh(v).vertices, float) for k, v in (bones or {}).items()}
+    assignment = {}
+    if bones:
+        with progress.stage("segments"):
+            check_against_bones(plan, bone_vertices)
+            a = assign_segments(model, bones, plan)
+            model = with_segments(model, a)
+            assignment = a.summary()
+            for seg, s in assignment.items():
+                progress.say(f"  {seg}: {s['nodes']} attachment nodes (median {s['median_distance_mm']} mm from bone)")
+    sliding = tuple(plan.model.sliding)
+    if effects.get("sliding", 0.0) >= 0.5:
+        sliding = tuple(model.segments)
+    sliding = _sliding_sets(model, sliding)
+    activations = dict(plan.muscles)
+    tone = effects.get("muscle_tone", 0.0)
+    if tone > 0:
+        present = set(getattr(model, "label_names", PERIORAL_MUSCLES))
+        for m in PERIORAL_MUSCLES[:3]:
+            if m in present:
+                activations[m] = max(activations.get(m, 0.0), tone)
+    materials = default_materials(model, plan.model.materials, effects.get("stiffness", 1.0))
+    motions = plan.motions()
+    with progress.stage("solve"):
+        if not motions and not any(a > 0 for a in activations.values()):
+            progress.say("  nothing moves: the prediction is the pre-op face")
+            u, stress, stats = np.zeros_like(np.asarray(model.nodes, float)), None, {"converged": True, "steps": 0}
+        else:
+            try:
+                result = _call_simulate(model, motions, activations=activations, contact=plan.model.contact,
+                                        sliding=sliding, materials=materials, progress=progress)
+            except (InputError, SolveError):
+                raise
+            except Exception as exc:  # the solver's own exceptions: convergence, inversion, ...
+                where = getattr(exc, "where", None) or getattr(exc, "step", None)
+                raise SolveError(f"{type(exc).__name__}: {exc}" + (f" (at {where})" if where else "")) from exc
+            u, stress, stats = _unpack_result(result, model)
+    if not np.all(np.isfinite(u)):
+        raise SolveError("the solution contains NaN or infinite displacements")
+    bad = rep.inverted_elements(np.asarray(model.nodes, float) + u, model.hexes)
+    if bad.size:
+        raise SolveError(f"{bad.size} elements are inverted in the predicted face "
+                         f"(first: {bad[:5].tolist()}); the movement is too large for this mesh")
+    stats["sliding"] = list(sliding)
+    stats["activations"] = activations
+    return Prediction(model, plan, u, stress, stats, bone_vertices, assignment, effects)
+
+
+# --------------------------------------------------------------------------- outputs
+
+def skin_surface(model, positions: np.ndarray | None = None):
+    """Skin triangles from the model's skin quads: (vertices, faces, node ids of the vertices)."""
+    quads = np.asarray(model.facet_sets["skin"], int)
+    ids, inverse = np.unique(quads, return_inverse=True)
+    local = inverse.reshape(quads.shape)
+    tris = np.concatenate([local[:, [0, 1, 2]], local[:, [0, 2, 3]]])
+    x = np.asarray(model.nodes if positions is None else positions, float)[ids]
+    return x, tris, ids
+
+
+def region_of_nodes(model, ids: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Per skin vertex its region index into the returned names (-1 for none)."""
+    names = list(model.regions)
+    region = np.full(len(ids), -1, dtype=np.int32)
+    pos = {int(n): i for i, n in enumerate(ids)}
+    # Smaller regions first so that a node in two regions gets the more specific one.
+    for r in sorted(range(len(names)), key=lambda r: -len(model.regions[names[r]])):
+        for n in np.asarray(model.regions[names[r]], int):
+            i = pos.get(int(n))
+            if i is not None:
+                region[i] = r
+    return region, names
+
+
+def _von_mises(s: np.ndarray) -> np.ndarray:
+    dev = s - np.trace(s, axis1=-2, axis2=-1)[..., None, None] * np.eye(3) / 3.0
+    return np.sqrt(1.5 * np.einsum("...ij,...ij->...", dev, dev))
+
+
+def write_volume(pred: Prediction, path: Path) -> None:
+    import pyvista as pv
+
+    model = pred.model
+    hexes = np.asarray(model.hexes, np.int64)
+    grid = pv.UnstructuredGrid({pv.CellType.HEXAHEDRON: hexes}, pred.predicted_nodes)
+    grid.point_data["displacement"] = pred.displacement
+    grid.point_data["displacement_magnitude"] = np.linalg.norm(pred.displacement, axis=1)
+    grid.cell_data["label"] = np.asarray(model.labels, np.int32)
+    if pred.stress is not None and len(pred.stress) == len(hexes):
+        grid.cell_data["stress"] = pred.stress.reshape(len(hexes), 9)
+        grid.cell_data["von_mises"] = _von_mises(pred.stress)
+    grid.field_data["label_names"] = np.array(list(model.label_names))
+    grid.save(str(path))
+
+
+def write_skin(pred: Prediction, out: Path) -> dict:
+    import pyvista as pv
+    import trimesh
+
+    model = pred.model
+    x_pre, tris, ids = skin_surface(model)
+    x_post = pred.predicted_nodes[ids]
+    mesh = trimesh.Trimesh(x_post, tris, process=False)
+    mesh.export(out / "skin_predicted.stl")
+    mesh.export(out / "skin_predicted.ply")
+    region, names = region_of_nodes(model, ids)
+    cells = np.hstack([np.full((len(tris), 1), 3), tris]).ravel()
+    poly = pv.PolyData(x_post, cells)
+    poly.point_data["region"] = region
+    poly.point_data["node_id"] = ids.astype(np.int64)
+    poly.point_data["displacement"] = pred.displacement[ids]
+    poly.point_data["displacement_magnitude"] = np.linalg.norm(pred.displacement[ids], axis=1)
+    poly.field_data["region_names"] = np.array(names)
+    poly.save(str(out / "skin_predicted.vtp"))
+    (out / "region_names.json").write_text(json.dumps(names))
+    return {"pre": (x_pre, tris), "post": (x_post, tris), "magnitude": poly.point_data["displacement_magnitude"]}
+
+
+def write_images(surfaces: dict, images: Path) -> list[tuple[Path, str]]:
+    from planner import render
+
+    images.mkdir(parents=True, exist_ok=True)
+    out = []
+    for name, caption in (("preop", "pre-op"), ("predicted", "predicted")):
+        mesh = surfaces["pre"] if name == "preop" else surfaces["post"]
+        for view, path in render.render_views(mesh, images / name, title=f"{caption} face").items():
+            out.append((path, f"{caption}, {view.replace('_', '-')}"))
+    mag = np.asarray(surfaces["magnitude"], float)
+    top = max(float(mag.max()), 1e-6)
+    for view, path in render.render_views(surfaces["post"], images / "displacement", scalars=mag,
+                                          cmap="viridis", clim=(0.0, top), scalar_bar_title="mm",
+                                          title="soft-tissue displacement (mm)").items():
+        out.append((path, f"displacement magnitude (mm), {view.replace('_', '-')}"))
+    for view, path in render.render_overlay([surfaces["pre"], surfaces["post"]], images / "overlay",
+                                            labels=["pre-op", "predicted"], views=("profile",),
+                                            title="profile: pre-op (grey) vs predicted").items():
+        out.append((path, f"overlay pre-op vs predicted, {view}"))
+    return out
+
+
+def build_report(pred: Prediction, progress: Progress, inputs: dict, registration: dict | None) -> dict:
+    model, u = pred.model, pred.displacement
+    jac = rep.corner_jacobians(pred.predicted_nodes, model.hexes)
+    ref = rep.corner_jacobians(model.nodes, model.hexes)
+    return {
+        "faceplan": 1,
+        "inputs": inputs,
+        "plan": pred.plan.as_dict(),
+        "effects": pred.effects,
+        "segments": rep.segment_movements(pred.plan, pred.bone_vertices),
+        "attachment_assignment": pred.assignment,
+        "regions": rep.region_movements(model, u),
+        "landmarks": rep.landmark_movements(model, u, pred.plan, pred.bone_vertices),
+        "landmarks_predicted": rep.predicted_landmarks(model, u),
+        "soft_tissue": {"max_displacement_mm": round(float(np.linalg.norm(u, axis=1).max()), 4),
+                        "n_nodes": int(len(u)), "n_elements": int(len(model.hexes))},
+        "mesh_quality": {"inverted_elements": int((jac <= 0).any(axis=1).sum()),
+                         "min_corner_jacobian_ratio": round(float((jac / ref).min()), 4)},
+        "registration": registration or {},
+        "solver": pred.solver,
+        "timings_s": {k: round(v, 3) for k, v in progress.timings.items()},
+        "log": progress.log[-200:],
+    }
+
+
+def write_outputs(pred: Prediction, out_dir: Path, progress: Progress, inputs: dict,
+                  registration: dict | None = None, render: bool = True) -> Path:
+    """Write every output into `out_dir` atomically (whole or not at all)."""
+    from planner.atomic import atomic_output_dir
+    from planner.html_report import write_html_report
+
+    out_dir = Path(out_dir)
+    t_start = time.perf_counter()
+    with atomic_output_dir(out_dir) as tmp:
+        with progress.stage("write meshes"):
+            write_volume(pred, tmp / "prediction.vtu")
+            surfaces = write_skin(pred, tmp)
+        images = []
+        if render:
+            with progress.stage("render"):
+                images = write_images(surfaces, tmp / "images")
+        progress.timings["outputs"] = time.perf_counter() - t_start
+        progress.timings["total"] = time.perf_counter() - progress._t0
+        report = build_report(pred, progress, inputs, registration)
+        (tmp / "report.json").write_text(json.dumps(report, indent=2))
+        tables = {"Landmarks (soft tissue, mm)": (
+            ["landmark", "dx", "dy (AP)", "dz", "|d|", "soft/hard AP ratio"],
+            [[n, *e["displacement_mm"], e["magnitude_mm"], e.get("soft_to_hard_ratio_ap", "")]
+             for n, e in report["landmarks"].items()])}
+        write_html_report(tmp / "report.html", "faceplan prediction",
+                          {k: v for k, v in report.items() if k != "log"},
+                          images=[(p, c) for p, c in images], tables=tables)
+        # Images are referenced from report.html by embedding; keep the PNGs alongside too.
+    progress.say(f"prediction written to {out_dir}")
+    return out_dir
+
+
+# --------------------------------------------------------------------------- case level
+
+def _file_digest(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    p = Path(path)
+    files = sorted(q for q in p.rglob("*") if q.is_file()) if p.is_dir() else [p]
+    for q in files:
+        h.update(q.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def register_case(case, resolution: str, progress: Progress):
+    """The generic model of `resolution` registered onto the case (Mesh-Match-and-Repair; the
+    registration caches its result by input hash, so a re-run reuses it)."""
+    import generic_mesh
+    import registration
+
+    generic = generic_mesh.load(resolution)
+    try:
+        patient, reg_report = registration.mesh_match_and_repair(
+            generic, case.skin, case.bones, landmarks=case.landmarks or None)
+    except (InputError, SolveError):
+        raise
+    except Exception as exc:
+        from registration import errors as reg_errors
+
+        if isinstance(exc, tuple(c for c in vars(reg_errors).values()
+                                 if isinstance(c, type) and issubclass(c, Exception))):
+            raise InputError(f"registration of the generic face onto the patient failed: {exc}",
+                             file=str(case.root), field="registration") from exc
+        raise
+    summary = _jsonable(reg_report) if reg_report is not None else {}
+    if isinstance(summary, dict):
+        cached = summary.get("cached", summary.get("cache_hit"))
+        if cached is not None:
+            progress.say(f"  registration {'reused from cache' if cached else 'computed'}")
+    return patient, summary
+
+
+def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | None = None,
+                 effects: dict[str, float] | None = None, max_translation_mm: float | None = None,
+                 max_rotation_deg: float | None = None, render: bool = True,
+                 echo: bool | Callable[[str], None] = True) -> Path:
+    """Run the whole prediction for a case folder; return the output folder."""
+    from planner.case import load_case
+
+    progress = Progress(echo)
+    with progress.stage("load case"):
+        case = load_case(case_dir)
+        plan_path = case.require_plan()
+        plan = load_plan(plan_path, max_translation_mm=max_translation_mm, max_rotation_deg=max_rotation_deg)
+        bone_vertices = {k: np.asarray(v.vertices, float) for k, v in case.bones.items()}
+        check_against_bones(plan, bone_vertices)
+        res = resolution or plan.model.resolution
+        progress.say(f"  case {case.info.id}: {len(case.bones)} bone surface(s), plan moves "
+                     f"{', '.join(plan.motions()) or 'nothing'}; resolution {res}")
+    with progress.stage("registration"):
+        patient, reg = register_case(case, res, progress)
+    pred = solve_plan(patient, plan, case.bones, effects=effects, progress=progress)
+    inputs = {
+        "case": str(Path(case_dir).resolve()), "case_id": case.info.id,
+        "skin": str(case.skin_path) if case.skin_path else None,
+        "bones": sorted(case.bones), "landmarks": sorted(case.landmarks),
+        "plan": str(plan_path), "resolution": res,
+        "sha256": {"plan": _file_digest(plan_path),
+                   **({"skin": _file_digest(case.skin_path)} if case.skin_path else {})},
+    }
+    out_dir = Path(out) if out is not None else Path(case_dir) / "predict"
+    return write_outputs(pred, out_dir, progress, inputs, reg, render=render)

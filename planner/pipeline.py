@@ -293,21 +293,25 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
             if m in present:
                 activations[m] = max(activations.get(m, 0.0), tone)
     materials = default_materials(model, plan.model.materials, effects.get("stiffness", 1.0))
-    motions = plan.motions()
+    from solver import errors as solver_errors
+
+    motions = plan.motions(include_identity=True)
     with progress.stage("solve"):
-        if not motions and not any(a > 0 for a in activations.values()):
-            progress.say("  nothing moves: the prediction is the pre-op face")
-            u, stress, stats = np.zeros_like(np.asarray(model.nodes, float)), None, {"converged": True, "steps": 0}
-        else:
-            try:
-                result = _call_simulate(model, motions, activations=activations, contact=plan.model.contact,
-                                        sliding=sliding, materials=materials, progress=progress)
-            except (InputError, SolveError):
-                raise
-            except Exception as exc:  # the solver's own exceptions: convergence, inversion, ...
-                where = getattr(exc, "where", None) or getattr(exc, "step", None)
-                raise SolveError(f"{type(exc).__name__}: {exc}" + (f" (at {where})" if where else "")) from exc
-            u, stress, stats = _unpack_result(result, model)
+        try:
+            result = _call_simulate(model, motions, activations=activations, contact=plan.model.contact,
+                                    sliding=sliding, materials=materials, progress=progress)
+        except solver_errors.SolveFailed as exc:
+            label = ""
+            if exc.worst_element is not None and 0 <= exc.worst_element < len(model.labels):
+                label = f", worst element {exc.worst_element} ({model.label_names[model.labels[exc.worst_element]]})"
+            raise SolveError(f"Newton failed at load step {exc.step} (load {exc.load:.3g}, last converged "
+                             f"{exc.last_converged_load:.3g}{label}): {exc}") from exc
+        except solver_errors.MaterialError as exc:
+            raise InputError(f"material: {exc}", file=plan.path,
+                             field=f"model.materials ({exc.parameter})" if exc.parameter else "model.materials") from exc
+        except solver_errors.SolverError as exc:
+            raise SolveError(f"{type(exc).__name__}: {exc}") from exc
+        u, stress, stats = _unpack_result(result, model)
     if not np.all(np.isfinite(u)):
         raise SolveError("the solution contains NaN or infinite displacements")
     bad = rep.inverted_elements(np.asarray(model.nodes, float) + u, model.hexes)
@@ -351,19 +355,22 @@ def _von_mises(s: np.ndarray) -> np.ndarray:
 
 
 def write_volume(pred: Prediction, path: Path) -> None:
-    import pyvista as pv
+    """`prediction.vtu` (meshio): predicted node positions, displacement, labels, stress.
+
+    Label names are not stored in the VTU (string arrays are not portable across VTU readers);
+    they are in report.json under `label_names`, indexed by the cell data `label`."""
+    import meshio
 
     model = pred.model
     hexes = np.asarray(model.hexes, np.int64)
-    grid = pv.UnstructuredGrid({pv.CellType.HEXAHEDRON: hexes}, pred.predicted_nodes)
-    grid.point_data["displacement"] = pred.displacement
-    grid.point_data["displacement_magnitude"] = np.linalg.norm(pred.displacement, axis=1)
-    grid.cell_data["label"] = np.asarray(model.labels, np.int32)
+    point_data = {"displacement": pred.displacement,
+                  "displacement_magnitude": np.linalg.norm(pred.displacement, axis=1)}
+    cell_data = {"label": [np.asarray(model.labels, np.int32)]}
     if pred.stress is not None and len(pred.stress) == len(hexes):
-        grid.cell_data["stress"] = pred.stress.reshape(len(hexes), 9)
-        grid.cell_data["von_mises"] = _von_mises(pred.stress)
-    grid.field_data["label_names"] = np.array(list(model.label_names))
-    grid.save(str(path))
+        cell_data["stress"] = [pred.stress.reshape(len(hexes), 9)]
+        cell_data["von_mises"] = [_von_mises(pred.stress)]
+    meshio.Mesh(pred.predicted_nodes, [("hexahedron", hexes)], point_data=point_data,
+                cell_data=cell_data).write(path)
 
 
 def write_skin(pred: Prediction, out: Path) -> dict:
@@ -425,6 +432,7 @@ def build_report(pred: Prediction, progress: Progress, inputs: dict, registratio
         "regions": rep.region_movements(model, u),
         "landmarks": rep.landmark_movements(model, u, pred.plan, pred.bone_vertices),
         "landmarks_predicted": rep.predicted_landmarks(model, u),
+        "label_names": list(model.label_names),
         "soft_tissue": {"max_displacement_mm": round(float(np.linalg.norm(u, axis=1).max()), 4),
                         "n_nodes": int(len(u)), "n_elements": int(len(model.hexes))},
         "mesh_quality": {"inverted_elements": int((jac <= 0).any(axis=1).sum()),
@@ -443,6 +451,8 @@ def write_outputs(pred: Prediction, out_dir: Path, progress: Progress, inputs: d
     from planner.html_report import write_html_report
 
     out_dir = Path(out_dir)
+    if not np.all(np.isfinite(pred.displacement)):
+        raise SolveError("the solution contains NaN or infinite displacements; nothing written")
     t_start = time.perf_counter()
     with atomic_output_dir(out_dir) as tmp:
         with progress.stage("write meshes"):
@@ -486,6 +496,7 @@ def register_case(case, resolution: str, progress: Progress):
     registration caches its result by input hash, so a re-run reuses it)."""
     import generic_mesh
     import registration
+    from registration import errors as reg_errors
 
     generic = generic_mesh.load(resolution)
     try:
@@ -493,14 +504,11 @@ def register_case(case, resolution: str, progress: Progress):
             generic, case.skin, case.bones, landmarks=case.landmarks or None)
     except (InputError, SolveError):
         raise
-    except Exception as exc:
-        from registration import errors as reg_errors
-
-        if isinstance(exc, tuple(c for c in vars(reg_errors).values()
-                                 if isinstance(c, type) and issubclass(c, Exception))):
-            raise InputError(f"registration of the generic face onto the patient failed: {exc}",
-                             file=str(case.root), field="registration") from exc
-        raise
+    except reg_errors.RegistrationInputError as exc:
+        raise InputError(f"registration: {exc}", file=exc.file or str(case.root),
+                         field=exc.field or "registration") from exc
+    except reg_errors.RegistrationFailure as exc:
+        raise SolveError(f"registration of the generic face onto the patient failed: {exc}") from exc
     summary = _jsonable(reg_report) if reg_report is not None else {}
     if isinstance(summary, dict):
         cached = summary.get("cached", summary.get("cache_hit"))

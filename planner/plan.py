@@ -105,9 +105,11 @@ class Plan:
     max_translation_mm: float = DEFAULT_MAX_TRANSLATION_MM
     max_rotation_deg: float = DEFAULT_MAX_ROTATION_DEG
 
-    def motions(self) -> dict[str, np.ndarray]:
-        """Segment -> 4x4 RAS movement for every segment the plan moves (identity ones left out)."""
-        return {n: s.matrix for n, s in self.segments.items() if not np.allclose(s.matrix, np.eye(4))}
+    def motions(self, include_identity: bool = False) -> dict[str, np.ndarray]:
+        """Segment -> 4x4 RAS movement for every segment the plan moves (with
+        `include_identity`, also the segments listed with a zero movement)."""
+        return {n: s.matrix for n, s in self.segments.items()
+                if include_identity or not np.allclose(s.matrix, np.eye(4))}
 
     def as_dict(self) -> dict[str, Any]:
         """The plan as understood (RAS, matrices), for the report."""

@@ -1,0 +1,191 @@
+"""Prediction versus post-operative scan: superimposition, distances, metrics, landmarks.
+
+The post-op scan is superimposed on the pre-op frame by trimmed point-to-plane ICP on the
+regions surgery leaves untouched (`alignment`), then signed point-to-surface distances are
+measured from every scan vertex to the predicted skin (positive: the real face lies outside the
+prediction, i.e. it is fuller than predicted) and, in reverse, from every prediction vertex to
+the scan (same sign convention). Only distances between existing surfaces count: a point whose
+closest point on the other surface is on that surface's boundary, or farther than the gate, is
+dropped. Statistics are weighted by the area each vertex represents, so that the figures do not
+depend on the scan density (`metrics`). Each scan point takes the region of the nearest corner
+of its closest predicted triangle. Landmarks are located on both surfaces with the same
+anatomical operator (`landmarks`) and their distance is the landmark error.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from planner.compare.alignment import Alignment, align_to_reference, apply
+from planner.compare.distances import TriangleSurface, vertex_areas
+from planner.compare.inputs import Prediction, Surface
+from planner.compare.landmarks import RULES, LandmarkLocator
+from planner.compare.metrics import distance_metrics
+from planner.errors import InputError
+
+__all__ = ["Comparison", "compare_surfaces", "SIGN_CONVENTION"]
+
+SIGN_CONVENTION = ("signed distance = post-op minus prediction along the predicted outward "
+                   "normal: > 0 where the real face is fuller (more outward) than predicted")
+REPORTED_LANDMARKS = ("Sn", "Ls", "Li", "Pog", "Me", "ChL", "ChR", "Prn")
+
+
+@dataclass
+class Comparison:
+    alignment: Alignment
+    scan_vertices: np.ndarray          # aligned into the pre-op frame
+    scan_faces: np.ndarray
+    signed: np.ndarray                 # (n_scan,) NaN where dropped
+    region: np.ndarray                 # (n_scan,) region index, -1 where dropped
+    reverse_signed: np.ndarray         # (n_pred,) NaN where dropped
+    prediction: Prediction
+    metrics: dict
+    metrics_reverse: dict
+    landmarks: dict
+    warnings: list[str] = field(default_factory=list)
+
+    def report(self) -> dict:
+        return {
+            "alignment": self.alignment.to_dict(),
+            "metrics": self.metrics,
+            "metrics_reverse": self.metrics_reverse,
+            "sign_convention": SIGN_CONVENTION,
+            "region_names": list(self.prediction.region_names),
+            "unoperated_regions": list(self.prediction.unoperated_regions),
+            "warnings": list(self.warnings),
+        }
+
+
+def _region_metrics(signed, weights, region, names) -> dict:
+    out = {}
+    for k, name in enumerate(names):
+        sel = region == k
+        out[name] = distance_metrics(signed[sel], weights[sel])
+    return out
+
+
+def _densified(vertices: np.ndarray, faces: np.ndarray, centres: list[np.ndarray], radius: float,
+               max_edge: float = 0.8) -> np.ndarray:
+    """Vertices of the surface near `centres`, subdivided to edges <= max_edge mm."""
+    import trimesh.remesh
+
+    if not centres:
+        return vertices
+    c = np.asarray(centres)
+    near_v = np.min(np.linalg.norm(vertices[:, None, :] - c[None], axis=2), axis=1) < radius + 4 * max_edge
+    sel = faces[np.any(near_v[faces], axis=1)]
+    if len(sel) == 0:
+        return vertices[near_v]
+    v, _ = trimesh.remesh.subdivide_to_size(vertices, sel, max_edge=max_edge, max_iter=12)
+    return np.asarray(v)
+
+
+def _locate_landmarks(pred: Prediction, pred_surface: TriangleSurface, scan: TriangleSurface,
+                      radius: float = 8.0) -> dict:
+    names = [n for n in REPORTED_LANDMARKS if n in pred.landmarks] + [
+        n for n in pred.landmarks if n in RULES and n not in REPORTED_LANDMARKS]
+    if not names:
+        return {}
+    guesses = [pred.landmarks[n] for n in names]
+    pred_pts = _densified(pred_surface.vertices, pred_surface.faces, guesses, radius)
+    on_pred = LandmarkLocator(pred_pts, pred_surface.vertices[pred_surface.vertex_on_boundary], radius=radius)
+    found = {}
+    for name, guess in zip(names, guesses):
+        p = on_pred.locate(name, guess)
+        if p is not None:
+            found[name] = p
+    if not found:
+        return {}
+    scan_pts = _densified(scan.vertices, scan.faces, list(found.values()), radius)
+    on_scan = LandmarkLocator(scan_pts, scan.vertices[scan.vertex_on_boundary], radius=radius)
+    out = {}
+    for name, p in found.items():
+        q = on_scan.locate(name, p)
+        if q is None:
+            continue
+        out[name] = {
+            "error_mm": float(np.linalg.norm(q - p)),
+            "vector_mm": (q - p).tolist(),
+            "predicted": p.tolist(),
+            "postop": q.tolist(),
+        }
+    return out
+
+
+def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: float = 0.9,
+                     align: bool = True, max_residual_mm: float = 3.0) -> Comparison:
+    """Superimpose `scan` on the prediction's unoperated regions and measure the differences."""
+    warnings: list[str] = list(pred.notes)
+    pred_surface = TriangleSurface(pred.vertices, pred.faces)
+    names = pred.region_names
+    # a face's outward normals point away from the head's inside, which lies behind the
+    # centroid of the face surface
+    centre = pred.vertices.mean(axis=0)
+    outward = np.sum(pred_surface.face_normals * (pred.vertices[pred.faces].mean(axis=1) - centre))
+    if outward < 0:
+        raise InputError("the predicted skin's normals point inwards (flipped triangle winding)",
+                         file=str(pred.path))
+    unop_ids = [names.index(n) for n in pred.unoperated_regions]
+    if not unop_ids:
+        raise InputError("the prediction lists no unoperated regions to superimpose on "
+                         f"(regions: {', '.join(names)})", file=str(pred.path), field="unoperated_regions")
+    unop_vertex = np.isin(pred.region, unop_ids)
+    unop_faces = np.all(unop_vertex[pred.faces], axis=1)
+
+    scan_pts = scan.vertices
+    if align:
+        alignment = align_to_reference(scan_pts, pred_surface, unop_faces, keep=keep)
+        min_inliers = 50
+        if alignment.n_points < min_inliers:
+            raise InputError(
+                "the post-op scan does not overlap the predicted face's unoperated regions "
+                f"({', '.join(pred.unoperated_regions)}): only {alignment.n_points} scan points "
+                "lie on them; is the scan in the patient's frame (RAS, mm)?", file=str(scan.path))
+        if not alignment.residual_rms_mm <= max_residual_mm:
+            raise InputError(
+                f"the post-op scan cannot be superimposed on the unoperated regions (residual "
+                f"{alignment.residual_rms_mm:.2f} mm > {max_residual_mm} mm): wrong patient, or "
+                "not overlapping the face", file=str(scan.path))
+        if alignment.residual_rms_mm > 1.0:
+            warnings.append(f"alignment residual {alignment.residual_rms_mm:.2f} mm is large: "
+                            "distances below it are within the noise floor")
+    else:
+        alignment = Alignment(np.eye(4), float("nan"), float("nan"), 0, 0, True)
+    aligned = apply(alignment.matrix, scan_pts)
+    fwd = pred_surface.closest(aligned)
+    valid = ~fwd.on_boundary & (fwd.distance <= gate)
+    n_valid = int(valid.sum())
+    scan_surface = TriangleSurface(aligned, scan.faces)
+    weights = vertex_areas(aligned, scan.faces)
+    covered = float(weights[valid].sum() / max(weights.sum(), 1e-300))
+    if n_valid < 100 or covered < 0.05:
+        raise InputError(f"the post-op scan does not overlap the predicted face (only {n_valid} "
+                         f"points, {100 * covered:.1f}% of its area, lie within {gate} mm of it)",
+                         file=str(scan.path))
+    # flipped scan normals: the scan's vertex normals oppose the prediction's where they overlap
+    agree = np.einsum("pi,pi->p", scan_surface.vertex_normals[valid], fwd.normal[valid])
+    if np.sum(weights[valid] * agree) < 0:
+        raise InputError("the post-op scan's normals point inwards (flipped triangle winding); "
+                         "re-export it with outward normals", file=str(scan.path))
+    corner = pred.faces[fwd.face, np.argmax(fwd.bary, axis=1)]
+    region = np.where(valid, pred.region[corner], -1)
+    signed = np.where(valid, fwd.signed, np.nan)
+    metrics = {"overall": distance_metrics(signed, weights),
+               "regions": _region_metrics(signed, weights, region, names)}
+    # reverse: prediction vertices to the scan, same sign (post-op minus prediction)
+    rev = scan_surface.closest(pred.vertices)
+    rvalid = ~rev.on_boundary & (rev.distance <= gate)
+    reverse = np.where(rvalid, -rev.signed, np.nan)
+    rweights = vertex_areas(pred.vertices, pred.faces)
+    metrics_reverse = {"overall": distance_metrics(reverse, rweights),
+                       "regions": _region_metrics(reverse, rweights, np.where(rvalid, pred.region, -1), names)}
+    metrics["landmarks"] = _locate_landmarks(pred, pred_surface, scan_surface)
+    missing = [n for n in REPORTED_LANDMARKS if n in pred.landmarks and n not in metrics["landmarks"]]
+    if missing:
+        warnings.append("landmarks not found on the post-op scan (not covered or ambiguous): "
+                        + ", ".join(missing))
+    if not pred.landmarks:
+        warnings.append("the prediction gives no landmarks (report.json landmarks_predicted)")
+    return Comparison(alignment, aligned, scan.faces, signed, region, reverse, pred, metrics,
+                      metrics_reverse, metrics["landmarks"], warnings)

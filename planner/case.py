@@ -1,0 +1,400 @@
+"""Reading a patient case folder (see CONTRACT.md, "A case folder") into a checked `Case`.
+
+The pre-op skin comes from `preop/skin.*` (stl, ply, obj, off read by trimesh; vtk, vtp, vtu
+read by pyvista) or, when no skin surface is given, is extracted from a CT volume
+(`preop/ct.nii.gz`, `preop/ct.nii` or a DICOM series folder `preop/ct/`) with `facemodel.ct`
+(skin at -400 HU, bone at +300 HU). Bone surfaces come from `preop/bone/<segment>.*`, one per
+segment, or from the same CT as one `bone` surface. Landmarks are read from
+`preop/landmarks.json` (`{"Prn": [x, y, z], ...}` in mm RAS) or from a 3D Slicer markups file
+(`preop/landmarks.mrk.json`; control points with labels, in the file's `coordinateSystem`,
+LPS by default as in Slicer, converted to RAS by negating x and y). Every surface is checked
+for what goes wrong in practice: unreadable, empty, NaN coordinates, and the size of a head
+in metres rather than millimetres. Every problem raises `planner.errors.InputError` naming the
+file and the field.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from planner.errors import InputError
+
+TRIMESH_FORMATS = (".stl", ".ply", ".obj", ".off")
+VTK_FORMATS = (".vtk", ".vtp", ".vtu")
+SURFACE_FORMATS = TRIMESH_FORMATS + VTK_FORMATS
+# A surface whose bounding-box diagonal is below this many mm cannot be a human skin or bone
+# (the smallest segment, a chin, is ~40 mm across) but is what a head in metres looks like.
+METRES_DIAGONAL_MM = 1.0
+# A landmark farther than this from the skin belongs to another frame, unit or patient:
+# soft-tissue landmarks sit on the skin, bony ones within the soft-tissue thickness (at most
+# ~20 mm on the face), so 30 mm leaves room for both. (An LPS/RAS mix-up on a closed head
+# surface can land on the back of the head and pass; on a face-only surface it is caught.)
+LANDMARK_MAX_SKIN_DISTANCE_MM = 30.0
+CASE_INFO_KEYS = ("id", "follow_up_months", "notes", "age_years", "sex", "synthetic", "seed")
+SLICER_UNITS_TO_MM = {"mm": 1.0, "um": 1e-3}
+
+
+@dataclass(frozen=True)
+class CaseInfo:
+    """`case.yaml`: identifier, follow-up time of the post-op scan, free notes."""
+
+    id: str
+    follow_up_months: float | None = None
+    notes: str = ""
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class Case:
+    """A checked case folder. Surfaces are `trimesh.Trimesh` in mm RAS."""
+
+    root: Path
+    skin: "trimesh.Trimesh"  # noqa: F821
+    bones: dict
+    landmarks: dict
+    plan_path: Path | None
+    postop_skin_path: Path | None
+    postop_plan_path: Path | None
+    info: CaseInfo
+    skin_path: Path | None = None      # the surface file, or the CT it was extracted from
+    ct_path: Path | None = None
+
+    @property
+    def from_ct(self) -> bool:
+        return self.ct_path is not None and self.skin_path == self.ct_path
+
+    @cached_property
+    def postop_skin(self):
+        """The post-op surface scan (may be partial), or None when the case has none."""
+        if self.postop_skin_path is None:
+            return None
+        return load_surface(self.postop_skin_path, "postop skin", closed=False)
+
+    def require_plan(self) -> Path:
+        if self.plan_path is None:
+            raise InputError("the case has no plan.yaml", file=str(self.root / "plan.yaml"))
+        return self.plan_path
+
+
+# ----------------------------------------------------------------------------------- surfaces
+def load_surface(path, what: str = "surface", *, closed: bool = False):
+    """A triangle surface from stl/ply/obj/off/vtk/vtp/vtu, checked; InputError otherwise.
+
+    `what` names the surface in messages (it becomes the `field` of the error). With
+    `closed=True` the surface must be watertight.
+    """
+    import trimesh
+
+    path = Path(path)
+    file = str(path)
+    if not path.is_file():
+        raise InputError(f"{what}: no such file", file=file, field=what)
+    suffix = path.suffix.lower()
+    if suffix not in SURFACE_FORMATS:
+        raise InputError(f"{what}: unsupported surface format {suffix or '(none)'}; use one of "
+                         f"{', '.join(SURFACE_FORMATS)}", file=file, field=what)
+    try:
+        if suffix in VTK_FORMATS:
+            vertices, faces = _read_vtk_surface(path)
+        else:
+            mesh = trimesh.load(str(path), force="mesh", process=False)
+            vertices, faces = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
+    except InputError:
+        raise
+    except Exception as exc:  # readers raise anything from ValueError to struct.error
+        raise InputError(f"{what}: unreadable surface file ({type(exc).__name__}: {exc})",
+                         file=file, field=what) from exc
+    vertices = np.asarray(vertices, dtype=float).reshape(-1, 3)
+    faces = np.asarray(faces).reshape(-1, 3) if len(faces) else np.zeros((0, 3), int)
+    if len(faces) == 0 or len(vertices) < 3:
+        raise InputError(f"{what}: the surface is empty (no triangles)", file=file, field=what)
+    if not np.all(np.isfinite(vertices)):
+        bad = int((~np.isfinite(vertices).all(axis=1)).sum())
+        raise InputError(f"{what}: {bad} vertices have NaN or infinite coordinates",
+                         file=file, field=what)
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(f"{what}: triangles refer to vertices that do not exist",
+                         file=file, field=what)
+    used = vertices[np.unique(faces)]
+    diagonal = float(np.linalg.norm(used.max(axis=0) - used.min(axis=0)))
+    if diagonal < METRES_DIAGONAL_MM:
+        raise InputError(f"{what}: the surface is only {diagonal:.4g} across, which looks like "
+                         "metres: multiply by 1000 (faceplan works in mm)", file=file, field=what)
+    mesh = trimesh.Trimesh(vertices, faces, process=True, validate=True)
+    if len(mesh.faces) == 0:
+        raise InputError(f"{what}: every triangle is degenerate", file=file, field=what)
+    if closed and not mesh.is_watertight:
+        raise InputError(f"{what}: the surface is not closed (it has holes)", file=file, field=what)
+    return mesh
+
+
+def _read_vtk_surface(path: Path):
+    import pyvista as pv
+
+    data = pv.read(str(path))
+    if isinstance(data, pv.MultiBlock):
+        data = data.combine()
+    if isinstance(data, pv.PolyData):
+        surface = data
+    else:  # a volume mesh: its boundary
+        try:
+            surface = data.extract_surface(algorithm=None)
+        except TypeError:  # pyvista < 0.47 has no algorithm choice
+            surface = data.extract_surface()
+    surface = surface.triangulate()
+    if surface.n_cells == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3), int)
+    faces = surface.faces.reshape(-1, 4)
+    return np.asarray(surface.points, float), faces[:, 1:]
+
+
+def _surface_files(folder: Path, stem: str) -> list[Path]:
+    return sorted(p for p in folder.glob(f"{stem}.*")
+                  if p.is_file() and p.suffix.lower() in SURFACE_FORMATS)
+
+
+def _one_surface_file(folder: Path, stem: str, what: str) -> Path | None:
+    files = _surface_files(folder, stem)
+    if len(files) > 1:
+        raise InputError(f"{what}: several files ({', '.join(p.name for p in files)}); keep one",
+                         file=str(folder / stem), field=what)
+    return files[0] if files else None
+
+
+def _ct_source(preop: Path) -> Path | None:
+    for name in ("ct.nii.gz", "ct.nii"):
+        if (preop / name).is_file():
+            return preop / name
+    if (preop / "ct").is_dir():
+        return preop / "ct"
+    return None
+
+
+def _surfaces_from_ct(ct_path: Path):
+    from facemodel.ct import CTError, ct_surfaces
+
+    try:
+        return ct_surfaces(ct_path)
+    except CTError as exc:
+        raise InputError(exc.reason, file=exc.file or str(ct_path), field="preop CT") from exc
+
+
+def _load_bones(folder: Path) -> dict:
+    bones: dict = {}
+    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    for p in files:
+        if p.suffix.lower() not in SURFACE_FORMATS:
+            raise InputError(f"bone: {p.name} is not a surface file ({', '.join(SURFACE_FORMATS)})",
+                             file=str(p), field="bone")
+        segment = p.name[: -len(p.suffix)]
+        if segment in bones:
+            raise InputError(f"bone {segment}: several files for one segment; keep one",
+                             file=str(p), field=f"bone.{segment}")
+        bones[segment] = load_surface(p, f"bone.{segment}")
+    if not bones:
+        raise InputError("no bone surface in preop/bone/ (expected <segment>.stl files: skull, "
+                         "maxilla, mandible, chin...)", file=str(folder), field="bone")
+    return bones
+
+
+# ---------------------------------------------------------------------------------- landmarks
+def _point(value, file: str, name: str) -> np.ndarray:
+    try:
+        p = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        p = None
+    if p is None or p.shape != (3,):
+        raise InputError(f"landmark {name}: expected three coordinates [x, y, z], got {value!r}",
+                         file=file, field=f"landmarks.{name}")
+    if not np.all(np.isfinite(p)):
+        raise InputError(f"landmark {name}: NaN or infinite coordinate", file=file,
+                         field=f"landmarks.{name}")
+    return p
+
+
+def load_landmarks(path) -> dict[str, np.ndarray]:
+    """Landmarks in mm RAS from the simple json form or a 3D Slicer `.mrk.json` markups file."""
+    path = Path(path)
+    file = str(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"landmarks: unreadable json ({exc})", file=file, field="landmarks") from exc
+    if isinstance(data, dict) and "markups" in data:
+        return _slicer_markups(data, file)
+    if not isinstance(data, dict) or not data:
+        raise InputError('landmarks: expected an object {"Prn": [x, y, z], ...} or 3D Slicer '
+                         "markups", file=file, field="landmarks")
+    out = {}
+    for name, value in data.items():
+        if not isinstance(name, str) or not name.strip():
+            raise InputError("landmarks: empty landmark name", file=file, field="landmarks")
+        out[name] = _point(value, file, name)
+    return out
+
+
+def _slicer_markups(data: dict, file: str) -> dict[str, np.ndarray]:
+    markups = data["markups"]
+    if not isinstance(markups, list):
+        raise InputError("landmarks: 'markups' must be a list", file=file, field="markups")
+    out: dict[str, np.ndarray] = {}
+    for m, markup in enumerate(markups):
+        where = f"markups[{m}]"
+        if not isinstance(markup, dict):
+            raise InputError("landmarks: a markup must be an object", file=file, field=where)
+        system = str(markup.get("coordinateSystem", "LPS")).upper()
+        if system not in ("LPS", "RAS"):
+            raise InputError(f"landmarks: coordinateSystem {system!r} is neither LPS nor RAS",
+                             file=file, field=f"{where}.coordinateSystem")
+        units = str(markup.get("coordinateUnits", "mm"))
+        if units not in SLICER_UNITS_TO_MM:
+            raise InputError(f"landmarks: coordinateUnits {units!r}; expected mm or um",
+                             file=file, field=f"{where}.coordinateUnits")
+        flip = np.array([-1.0, -1.0, 1.0]) if system == "LPS" else np.ones(3)
+        points = markup.get("controlPoints", [])
+        if not isinstance(points, list):
+            raise InputError("landmarks: controlPoints must be a list", file=file,
+                             field=f"{where}.controlPoints")
+        for c, point in enumerate(points):
+            field_name = f"{where}.controlPoints[{c}]"
+            if not isinstance(point, dict):
+                raise InputError("landmarks: a control point must be an object", file=file,
+                                 field=field_name)
+            if point.get("positionStatus", "defined") not in ("defined", "preview"):
+                continue  # placeholder points Slicer keeps for landmarks not yet placed
+            label = point.get("label")
+            if not isinstance(label, str) or not label.strip():
+                raise InputError("landmarks: control point without a label", file=file,
+                                 field=f"{field_name}.label")
+            if label in out:
+                raise InputError(f"landmarks: label {label!r} appears twice", file=file,
+                                 field=f"{field_name}.label")
+            if "position" not in point:
+                raise InputError(f"landmark {label}: no position", file=file,
+                                 field=f"{field_name}.position")
+            p = _point(point["position"], file, label)
+            out[label] = p * flip * SLICER_UNITS_TO_MM[units]
+    if not out:
+        raise InputError("landmarks: the markups file holds no placed control point", file=file,
+                         field="markups")
+    return out
+
+
+def _check_landmarks_near_skin(landmarks: dict, skin, file: str) -> None:
+    import trimesh
+
+    if not landmarks:
+        return
+    names = list(landmarks)
+    points = np.array([landmarks[n] for n in names])
+    _, distance, _ = trimesh.proximity.closest_point(skin, points)
+    far = distance > LANDMARK_MAX_SKIN_DISTANCE_MM
+    if far.any():
+        k = int(np.argmax(distance))
+        raise InputError(f"landmark {names[k]} lies {distance[k]:.0f} mm from the skin surface "
+                         f"({int(far.sum())} landmark(s) beyond {LANDMARK_MAX_SKIN_DISTANCE_MM:g} "
+                         "mm): wrong coordinate system (LPS vs RAS), units, or another patient?",
+                         file=file, field=f"landmarks.{names[k]}")
+
+
+# ----------------------------------------------------------------------------------- case.yaml
+def load_case_info(path: Path | None, default_id: str) -> CaseInfo:
+    if path is None or not path.is_file():
+        return CaseInfo(id=default_id)
+    import yaml
+
+    file = str(path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise InputError(f"case.yaml: unreadable YAML ({exc})", file=file, field="case") from exc
+    if data is None:
+        return CaseInfo(id=default_id)
+    if not isinstance(data, dict):
+        raise InputError("case.yaml: expected a mapping of keys to values", file=file, field="case")
+    unknown = sorted(str(k) for k in data if k not in CASE_INFO_KEYS)
+    if unknown:
+        raise InputError(f"case.yaml: unknown key(s) {', '.join(unknown)}; known keys are "
+                         f"{', '.join(CASE_INFO_KEYS)}", file=file, field=unknown[0])
+    case_id = data.get("id", default_id)
+    if not isinstance(case_id, (str, int)) or isinstance(case_id, bool) or str(case_id).strip() == "":
+        raise InputError(f"id must be a non-empty text, got {case_id!r}", file=file, field="id")
+    months = data.get("follow_up_months")
+    if months is not None:
+        if isinstance(months, bool) or not isinstance(months, (int, float)) \
+                or not math.isfinite(months) or months < 0:
+            raise InputError(f"follow_up_months must be a number >= 0, got {months!r}",
+                             file=file, field="follow_up_months")
+        months = float(months)
+    notes = data.get("notes", "")
+    if notes is None:
+        notes = ""
+    if not isinstance(notes, str):
+        raise InputError("notes must be text", file=file, field="notes")
+    extra = {k: data[k] for k in data if k not in ("id", "follow_up_months", "notes")}
+    return CaseInfo(id=str(case_id), follow_up_months=months, notes=notes, extra=extra)
+
+
+# --------------------------------------------------------------------------------------- case
+def load_case(path) -> Case:
+    """Read and check a case folder; `InputError` (file + field) on anything wrong."""
+    root = Path(path)
+    if not root.exists():
+        raise InputError("no such case folder", file=str(root), field="case")
+    if not root.is_dir():
+        raise InputError("a case is a folder (with preop/, plan.yaml...), not a file",
+                         file=str(root), field="case")
+    preop = root / "preop"
+    if not preop.is_dir():
+        raise InputError("the case has no preop/ folder (pre-op skin and bone surfaces or CT)",
+                         file=str(preop), field="preop")
+
+    skin_file = _one_surface_file(preop, "skin", "skin")
+    ct_path = _ct_source(preop)
+    bone_dir = preop / "bone"
+    has_bone_dir = bone_dir.is_dir()
+    ct = None
+    if skin_file is None or not has_bone_dir:
+        if ct_path is None:
+            missing = "skin surface (preop/skin.stl)" if skin_file is None else \
+                "bone surfaces (preop/bone/<segment>.stl)"
+            raise InputError(f"the case has no pre-op {missing} and no CT (preop/ct.nii.gz or "
+                             "preop/ct/) to extract it from",
+                             file=str(preop / ("skin.stl" if skin_file is None else "bone")),
+                             field="skin" if skin_file is None else "bone")
+        ct = _surfaces_from_ct(ct_path)
+    if skin_file is not None:
+        skin = load_surface(skin_file, "skin")
+        skin_path = skin_file
+    else:
+        skin, skin_path = ct.skin, ct_path
+    bones = _load_bones(bone_dir) if has_bone_dir else {"bone": ct.bone}
+
+    landmarks: dict = {}
+    landmark_file = None
+    for name in ("landmarks.json", "landmarks.mrk.json"):
+        if (preop / name).is_file():
+            if landmark_file is not None:
+                raise InputError("two landmark files (landmarks.json and landmarks.mrk.json); "
+                                 "keep one", file=str(preop / name), field="landmarks")
+            landmark_file = preop / name
+    if landmark_file is not None:
+        landmarks = load_landmarks(landmark_file)
+        _check_landmarks_near_skin(landmarks, skin, str(landmark_file))
+
+    def optional(p: Path) -> Path | None:
+        return p if p.is_file() else None
+
+    plan_path = optional(root / "plan.yaml") or optional(root / "plan.yml")
+    postop = root / "postop"
+    postop_skin = _one_surface_file(postop, "skin", "postop skin") if postop.is_dir() else None
+    postop_plan = optional(postop / "plan_actual.yaml") or optional(postop / "plan_actual.yml")
+    info = load_case_info(optional(root / "case.yaml") or optional(root / "case.yml"), root.name)
+    return Case(root=root, skin=skin, bones=bones, landmarks=landmarks, plan_path=plan_path,
+                postop_skin_path=postop_skin, postop_plan_path=postop_plan, info=info,
+                skin_path=skin_path, ct_path=ct_path)

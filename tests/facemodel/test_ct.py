@@ -316,3 +316,37 @@ def test_refuses_mixed_series_orientation_and_modality(small_series):
     ds.save_as(files[0])
     with pytest.raises(CTError, match="MR: not a CT series"):
         ct.read_ct(small_series)
+
+
+def test_decimation_keeps_the_surface(phantom):
+    # A quarter of the triangles: still within the same 0.5 mm mean / 0.1 mm bias bounds, and
+    # the volume within 0.5 % of the full-resolution surface (volume-preserving quadrics).
+    _, _, hu, affine = phantom
+    vol = CTVolume(hu, affine)
+    full = ct.skin_surface(vol)
+    reduced = ct.skin_surface(vol, max_faces=len(full.faces) // 4)
+    assert len(reduced.faces) <= len(full.faces) // 4 + 10
+    assert reduced.is_watertight and reduced.volume > 0
+    assert_surface_matches(reduced, SKIN_AXES, SKIN_CENTRE, SKIN_OFFSET)
+    assert reduced.volume == pytest.approx(full.volume, rel=5e-3)
+
+
+def test_dicom_in_subfolders_with_a_localizer(small_series, tmp_path):
+    import shutil
+
+    import pydicom
+
+    nested = tmp_path / "export"
+    files = sorted(small_series.iterdir())
+    for k, f in enumerate(files):
+        target = nested / "STUDY" / f"SER{k % 2}"     # slices spread over sub-folders
+        target.mkdir(parents=True, exist_ok=True)
+        shutil.copy(f, target / f.name)
+    scout = pydicom.dcmread(files[0])
+    scout.ImageType = ["ORIGINAL", "PRIMARY", "LOCALIZER"]
+    scout.ImageOrientationPatient = [1, 0, 0, 0, 0, -1]  # a coronal scout: would be inconsistent
+    scout.SOPInstanceUID = pydicom.uid.generate_uid()
+    scout.save_as(nested / "scout.dcm")
+    a, b = ct.read_ct(small_series), ct.read_ct(nested)
+    np.testing.assert_array_equal(a.hu, b.hu)
+    np.testing.assert_allclose(a.affine, b.affine)

@@ -7,7 +7,8 @@ read by pyvista) or, when no skin surface is given, is extracted from a CT volum
 segment, or from the same CT as one `bone` surface. Landmarks are read from
 `preop/landmarks.json` (`{"Prn": [x, y, z], ...}` in mm RAS) or from a 3D Slicer markups file
 (`preop/landmarks.mrk.json`; control points with labels, in the file's `coordinateSystem`,
-LPS by default as in Slicer, converted to RAS by negating x and y). Every surface is checked
+LPS by default as in Slicer, converted to RAS by negating x and y; the older fiducial list
+`preop/landmarks.fcsv` too). Every surface is checked
 for what goes wrong in practice: unreadable, empty, NaN coordinates, and the size of a head
 in metres rather than millimetres. Every problem raises `planner.errors.InputError` naming the
 file and the field.
@@ -131,8 +132,14 @@ def load_surface(path, what: str = "surface", *, closed: bool = False):
     mesh = trimesh.Trimesh(vertices, faces, process=True, validate=True)
     if len(mesh.faces) == 0:
         raise InputError(f"{what}: every triangle is degenerate", file=file, field=what)
-    if closed and not mesh.is_watertight:
+    watertight = mesh.is_watertight
+    if closed and not watertight:
         raise InputError(f"{what}: the surface is not closed (it has holes)", file=file, field=what)
+    if watertight:  # closed surfaces get outward normals (some exporters write them inward)
+        if not mesh.is_winding_consistent:
+            trimesh.repair.fix_winding(mesh)
+        if mesh.volume < 0:
+            mesh.invert()
     return mesh
 
 
@@ -221,9 +228,12 @@ def _point(value, file: str, name: str) -> np.ndarray:
 
 
 def load_landmarks(path) -> dict[str, np.ndarray]:
-    """Landmarks in mm RAS from the simple json form or a 3D Slicer `.mrk.json` markups file."""
+    """Landmarks in mm RAS from the simple json form, a 3D Slicer `.mrk.json` markups file or
+    an older Slicer `.fcsv` fiducial list."""
     path = Path(path)
     file = str(path)
+    if path.name.lower().endswith(".fcsv"):
+        return _slicer_fcsv(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -285,6 +295,50 @@ def _slicer_markups(data: dict, file: str) -> dict[str, np.ndarray]:
     if not out:
         raise InputError("landmarks: the markups file holds no placed control point", file=file,
                          field="markups")
+    return out
+
+
+def _slicer_fcsv(path: Path) -> dict[str, np.ndarray]:
+    """Slicer fiducial CSV: `# CoordinateSystem = LPS|RAS|0|1` (0 = RAS, 1 = LPS; RAS when
+    absent, as in Slicer 4), `# columns = id,x,y,z,...,label,...`, one point per line."""
+    import csv
+
+    file = str(path)
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"landmarks: unreadable file ({exc})", file=file, field="landmarks") from exc
+    system, columns = "RAS", ["id", "x", "y", "z", "ow", "ox", "oy", "oz", "vis", "sel", "lock",
+                              "label", "desc", "associatedNodeID"]
+    rows = []
+    for line in lines:
+        if line.startswith("#"):
+            key, _, value = line[1:].partition("=")
+            key, value = key.strip().lower(), value.strip()
+            if key == "coordinatesystem":
+                system = {"0": "RAS", "1": "LPS"}.get(value, value.upper())
+            elif key == "columns":
+                columns = [c.strip() for c in value.split(",")]
+        elif line.strip():
+            rows.append(line)
+    if system not in ("RAS", "LPS"):
+        raise InputError(f"landmarks: CoordinateSystem {system!r} is neither LPS nor RAS",
+                         file=file, field="CoordinateSystem")
+    if not {"x", "y", "z", "label"} <= set(columns):
+        raise InputError("landmarks: the columns line lacks x, y, z or label", file=file,
+                         field="columns")
+    flip = np.array([-1.0, -1.0, 1.0]) if system == "LPS" else np.ones(3)
+    out: dict[str, np.ndarray] = {}
+    for n, values in enumerate(csv.reader(rows)):
+        record = dict(zip(columns, values))
+        label = record.get("label", "").strip()
+        if not label:
+            raise InputError(f"landmarks: point {n + 1} has no label", file=file, field="label")
+        if label in out:
+            raise InputError(f"landmarks: label {label!r} appears twice", file=file, field=label)
+        out[label] = _point([record.get(c) for c in "xyz"], file, label) * flip
+    if not out:
+        raise InputError("landmarks: the fiducial file holds no point", file=file, field="landmarks")
     return out
 
 
@@ -380,11 +434,11 @@ def load_case(path) -> Case:
 
     landmarks: dict = {}
     landmark_file = None
-    for name in ("landmarks.json", "landmarks.mrk.json"):
+    for name in ("landmarks.json", "landmarks.mrk.json", "landmarks.fcsv"):
         if (preop / name).is_file():
             if landmark_file is not None:
-                raise InputError("two landmark files (landmarks.json and landmarks.mrk.json); "
-                                 "keep one", file=str(preop / name), field="landmarks")
+                raise InputError(f"two landmark files ({landmark_file.name} and {name}); keep one",
+                                 file=str(preop / name), field="landmarks")
             landmark_file = preop / name
     if landmark_file is not None:
         landmarks = load_landmarks(landmark_file)

@@ -307,3 +307,32 @@ def test_bad_ct_is_an_input_error(tmp_path):
     (tmp_path / "c" / "preop" / "ct.nii.gz").write_bytes(b"not a volume" * 30)
     err = refused(tmp_path / "c", "cannot read NIfTI", field="preop CT")
     assert err.file.endswith("ct.nii.gz")
+
+
+@pytest.mark.parametrize("system", ["LPS", "RAS", "1", "0"])
+def test_slicer_fcsv(case_dir, system):
+    lps_file = system in ("LPS", "1")
+    lines = ["# Markups fiducial file version = 4.11", f"# CoordinateSystem = {system}",
+             "# columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID"]
+    for k, (name, p) in enumerate(LANDMARKS.items()):
+        x, y, z = lps(p) if lps_file else p
+        lines.append(f"vtkMRMLMarkupsFiducialNode_{k},{x},{y},{z},0,0,0,1,1,1,0,{name},,")
+    (case_dir / "preop" / "landmarks.json").unlink()
+    (case_dir / "preop" / "landmarks.fcsv").write_text("\n".join(lines) + "\n")
+    case = load_case(case_dir)
+    for name, p in LANDMARKS.items():
+        np.testing.assert_allclose(case.landmarks[name], p, atol=1e-9)
+
+
+def test_two_landmark_files_are_ambiguous(case_dir):
+    (case_dir / "preop" / "landmarks.mrk.json").write_text(json.dumps(markups(LANDMARKS, "RAS")))
+    refused(case_dir, "two landmark files", field="landmarks")
+
+
+def test_inward_closed_surfaces_are_turned_outward(case_dir):
+    inward = BONES["maxilla"].copy()
+    inward.invert()
+    assert inward.volume < 0
+    inward.export(case_dir / "preop" / "bone" / "maxilla.stl")
+    case = load_case(case_dir)
+    assert case.bones["maxilla"].volume == pytest.approx(BONES["maxilla"].volume, rel=1e-6)

@@ -25,6 +25,7 @@ __all__ = [
     "render_overlay",
     "histogram_chart",
     "bar_chart",
+    "profile_chart",
 ]
 
 # view name -> (direction from the focal point to the camera, view-up), in RAS.
@@ -175,7 +176,8 @@ def render_overlay(
             pl.add_mesh(poly, color=colors[i % len(colors)], opacity=float(opacity[i]),
                         smooth_shading=True, label=None if labels is None else labels[i])
         if labels is not None:
-            pl.add_legend(bcolor="white", border=True, size=(0.25, 0.1), loc="upper right")
+            pl.add_legend(bcolor="white", border=True, size=(0.3, 0.06 * len(polys)),
+                          loc="upper right", face="rectangle")
         path = out_prefix.parent / f"{out_prefix.name}_{view}.png"
         _shoot(pl, bounds, view, path, title)
         pl.close()
@@ -258,6 +260,51 @@ def bar_chart(
     if title:
         ax.set_title(title)
     ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def profile_chart(
+    meshes: Sequence,
+    path: str | os.PathLike,
+    labels: Sequence[str] | None = None,
+    x: float = 0.0,
+    colors: Sequence[str] = ("#555555", "#d95f02", "#1b9e77", "#7570b3"),
+    title: str | None = None,
+) -> Path:
+    """Mid-sagittal profiles: the sections of the surfaces by the plane x = `x`, drawn as
+    curves in the (y anterior, z superior) plane with equal axes -- the classic soft-tissue
+    profile comparison (e.g. pre-op vs predicted vs post-op)."""
+    from matplotlib.collections import LineCollection
+
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5, 6), dpi=100)
+    drawn = False
+    for i, mesh in enumerate(meshes):
+        poly = to_polydata(mesh)
+        section = poly.slice(normal=(1.0, 0.0, 0.0), origin=(x, 0.0, 0.0))
+        if section.n_points == 0:
+            continue
+        pts = np.asarray(section.points)
+        lines = np.asarray(section.lines).reshape(-1, 3)[:, 1:] if section.n_lines else np.zeros((0, 2), int)
+        segs = pts[lines][:, :, 1:]                       # (k, 2, [y, z])
+        ax.add_collection(LineCollection(segs, colors=colors[i % len(colors)], linewidths=1.6,
+                                         label=None if labels is None else labels[i]))
+        drawn = True
+    if drawn:
+        ax.autoscale()
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("anterior y (mm)")
+    ax.set_ylabel("superior z (mm)")
+    if labels is not None and drawn:
+        ax.legend(loc="best")
+    if title:
+        ax.set_title(title)
+    ax.grid(alpha=0.3)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

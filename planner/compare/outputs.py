@@ -90,11 +90,10 @@ def write_comparison(result: Comparison, out: Path, header: dict, render_images:
                                                 "90th pct": [r[3] for r in rows]},
                                         ylabel="mm", title="distance per region"),
                        "mean absolute and 90th-percentile distance per region (dashed: 2 mm)"))
-        for view, path in render.render_overlay([pp, scan], img / "overlay",
-                                                labels=["predicted", "post-op"],
-                                                views=("profile",),
-                                                title="profile: predicted vs post-op").items():
-            images.append((path, "profile overlay: predicted (grey) vs post-op (orange)"))
+        images.append((render.profile_chart([pp, scan], img / "profile.png",
+                                            labels=["predicted", "post-op"],
+                                            title="mid-sagittal profile (x = 0)"),
+                       "mid-sagittal profiles: predicted vs post-op"))
         report["files"]["images"] = [str(p.relative_to(out)) for p, _ in images]
     report = _clean(json.loads(json.dumps(report, default=_jsonable)))
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))

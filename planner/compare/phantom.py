@@ -127,10 +127,12 @@ def face_phantom(spacing: float = 1.5, jitter: float = 0.0, seed: int = 0,
     faces = tri.simplices.astype(np.int64)
     u = _directions(az, el)
     vertices, q = _surface(u)
-    # drop slivers Delaunay makes along the curved parameter boundary
-    e = vertices[faces[:, [1, 2, 0]]] - vertices[faces]
+    # drop the slivers Delaunay makes along the curved parameter boundary (long in the
+    # parameter plane; steep features such as the nose are long only in 3D and are kept)
+    uv = tri.points
+    e = uv[faces[:, [1, 2, 0]]] - uv[faces]
     longest = np.linalg.norm(e, axis=2).max(axis=1)
-    faces = faces[longest < 3.0 * spacing]
+    faces = faces[longest < 3.0 * step]
     n = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
     outward = np.einsum("ij,ij->i", n, vertices[faces[:, 0]] - CENTRE) > 0
     faces = np.where(outward[:, None], faces, faces[:, ::-1])

@@ -76,6 +76,8 @@ def test_overlay_and_charts(tmp_path, face):
     out = render.render_overlay([face, moved], tmp_path / "overlay", labels=["pre", "post"])
     for p in out.values():
         assert _non_background_fraction(_png(p)) > 0.05
+    pr = render.profile_chart([face, moved], tmp_path / "p.png", labels=["pre", "post"])
+    assert 0.01 < _non_background_fraction(_png(pr)) < 0.9
     h = render.histogram_chart(np.random.default_rng(0).normal(size=500), tmp_path / "h.png")
     b = render.bar_chart(["a", "b"], [1.0, 2.5], tmp_path / "b.png", errors=[0.1, 0.2])
     for p in (h, b):

@@ -1,0 +1,137 @@
+"""`faceplan compare` from the command line: outputs, cohort summary, bad input -> exit 2."""
+import csv
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from planner.cli import main
+from planner.compare.distances import TriangleSurface
+from planner.compare.phantom import face_phantom, write_prediction_folder
+
+
+@pytest.fixture(scope="module")
+def phantoms():
+    # coarser than the known-answer tests: these tests check files and messages, not accuracy
+    return face_phantom(2.5), face_phantom(2.0, jitter=0.5, seed=1, offset=0.3)
+
+
+def _case(root, name, pred, scan, chin_offset=0.0, scan_vertices=None, scan_faces=None):
+    case = root / name
+    v = pred.vertices
+    if chin_offset:
+        chin = pred.region_names.index("chin")
+        v = v + chin_offset * (pred.region == chin)[:, None] * TriangleSurface(v, pred.faces).vertex_normals
+    write_prediction_folder(case / "predict", v, pred.faces, pred.region, pred.region_names,
+                            pred.landmarks, pred.unoperated_regions)
+    (case / "postop").mkdir(parents=True)
+    sv = scan.vertices if scan_vertices is None else scan_vertices
+    sf = scan.faces if scan_faces is None else scan_faces
+    trimesh.Trimesh(sv + [0.7, -1.2, 0.9], sf, process=False).export(case / "postop" / "skin.stl")
+    return case
+
+
+def test_single_case_outputs(tmp_path, phantoms, capsys):
+    pred, scan = phantoms
+    case = _case(tmp_path, "P01", pred, scan, chin_offset=1.0)
+    assert main(["compare", str(case)]) == 0
+    out = case / "compare"
+    report = json.loads((out / "report.json").read_text())
+    m = report["metrics"]
+    for block in [m["overall"], *[m["regions"][r] for r in ("upper_lip", "lower_lip", "chin", "nose",
+                                                             "cheek_left", "cheek_right")]]:
+        assert set(block) >= {"mean_abs_mm", "rms_mm", "p90_mm", "p95_mm", "within_2mm_pct", "n_points"}
+        assert block["n_points"] > 0
+    # 2.0/2.5 mm triangulations: chord error ~0.03 mm, border band wider than at 1.5 mm
+    assert m["regions"]["chin"]["mean_abs_mm"] == pytest.approx(1.0, abs=0.1)
+    assert m["regions"]["forehead"]["mean_abs_mm"] < 0.1
+    assert set(m["landmarks"]) == {"Sn", "Ls", "Li", "Pog", "Me", "ChL", "ChR", "Prn"}
+    assert all("error_mm" in v for v in m["landmarks"].values())
+    assert report["alignment"]["residual_rms_mm"] < 0.1
+    import pyvista as pv
+
+    d = pv.read(str(out / "distances.vtp"))
+    assert {"signed_distance_mm", "region", "valid"} <= set(d.point_data.keys())
+    assert np.isfinite(d.point_data["signed_distance_mm"]).mean() > 0.9
+    images = sorted(p.name for p in (out / "images").iterdir())
+    for name in ("distance_postop_frontal.png", "distance_postop_profile.png",
+                 "distance_postop_three_quarter.png", "histogram.png", "regions.png"):
+        assert name in images and (out / "images" / name).stat().st_size > 5000
+    html = (out / "report.html").read_text()
+    assert "data:image/png;base64," in html and "chin" in html
+    assert "within 2 mm" in capsys.readouterr().out
+
+
+def test_cohort_summary(tmp_path, phantoms):
+    pred, scan = phantoms
+    a = _case(tmp_path, "A", pred, scan, chin_offset=0.0)
+    b = _case(tmp_path, "B", pred, scan, chin_offset=1.0)
+    out = tmp_path / "summary"
+    assert main(["compare", str(a), str(b), "--out", str(out), "--no-images"]) == 0
+    ra = json.loads((a / "compare" / "report.json").read_text())["metrics"]["regions"]["chin"]["mean_abs_mm"]
+    rb = json.loads((b / "compare" / "report.json").read_text())["metrics"]["regions"]["chin"]["mean_abs_mm"]
+    rows = {(r["region"], r["metric"]): r for r in csv.DictReader(open(out / "summary.csv"))}
+    chin = rows[("chin", "mean_abs_mm")]
+    # mean and sample SD of two numbers, exactly
+    assert float(chin["mean"]) == pytest.approx((ra + rb) / 2, rel=1e-5)
+    assert float(chin["sd"]) == pytest.approx(abs(ra - rb) / np.sqrt(2), rel=1e-5)
+    assert chin["n_cases"] == "2"
+    assert ("landmark Pog", "error_mm") in rows
+    assert (out / "summary.html").read_text().count("±") > 5
+    assert len(list(csv.DictReader(open(out / "cases.csv")))) > 20
+
+
+def _bad(tmp_path, capsys, case, *extra):
+    code = main(["compare", str(case), *extra])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "Traceback" not in err and "error" in err
+    assert not (case / "compare").exists()
+    assert [p.name for p in case.iterdir()] != [] and not any(
+        p.name.startswith(".compare") for p in case.iterdir())
+    return err
+
+
+def test_scan_in_metres(tmp_path, phantoms, capsys):
+    pred, scan = phantoms
+    case = _case(tmp_path, "m", pred, scan, scan_vertices=scan.vertices / 1000.0)
+    err = _bad(tmp_path, capsys, case)
+    assert "metre" in err.lower() or "mm" in err
+
+
+def test_scan_with_flipped_normals(tmp_path, phantoms, capsys):
+    pred, scan = phantoms
+    case = _case(tmp_path, "f", pred, scan, scan_faces=scan.faces[:, ::-1])
+    err = _bad(tmp_path, capsys, case)
+    assert "normals" in err
+
+
+def test_empty_scan(tmp_path, phantoms, capsys):
+    pred, scan = phantoms
+    case = _case(tmp_path, "e", pred, scan)
+    (case / "postop" / "skin.stl").write_text("solid empty\nendsolid empty\n")
+    err = _bad(tmp_path, capsys, case)
+    assert "empty" in err
+
+
+def test_scan_not_overlapping(tmp_path, phantoms, capsys):
+    pred, scan = phantoms
+    case = _case(tmp_path, "n", pred, scan, scan_vertices=scan.vertices + [400.0, 0.0, 0.0])
+    err = _bad(tmp_path, capsys, case)
+    assert "overlap" in err
+
+
+def test_missing_prediction_and_scan(tmp_path, phantoms, capsys):
+    pred, scan = phantoms
+    case = _case(tmp_path, "x", pred, scan)
+    import shutil
+
+    shutil.rmtree(case / "predict")
+    assert "faceplan predict" in _bad(tmp_path, capsys, case)
+    case2 = _case(tmp_path, "y", pred, scan)
+    (case2 / "postop" / "skin.stl").unlink()
+    assert "post-op" in _bad(tmp_path, capsys, case2)
+    # a bare surface without a registered model has no regions: refused
+    assert "regions" in _bad(tmp_path, capsys, case2, "--prediction",
+                             str(case2 / "predict" / "skin_predicted.stl"))

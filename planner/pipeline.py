@@ -120,69 +120,37 @@ class Prediction:
 # --------------------------------------------------------------------------- model options
 
 def default_materials(model, overrides: dict[str, dict[str, float]] | None = None, stiffness: float = 1.0):
-    """The per-label materials table with the plan's overrides and a stiffness factor, or None
-    when neither changes anything (the simulation then uses its own defaults)."""
+    """The per-label materials (`facemodel.simulation.default_face_materials`) with the plan's
+    parameter overrides and a stiffness factor on every passive stiffness parameter (unit kPa,
+    active stress T_max excepted), or None when nothing changes (the simulation's defaults)."""
     if not overrides and stiffness == 1.0:
         return None
-    from facemodel import materials as fm_materials
+    from facemodel.simulation import default_face_materials
 
-    table = _materials_table(fm_materials, model)
-    out = {}
-    for label, mat in table.items():
-        params = {k: v for k, v in _params_of(mat).items()}
-        for k, v in (overrides or {}).get(label, {}).items():
-            if k not in params:
-                raise InputError(f"material {label!r} has no parameter {k!r} "
-                                 f"(parameters: {', '.join(sorted(params))})", field=f"model.materials.{label}")
-            params[k] = v
-        if stiffness != 1.0:
-            params = {k: (v * stiffness if _is_stiffness(k) else v) for k, v in params.items()}
-        out[label] = _rebuild(mat, params)
+    table = dict(default_face_materials(model))
     for label in overrides or {}:
         if label not in table:
             raise InputError(f"unknown tissue label {label!r} (labels: {', '.join(table)})",
                              field=f"model.materials.{label}")
+    out = {}
+    for label, mat in table.items():
+        params = {k: float(v[0]) for k, v in mat.parameters.items()}
+        units = {k: v[1] for k, v in mat.parameters.items()}
+        for k, v in (overrides or {}).get(label, {}).items():
+            if k not in params:
+                raise InputError(f"material {label!r} has no parameter {k!r} "
+                                 f"(parameters: {', '.join(params)})", field=f"model.materials.{label}.{k}")
+            params[k] = v
+        if stiffness != 1.0:
+            params = {k: v * stiffness if units[k] == "kPa" and k != "T_max" else v for k, v in params.items()}
+        kwargs = dict(params)
+        if hasattr(mat, "volumetric"):
+            kwargs["volumetric"] = mat.volumetric
+        try:
+            out[label] = type(mat)(**kwargs)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"material {label!r}: {exc}", field=f"model.materials.{label}") from None
     return out
-
-
-def _materials_table(fm_materials, model) -> dict:
-    for name in ("default_materials", "materials_table", "default_table"):
-        fn = getattr(fm_materials, name, None)
-        if callable(fn):
-            try:
-                return dict(fn(model))
-            except TypeError:
-                return dict(fn())
-    for name in ("DEFAULT_MATERIALS", "MATERIALS", "TABLE"):
-        if isinstance(getattr(fm_materials, name, None), dict):
-            return dict(getattr(fm_materials, name))
-    raise InputError("material overrides are not available: facemodel.materials has no table")
-
-
-def _params_of(mat) -> dict[str, float]:
-    p = getattr(mat, "parameters", None)
-    if isinstance(p, dict):
-        return {k: float(v[0] if isinstance(v, tuple) else v) for k, v in p.items()}
-    if dataclasses.is_dataclass(mat):
-        return {f.name: float(getattr(mat, f.name)) for f in dataclasses.fields(mat)
-                if isinstance(getattr(mat, f.name), (int, float))}
-    raise InputError(f"cannot read the parameters of material {mat!r}")
-
-
-def _is_stiffness(name: str) -> bool:
-    # Yeoh C10/C20/C30, shear/bulk moduli, active stress: all scale; stretches and flags do not.
-    n = name.lower()
-    return n.startswith(("c1", "c2", "c3", "mu", "k", "bulk", "shear", "t_max", "tmax", "e"))
-
-
-def _rebuild(mat, params: dict[str, float]):
-    if dataclasses.is_dataclass(mat):
-        fields = {f.name for f in dataclasses.fields(mat)}
-        return dataclasses.replace(mat, **{k: v for k, v in params.items() if k in fields})
-    try:
-        return type(mat)(**params)
-    except TypeError as exc:
-        raise InputError(f"cannot override parameters of {type(mat).__name__}: {exc}") from None
 
 
 def _sliding_sets(model, segments: tuple[str, ...]) -> tuple[str, ...]:
@@ -307,10 +275,14 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
             raise SolveError(f"Newton failed at load step {exc.step} (load {exc.load:.3g}, last converged "
                              f"{exc.last_converged_load:.3g}{label}): {exc}") from exc
         except solver_errors.MaterialError as exc:
+            if materials is None:       # the default table itself: not the user's doing
+                raise SolveError(f"material table: {exc}") from exc
             raise InputError(f"material: {exc}", file=plan.path,
                              field=f"model.materials ({exc.parameter})" if exc.parameter else "model.materials") from exc
         except solver_errors.SolverError as exc:
             raise SolveError(f"{type(exc).__name__}: {exc}") from exc
+        except ValueError as exc:   # simulate refuses motions/activations/materials it cannot use
+            raise InputError(f"the face model refused the plan: {exc}", file=plan.path) from exc
         u, stress, stats = _unpack_result(result, model)
     if not np.all(np.isfinite(u)):
         raise SolveError("the solution contains NaN or infinite displacements")
@@ -445,8 +417,10 @@ def build_report(pred: Prediction, progress: Progress, inputs: dict, registratio
 
 
 def write_outputs(pred: Prediction, out_dir: Path, progress: Progress, inputs: dict,
-                  registration: dict | None = None, render: bool = True) -> Path:
-    """Write every output into `out_dir` atomically (whole or not at all)."""
+                  registration: dict | None = None, render: bool = True,
+                  extra: Callable[[Path], None] | None = None) -> Path:
+    """Write every output into `out_dir` atomically (whole or not at all); `extra(tmp)` may add
+    files to the folder before it is moved into place."""
     from planner.atomic import atomic_output_dir
     from planner.html_report import write_html_report
 
@@ -473,7 +447,8 @@ def write_outputs(pred: Prediction, out_dir: Path, progress: Progress, inputs: d
         write_html_report(tmp / "report.html", "faceplan prediction",
                           {k: v for k, v in report.items() if k != "log"},
                           images=[(p, c) for p, c in images], tables=tables)
-        # Images are referenced from report.html by embedding; keep the PNGs alongside too.
+        if extra is not None:
+            extra(tmp)
     progress.say(f"prediction written to {out_dir}")
     return out_dir
 
@@ -520,7 +495,8 @@ def register_case(case, resolution: str, progress: Progress):
 def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | None = None,
                  effects: dict[str, float] | None = None, max_translation_mm: float | None = None,
                  max_rotation_deg: float | None = None, render: bool = True,
-                 echo: bool | Callable[[str], None] = True) -> Path:
+                 echo: bool | Callable[[str], None] = True,
+                 extra: Callable[[Path], None] | None = None) -> Path:
     """Run the whole prediction for a case folder; return the output folder."""
     from planner.case import load_case
 
@@ -546,4 +522,64 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
                    **({"skin": _file_digest(case.skin_path)} if case.skin_path else {})},
     }
     out_dir = Path(out) if out is not None else Path(case_dir) / "predict"
-    return write_outputs(pred, out_dir, progress, inputs, reg, render=render)
+    return write_outputs(pred, out_dir, progress, inputs, reg, render=render, extra=extra)
+
+
+# --------------------------------------------------------------------------- demo
+
+DEMO_SEED = 7
+DEMO_PLAN = {
+    "faceplan": 1,
+    "frame": "RAS",
+    "segments": {
+        # Le Fort I: 5 mm advancement, 1 mm up, and a 2 deg pitch about the upper incisor
+        # region that raises the posterior maxilla (rotation about +x, right-hand rule).
+        "maxilla": {"translation": [0.0, 5.0, 1.0],
+                    "rotation": {"axis": [1, 0, 0], "angle_deg": -2.0, "center": [0.0, 60.0, -25.0]}},
+        # BSSO: 4 mm mandibular setback of the distal segment.
+        "mandible": {"translation": [0.0, -4.0, 0.0]},
+        # Genioplasty: chin 4 mm forward (relative to pre-op), 1 mm up.
+        "chin": {"translation": [0.0, 4.0, 1.0]},
+    },
+    "muscles": {"orbicularis_oris": 0.0, "mentalis": 0.0},
+}
+
+
+def _find_case(root: Path) -> Path:
+    for p in sorted(root.rglob("preop")):
+        if p.is_dir():
+            return p.parent
+    raise SolveError(f"faceplan synth wrote no case folder under {root}")
+
+
+def run_demo(out_dir: str | Path, *, resolution: str = "coarse", render: bool = True,
+             echo: bool | Callable[[str], None] = True) -> Path:
+    """The bimaxillary demo: a synthetic head (`faceplan synth`, fixed seed), the demo plan,
+    the whole prediction into `out_dir` (with the generated case in `out_dir/case`)."""
+    import shutil
+    import tempfile
+
+    import yaml
+
+    from planner.commands import synth
+
+    with tempfile.TemporaryDirectory(prefix="faceplan-demo-") as tmp:
+        tmp = Path(tmp)
+        import argparse
+
+        parser = argparse.ArgumentParser()
+        synth.add_arguments(parser)
+        args = parser.parse_args(["--out", str(tmp / "cases"), "--count", "1", "--seed", str(DEMO_SEED)])
+        code = synth.run(args)
+        if code:
+            raise SolveError(f"the synthetic head could not be generated (faceplan synth exit {code})")
+        case = _find_case(tmp / "cases")
+        plan = dict(DEMO_PLAN, model={"resolution": resolution})
+        (case / "plan.yaml").write_text(
+            "# faceplan demo: bimaxillary surgery (Le Fort I advancement, BSSO setback, genioplasty)\n"
+            + yaml.safe_dump(plan, sort_keys=False))
+
+        def keep_case(folder: Path) -> None:
+            shutil.copytree(case, folder / "case", ignore=shutil.ignore_patterns("predict", ".*"))
+
+        return predict_case(case, out_dir, resolution=resolution, render=render, echo=echo, extra=keep_case)

@@ -249,8 +249,12 @@ def check_hounsfield(volume: CTVolume, skin_hu: float = SKIN_HU) -> None:
     if hi - lo < 1e-6:
         raise CTError(f"empty volume: every voxel is {lo:g}", file)
     if lo > AIR_MAX_HU:
+        hint = ""
+        if lo >= -50 and hi > 1000:
+            hint = ("; stored values without their rescale intercept? (air would be at 0 and "
+                    "water at 1024: subtract 1024)")
         raise CTError(f"not a CT in Hounsfield units: values range {lo:.4g} ... {hi:.4g}, with no "
-                      f"air (below {AIR_MAX_HU:g} HU; air is -1000 HU)", file)
+                      f"air (below {AIR_MAX_HU:g} HU; air is -1000 HU){hint}", file)
     if hi < skin_hu:
         raise CTError(f"empty volume: nothing but air (no value above {skin_hu:g} HU)", file)
 

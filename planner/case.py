@@ -4,7 +4,8 @@ The pre-op skin comes from `preop/skin.*` (stl, ply, obj, off read by trimesh; v
 read by pyvista) or, when no skin surface is given, is extracted from a CT volume
 (`preop/ct.nii.gz`, `preop/ct.nii` or a DICOM series folder `preop/ct/`) with `facemodel.ct`
 (skin at -400 HU, bone at +300 HU). Bone surfaces come from `preop/bone/<segment>.*`, one per
-segment, or from the same CT as one `bone` surface. Landmarks are read from
+segment, or from the same CT as one `bone` surface (thresholds overridable in `case.yaml`,
+`ct: {skin_hu: ..., bone_hu: ...}`, e.g. for a cone-beam CT whose grey values are not HU). Landmarks are read from
 `preop/landmarks.json` (`{"Prn": [x, y, z], ...}` in mm RAS) or from a 3D Slicer markups file
 (`preop/landmarks.mrk.json`; control points with labels, in the file's `coordinateSystem`,
 LPS by default as in Slicer, converted to RAS by negating x and y; the older fiducial list
@@ -36,7 +37,8 @@ METRES_DIAGONAL_MM = 1.0
 # ~20 mm on the face), so 30 mm leaves room for both. (An LPS/RAS mix-up on a closed head
 # surface can land on the back of the head and pass; on a face-only surface it is caught.)
 LANDMARK_MAX_SKIN_DISTANCE_MM = 30.0
-CASE_INFO_KEYS = ("id", "follow_up_months", "notes", "age_years", "sex", "synthetic", "seed")
+CASE_INFO_KEYS = ("id", "follow_up_months", "notes", "age_years", "sex", "synthetic", "seed", "ct")
+CT_KEYS = ("skin_hu", "bone_hu")   # case.yaml `ct:` thresholds, e.g. for a CBCT's grey values
 SLICER_UNITS_TO_MM = {"mm": 1.0, "um": 1e-3}
 # Triangle budget of surfaces extracted from a CT: a 0.5 mm CT gives a skin of over a million
 # triangles; 200,000 keeps the skin's detail (edges ~1 mm) at a fraction of the cost downstream.
@@ -176,6 +178,10 @@ def _one_surface_file(folder: Path, stem: str, what: str) -> Path | None:
     return files[0] if files else None
 
 
+def _optional(p: Path) -> Path | None:
+    return p if p.is_file() else None
+
+
 def _ct_source(preop: Path) -> Path | None:
     for name in ("ct.nii.gz", "ct.nii"):
         if (preop / name).is_file():
@@ -185,11 +191,12 @@ def _ct_source(preop: Path) -> Path | None:
     return None
 
 
-def _surfaces_from_ct(ct_path: Path):
+def _surfaces_from_ct(ct_path: Path, thresholds: dict):
     from facemodel.ct import CTError, ct_surfaces
 
     try:
-        return ct_surfaces(ct_path, max_faces=CT_MAX_FACES)
+        return ct_surfaces(ct_path, max_faces=CT_MAX_FACES,
+                           **{k: float(v) for k, v in thresholds.items()})
     except CTError as exc:
         raise InputError(exc.reason, file=exc.file or str(ct_path), field="preop CT") from exc
 
@@ -347,9 +354,16 @@ def _check_landmarks_near_skin(landmarks: dict, skin, file: str) -> None:
 
     if not landmarks:
         return
+    from scipy.spatial import cKDTree
+
     names = list(landmarks)
     points = np.array([landmarks[n] for n in names])
-    _, distance, _ = trimesh.proximity.closest_point(skin, points)
+    # The nearest vertex overestimates the distance to the surface by less than an edge, so
+    # only the points it finds far are measured exactly (a triangle tree costs ~1 s on a CT skin).
+    distance, _ = cKDTree(skin.vertices).query(points)
+    check = distance > LANDMARK_MAX_SKIN_DISTANCE_MM
+    if check.any():
+        _, distance[check], _ = trimesh.proximity.closest_point(skin, points[check])
     far = distance > LANDMARK_MAX_SKIN_DISTANCE_MM
     if far.any():
         k = int(np.argmax(distance))
@@ -393,6 +407,18 @@ def load_case_info(path: Path | None, default_id: str) -> CaseInfo:
         notes = ""
     if not isinstance(notes, str):
         raise InputError("notes must be text", file=file, field="notes")
+    ct = data.get("ct") or {}
+    if not isinstance(ct, dict):
+        raise InputError("ct must be a mapping (skin_hu, bone_hu)", file=file, field="ct")
+    for key, value in ct.items():
+        if key not in CT_KEYS:
+            raise InputError(f"ct: unknown key {key}; known keys are {', '.join(CT_KEYS)}",
+                             file=file, field=f"ct.{key}")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise InputError(f"ct.{key} must be a number (HU), got {value!r}", file=file,
+                             field=f"ct.{key}")
+    if "skin_hu" in ct and "bone_hu" in ct and not ct["skin_hu"] < ct["bone_hu"]:
+        raise InputError("ct.skin_hu must be below ct.bone_hu", file=file, field="ct.skin_hu")
     extra = {k: data[k] for k in data if k not in ("id", "follow_up_months", "notes")}
     return CaseInfo(id=str(case_id), follow_up_months=months, notes=notes, extra=extra)
 
@@ -411,6 +437,7 @@ def load_case(path) -> Case:
         raise InputError("the case has no preop/ folder (pre-op skin and bone surfaces or CT)",
                          file=str(preop), field="preop")
 
+    info = load_case_info(_optional(root / "case.yaml") or _optional(root / "case.yml"), root.name)
     skin_file = _one_surface_file(preop, "skin", "skin")
     ct_path = _ct_source(preop)
     bone_dir = preop / "bone"
@@ -424,7 +451,7 @@ def load_case(path) -> Case:
                              "preop/ct/) to extract it from",
                              file=str(preop / ("skin.stl" if skin_file is None else "bone")),
                              field="skin" if skin_file is None else "bone")
-        ct = _surfaces_from_ct(ct_path)
+        ct = _surfaces_from_ct(ct_path, info.extra.get("ct") or {})
     if skin_file is not None:
         skin = load_surface(skin_file, "skin")
         skin_path = skin_file
@@ -444,14 +471,10 @@ def load_case(path) -> Case:
         landmarks = load_landmarks(landmark_file)
         _check_landmarks_near_skin(landmarks, skin, str(landmark_file))
 
-    def optional(p: Path) -> Path | None:
-        return p if p.is_file() else None
-
-    plan_path = optional(root / "plan.yaml") or optional(root / "plan.yml")
+    plan_path = _optional(root / "plan.yaml") or _optional(root / "plan.yml")
     postop = root / "postop"
     postop_skin = _one_surface_file(postop, "skin", "postop skin") if postop.is_dir() else None
-    postop_plan = optional(postop / "plan_actual.yaml") or optional(postop / "plan_actual.yml")
-    info = load_case_info(optional(root / "case.yaml") or optional(root / "case.yml"), root.name)
+    postop_plan = _optional(postop / "plan_actual.yaml") or _optional(postop / "plan_actual.yml")
     return Case(root=root, skin=skin, bones=bones, landmarks=landmarks, plan_path=plan_path,
                 postop_skin_path=postop_skin, postop_plan_path=postop_plan, info=info,
                 skin_path=skin_path, ct_path=ct_path)

@@ -170,6 +170,10 @@ def test_two_skin_files_are_ambiguous(case_dir):
     ("- a list\n", "expected a mapping"),
     ("id: [1, 2]\n", "id must be"),
     ("id: P1\n  bad: indentation: here\n", "unreadable YAML"),
+    ("ct: {skin_hu: low}\n", "ct.skin_hu must be a number"),
+    ("ct: {level: 3}\n", "ct: unknown key level"),
+    ("ct: {skin_hu: 500, bone_hu: 300}\n", "must be below"),
+    ("ct: [1, 2]\n", "ct must be a mapping"),
 ])
 def test_bad_case_yaml(case_dir, text, words):
     (case_dir / "case.yaml").write_text(text)
@@ -271,24 +275,42 @@ def ct_case(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("ctcase") / "case"
     (root / "preop").mkdir(parents=True)
-    hu, affine = ct_volume_from_surfaces(SKIN, BONES, spacing=(2.0, 2.0, 2.0), margin=6, seed=4)
+    hu, affine = ct_volume_from_surfaces(SKIN_FINE, BONES, spacing=(2.0, 2.0, 2.0), margin=6,
+                                         seed=4)
     write_nifti(root / "preop" / "ct.nii.gz", hu, affine)
     (root / "preop" / "landmarks.json").write_text(json.dumps(LANDMARKS))
     return root, hu.shape, affine
 
 
-def test_case_from_ct_only(ct_case):
+@pytest.fixture(scope="module")
+def ct_loaded(ct_case):
+    return load_case(ct_case[0])
+
+
+# The CT phantom's skin: the same ellipsoid finely facetted (chord error 0.02 mm), so that
+# the extracted skin can be compared with the analytic ellipsoid.
+SKIN_AXES = np.array([70.0, 90.0, 110.0])
+SKIN_FINE = ellipsoid(SKIN_AXES, (0, 0, 0), subdivisions=5)
+
+
+def signed_distance_to_skin(points):
+    """(F - 1) / |grad F|, F = sum (x/a)^2: the signed distance to the ellipsoid up to
+    d^2 / (2 R) with R >= 70^2 / 110 = 44 mm, i.e. < 0.02 mm for |d| < 1.3 mm."""
+    u = points / SKIN_AXES
+    return ((u ** 2).sum(axis=1) - 1.0) / np.linalg.norm(2 * u / SKIN_AXES, axis=1)
+
+
+def test_case_from_ct_only(ct_case, ct_loaded):
     from facemodel.ct_phantom import occupancy
 
     root, shape, affine = ct_case
-    case = load_case(root)
+    case = ct_loaded
     assert case.from_ct and case.ct_path.name == "ct.nii.gz"
     assert list(case.bones) == ["bone"] and case.plan_path is None
     # 2 mm voxels: the skin comes back within 0.5 mm mean (observed ~0.2 mm; the -400 HU
     # threshold alone shifts it 0.15 mm inwards at this spacing), both ways.
-    _, d, _ = trimesh.proximity.closest_point(SKIN, case.skin.vertices)
-    assert d.mean() < 0.5
-    _, back, _ = trimesh.proximity.closest_point(case.skin, SKIN.vertices)
+    assert np.abs(signed_distance_to_skin(case.skin.vertices)).mean() < 0.5
+    _, back, _ = trimesh.proximity.closest_point(case.skin, SKIN.vertices)   # 642 points
     assert back.mean() < 0.5
     # One bone surface for the union of the three (disjoint) segments: three closed parts, and
     # the volume it adds to the union's exact partial-volume integral, spread over its area, is
@@ -336,3 +358,16 @@ def test_inward_closed_surfaces_are_turned_outward(case_dir):
     inward.export(case_dir / "preop" / "bone" / "maxilla.stl")
     case = load_case(case_dir)
     assert case.bones["maxilla"].volume == pytest.approx(BONES["maxilla"].volume, rel=1e-6)
+
+
+def test_ct_thresholds_from_case_yaml(ct_case, ct_loaded, tmp_path):
+    # At the half-maximum level of the phantom's air/tissue edge, (-1000 + 40) / 2 = -480 HU,
+    # the skin has no partial-volume offset: its mean signed distance is within 0.1 mm of 0,
+    # while the default -400 HU puts it (80 / 1040) * 2 mm = 0.15 mm inside (2 mm voxels).
+    case_dir = tmp_path / "cbct"
+    shutil.copytree(ct_case[0], case_dir)
+    (case_dir / "case.yaml").write_text("id: cbct\nct: {skin_hu: -480}\n")
+    half_max = signed_distance_to_skin(load_case(case_dir).skin.vertices).mean()
+    default = signed_distance_to_skin(ct_loaded.skin.vertices).mean()
+    assert abs(half_max) < 0.1
+    assert default == pytest.approx(-0.15, abs=0.1)

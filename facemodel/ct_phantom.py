@@ -137,14 +137,44 @@ def occupancy(meshes, shape, affine, supersample: int = 4) -> np.ndarray:
     return np.clip(occ, 0.0, 1.0)
 
 
+def cap_holes(mesh):
+    """Close every boundary loop by a fan of triangles from the loop's centroid.
+
+    Meant for the large, nearly planar openings of head surfaces (the neck cut, a face scan's
+    rim): the fan follows the loop, with the winding of the faces next to it.
+    """
+    import trimesh
+
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    edges = mesh.edges  # directed, as the faces run
+    key = np.sort(edges, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    boundary = edges[counts[inverse.ravel()] == 1]
+    if len(boundary) == 0:
+        return mesh
+    n = len(mesh.vertices)
+    graph = coo_matrix((np.ones(len(boundary)), (boundary[:, 0], boundary[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    loops, loop_of_edge = np.unique(label[boundary[:, 0]], return_inverse=True)
+    centroids = np.array([mesh.vertices[np.unique(boundary[loop_of_edge == k])].mean(axis=0)
+                          for k in range(len(loops))])
+    centre_ids = n + loop_of_edge
+    caps = np.column_stack([boundary[:, 1], boundary[:, 0], centre_ids])
+    return trimesh.Trimesh(np.vstack([mesh.vertices, centroids]), np.vstack([mesh.faces, caps]),
+                           process=True)
+
+
 def _closed_outward(mesh, what: str):
     import trimesh
 
     mesh = trimesh.Trimesh(np.asarray(mesh.vertices, float), np.asarray(mesh.faces), process=True)
     if not mesh.is_watertight:
-        trimesh.repair.fill_holes(mesh)
+        mesh = cap_holes(mesh)
     if not mesh.is_watertight:
-        raise ValueError(f"{what} surface is not closed: a CT phantom needs closed surfaces")
+        raise ValueError(f"{what} surface is not closed and its holes cannot be capped: a CT "
+                         "phantom needs closed surfaces")
     if mesh.volume < 0:
         mesh.invert()
     return mesh
@@ -157,7 +187,8 @@ def ct_volume_from_surfaces(skin, bones: dict, spacing=(1.0, 1.0, 1.0), margin: 
     """A CT-like HU volume of a head given by closed surfaces (mm, RAS).
 
     Returns `(hu, affine)`: `hu` float32 (i, j, k) on an axis-aligned grid covering the skin
-    (and bones) plus `margin` mm, `affine` 4x4 voxel -> RAS mm.
+    (and bones) plus `margin` mm, `affine` 4x4 voxel -> RAS mm. Open surfaces (a skin cut at
+    the neck) are closed first by `cap_holes`.
     """
     spacing = np.broadcast_to(np.asarray(spacing, dtype=float), (3,))
     if np.any(spacing <= 0):
@@ -250,8 +281,15 @@ def write_dicom_series(folder, hu: np.ndarray, affine: np.ndarray, *, patient_id
         ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
         ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study, series, frame
         ds.Modality = "CT"
+        ds.Manufacturer = "faceplan"
         ds.PatientName = patient_id
         ds.PatientID = patient_id
+        ds.PatientBirthDate = ds.PatientSex = ""
+        ds.ReferringPhysicianName = ds.AccessionNumber = ""
+        ds.StudyID = "1"
+        ds.PositionReferenceIndicator = ""
+        ds.KVP = ""
+        ds.AcquisitionNumber = 1
         ds.PatientPosition = "HFS"
         ds.StudyDate = ds.SeriesDate = now.strftime("%Y%m%d")
         ds.StudyTime = ds.SeriesTime = now.strftime("%H%M%S")

@@ -350,3 +350,22 @@ def test_dicom_in_subfolders_with_a_localizer(small_series, tmp_path):
     a, b = ct.read_ct(small_series), ct.read_ct(nested)
     np.testing.assert_array_equal(a.hu, b.hu)
     np.testing.assert_allclose(a.affine, b.affine)
+
+
+def test_open_skin_is_capped_before_voxelising():
+    # A skin cut at the "neck" (faces below z = -8 removed): the fan cap closes it, and the
+    # voxelised volume equals the capped surface's volume to 0.2 % (as for closed surfaces).
+    from facemodel.ct_phantom import cap_holes
+
+    skin = ellipsoid(SKIN_AXES, np.zeros(3))
+    skin.update_faces(skin.triangles_center[:, 2] > -8.0)
+    skin.remove_unreferenced_vertices()
+    assert not skin.is_watertight
+    capped = cap_holes(skin)
+    assert capped.is_watertight and capped.is_winding_consistent
+    hu, affine = ct_volume_from_surfaces(skin, {}, margin=3, noise_hu=0)
+    assert capped.volume > 0   # the cap follows the outward winding of the open surface
+    occ = occupancy([capped], hu.shape, affine)
+    assert occ.sum() == pytest.approx(capped.volume, rel=2e-3)
+    # The HU volume holds the same amount of tissue: (hu + 1000) / 1040 integrates to it.
+    assert ((hu + 1000.0) / 1040.0).sum() == pytest.approx(capped.volume, rel=2e-3)

@@ -215,7 +215,7 @@ def deep_radius(theta, phi, shape: HeadShape = GENERIC, side=None) -> np.ndarray
     r = _smin(r, floor, 5.0)
     # Zygomatic prominences and nasal bones.
     r = r + 5.0 * _gauss(th - 45.0, 12.0) * _gauss(phi - 2.0, 9.0)
-    r = r + 15.0 * smoothstep(8.0, 28.0, phi) * _gauss(theta, 8.5)
+    r = r + 15.0 * smoothstep(8.0, 28.0, phi) * (1.0 - smoothstep(35.0, 50.0, phi)) * _gauss(theta, 8.5)
     # Anterior dento-alveolar profile and symphysis, blended in around the mouth.
     w = (1.0 - smoothstep(8.0, 36.0, th)) * smoothstep(-60.0, -46.0, phi) * (1.0 - smoothstep(-4.0, 2.0, phi))
     r = (1.0 - w) * r + w * _front_radius(theta, phi, side, shape)
@@ -244,7 +244,7 @@ def soft_tissue_thickness(theta, phi, shape: HeadShape = GENERIC) -> np.ndarray:
     t = t - 5.0 * smoothstep(0.0, 12.0, phi)                                # infraorbital
     t = t - 3.0 * smoothstep(60.0, 85.0, th)                                # preauricular
     t = t + 3.0 * smoothstep(-50.0, -65.0, phi)                             # submental
-    t = t - 6.0 * smoothstep(20.0, 60.0, phi)                               # scalp, far away
+    t = t - 3.0 * smoothstep(20.0, 60.0, phi)                               # scalp, far away
     t = t - 4.0 * smoothstep(95.0, 140.0, th)
     mid = _T_MID(np.clip(phi, -90.0, 45.0))
     lips = (PHI_STOMION - 8.0 < phi) & (phi < PHI_STOMION + 8.0)
@@ -257,6 +257,8 @@ def soft_tissue_thickness(theta, phi, shape: HeadShape = GENERIC) -> np.ndarray:
     tn = _T_NOSE(np.clip(phi, -12.0, 45.0)) + shape.nose_projection * _gauss(phi - 1.0, 8.0)
     wn = nose_weight(theta, phi)
     t = (1.0 - wn) * t + wn * tn
+    # scalp: a uniform 5 mm towards the vertex (continuous at the pole)
+    t = t + smoothstep(55.0, 80.0, phi) * (5.0 - t)
     return shape.soft_tissue * t
 
 
@@ -332,8 +334,8 @@ def segment_region(segment: str, theta, phi) -> np.ndarray:
     if segment == "maxilla":
         return np.maximum.reduce([top_crown_u - phi, phi - lf + k, th - RAMUS + k])
     if segment == "mandible":
-        body = np.maximum(phi - low_crown_l, MANDIBLE_BORDER - phi)
-        ramus = np.maximum.reduce([RAMUS - th, phi - 0.0 + k, MANDIBLE_BORDER - phi])
+        body = np.maximum.reduce([phi - low_crown_l, MANDIBLE_BORDER - phi, th - 95.0])
+        ramus = np.maximum.reduce([RAMUS - th, phi - 0.0 + k, MANDIBLE_BORDER - phi, th - 95.0])
         return np.maximum(np.minimum(body, ramus), -chin + k)
     if segment == "skull":
         face = np.where(th < RAMUS, lf + k - phi, 0.0 + k - phi)
@@ -388,33 +390,65 @@ def teeth_arch(arch: str, shape: HeadShape = GENERIC, n_along: int = 24, n_heigh
     high from the occlusal plane, labial surface TEETH_GAP behind the lip mucosa on the
     incisors (the lower arch OVERJET behind the upper), 7 mm (incisors) to 10 mm (molars)
     deep, shifted with the jaw (maxilla_ap / mandible_ap) and warped with the head."""
-    from generic_mesh.quality import boundary_quads
+    from facemodel._structured import box_surface, orient_outward
 
     upper = arch == "upper"
     pts, normal = _arch_curve(n_along)
-    m = len(pts)
-    u, v, w = np.meshgrid(np.arange(m), np.linspace(0.0, 1.0, n_height + 1),
-                          np.linspace(0.0, 1.0, n_depth + 1), indexing="ij")
-    idx = np.arange(u.size).reshape(u.shape)
-    h = np.stack([idx[:-1, :-1, :-1], idx[1:, :-1, :-1], idx[1:, 1:, :-1], idx[:-1, 1:, :-1],
-                  idx[:-1, :-1, 1:], idx[1:, :-1, 1:], idx[1:, 1:, 1:], idx[:-1, 1:, 1:]], -1).reshape(-1, 8)
-    quads = boundary_quads(h)
-    used, inv = np.unique(quads, return_inverse=True)
-    quads = inv.reshape(-1, 4)
-    iu, vv, ww = u.ravel()[used], v.ravel()[used], w.ravel()[used]
-    frac = np.abs(np.linspace(-1.0, 1.0, m))[iu]
+    params, tri = box_surface(len(pts) - 1, n_height, n_depth)
+    iu = np.rint(params[:, 0] * (len(pts) - 1)).astype(int)
+    frac = np.abs(np.linspace(-1.0, 1.0, len(pts)))[iu]
     depth = 7.0 + 3.0 * frac**2
-    xy = pts[iu] - normal[iu] * (TEETH_GAP + depth[:, None] * ww[:, None])
+    xy = pts[iu] - normal[iu] * (TEETH_GAP + depth[:, None] * params[:, 2:3])
     z0 = mouth_line_z()
     if upper:
         xy[:, 1] += shape.maxilla_ap
-        z = z0 + 0.3 + 9.7 * vv
+        z = z0 + 0.3 + 9.7 * params[:, 1]
     else:
         xy[:, 1] += shape.mandible_ap - OVERJET
-        z = z0 - 0.3 - 9.7 * vv
+        z = z0 - 0.3 - 9.7 * params[:, 1]
     verts = warp(np.column_stack([xy, z]), shape)
-    tri = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
-    a, b, c = verts[tri[:, 0]], verts[tri[:, 1]], verts[tri[:, 2]]
-    if np.einsum("ij,ij->i", a, np.cross(b, c)).sum() < 0:
-        tri = tri[:, ::-1]
-    return verts, tri
+    return verts, orient_outward(verts, tri)
+
+
+def _segment_bounds(segment: str, theta):
+    """Lower and upper elevation (deg) of a bone segment's shell at azimuth theta (the
+    regions of `segment_region`, with the ramus step smoothed over 8 deg)."""
+    th = np.abs(theta)
+    k = OSTEOTOMY_KERF / 2.0
+    ramus = smoothstep(RAMUS - 4.0, RAMUS + 4.0, th)
+    if segment == "skull":
+        return (1.0 - ramus) * (le_fort_line(th) + k) + ramus * k, np.full_like(th, 45.0)
+    if segment == "maxilla":
+        return np.full_like(th, PHI_STOMION + CROWN_SPAN), le_fort_line(th) - k
+    if segment == "chin":
+        return np.full_like(th, MANDIBLE_BORDER), genioplasty_line(th) - k
+    if segment == "mandible":
+        lo = np.maximum(MANDIBLE_BORDER, genioplasty_line(th) + k)
+        return lo, (1.0 - ramus) * (PHI_STOMION - CROWN_SPAN) + ramus * (0.0 - k)
+    raise KeyError(segment)
+
+
+SEGMENT_AZIMUTH = {"skull": 105.0, "maxilla": RAMUS - 2.0, "mandible": 95.0, "chin": 25.0}
+
+
+def bone_shell(segment: str, shape: HeadShape = GENERIC, n_theta: int = 120, n_phi: int = 40,
+               n_depth: int = 2):
+    """Closed triangulated shell (BONE_SHELL mm thick under the outer bone surface) of a
+    bone segment: skull (facial part), maxilla (Le Fort I), mandible, chin (genioplasty)."""
+    from facemodel._structured import box_surface, orient_outward
+
+    params, tri = box_surface(n_theta, n_phi, n_depth)
+    tmax = SEGMENT_AZIMUTH[segment]
+    # the chin ends where the genioplasty line meets the lower border
+    if segment == "chin":
+        tmax = 26.0 * np.sqrt((-MANDIBLE_BORDER - 36.0 - OSTEOTOMY_KERF / 2) / 14.0)
+    theta = (2.0 * params[:, 0] - 1.0) * tmax
+    lo, hi = _segment_bounds(segment, theta)
+    if segment == "chin":
+        hi = np.maximum(hi, lo + 0.5)
+    phi = lo + (hi - lo) * params[:, 1]
+    side = np.full_like(theta, 1.0 if segment in ("skull", "maxilla") else -1.0)
+    outer = bone_radius(theta, phi, shape, side=side)
+    rho = outer - BONE_SHELL * (1.0 - params[:, 2])
+    verts = to_cartesian(theta, phi, rho, shape)
+    return verts, orient_outward(verts, tri)

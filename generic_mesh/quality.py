@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from facemodel._structured import boundary_quads  # noqa: F401  (re-exported)
+
 # For each corner of a VTK hexahedron, its three neighbours in the (xi1, xi2, xi3) order
 # (right-handed for a positive element).
 _CORNER_NEIGHBOURS = np.array([
@@ -63,14 +65,6 @@ def hex_volumes(nodes: np.ndarray, hexes: np.ndarray) -> np.ndarray:
         jac = np.einsum("mia,ib->mab", x, dn)
         vol += np.linalg.det(jac)
     return vol
-
-
-def boundary_quads(hexes: np.ndarray) -> np.ndarray:
-    """Faces (k, 4) that belong to one hexahedron only, outward by the right-hand rule."""
-    faces = np.asarray(hexes)[:, HEX_FACES].reshape(-1, 4)
-    key = np.sort(faces, axis=1)
-    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return faces[counts[inv.ravel()] == 1]
 
 
 def quads_to_triangles(quads: np.ndarray) -> np.ndarray:

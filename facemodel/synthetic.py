@@ -1,0 +1,182 @@
+"""Synthetic patients: random plausible heads from the parametric head geometry.
+
+A seed draws shape parameters (`head_geometry.HeadShape`: face width and height, class II /
+III jaw positions, chin projection, lip and soft-tissue thickness, nose, mild asymmetry) in
+ranges of adult orthognathic patients (jaw discrepancies of a few mm to ~8 mm, the range of
+cephalometric norms +-2 SD, e.g. McNamara J.A., Am J Orthod 86:449-469, 1984), with a
+guaranteed difference from the generic head so that registration has real work (RMS skin
+difference over the face of at least MIN_DIFFERENCE mm). The skin (closed head) and the bone
+segments (skull, maxilla, mandible, chin: closed shells of the facial skeleton cut along
+Le Fort I, the mouth line and a genioplasty line) are the zero sets of the radial implicit
+functions, meshed by CGAL's surface mesher through pygalmesh (restricted Delaunay: facet
+angle, size and distance criteria, Boissonnat & Oudot, Graph Models 67:405-451, 2005); the
+teeth are swept closed arches; landmarks are the skin points on their rays. The implicit
+functions are tabulated on a 0.2 deg (theta, phi) grid and evaluated by bilinear
+interpolation, so that the mesher's many scalar queries stay cheap.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+from facemodel import head_geometry as hg
+
+MIN_DIFFERENCE = 3.0     # mm RMS skin difference from the generic head
+
+
+# (low, high) ranges of the shape parameters drawn for a synthetic patient
+RANGES = {
+    "width": (0.93, 1.07), "height": (0.93, 1.07), "maxilla_ap": (-4.0, 3.0),
+    "mandible_ap": (-7.0, 7.0), "chin_projection": (-3.0, 3.0), "lip_thickness": (-2.0, 2.0),
+    "soft_tissue": (0.85, 1.2), "nose_projection": (-3.0, 3.0), "asymmetry": (-2.5, 2.5),
+}
+
+
+@dataclass(frozen=True, eq=False)
+class SyntheticHead:
+    seed: int
+    shape: hg.HeadShape
+    skin: object                     # trimesh.Trimesh, closed
+    bones: dict                      # segment -> trimesh.Trimesh, closed
+    teeth: dict                      # "upper"/"lower" -> (vertices, faces, segment)
+    landmarks: dict = field(default_factory=dict)   # name -> (3,) mm RAS
+
+
+def face_difference(shape: hg.HeadShape, reference: hg.HeadShape = hg.GENERIC) -> float:
+    """RMS distance (mm) between the skins of two shapes over the face (rays of the face)."""
+    th, ph = np.meshgrid(np.linspace(-80, 80, 81), np.linspace(-70, 20, 46))
+    a = hg.to_cartesian(th, ph, hg.skin_radius(th, ph, shape), shape)
+    b = hg.to_cartesian(th, ph, hg.skin_radius(th, ph, reference), reference)
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=-1))))
+
+
+def random_shape(seed: int) -> hg.HeadShape:
+    """Shape parameters of patient `seed` (deterministic), at least MIN_DIFFERENCE mm RMS
+    away from the generic head (deviations scaled up from the mean if needed)."""
+    rng = np.random.default_rng(np.random.SeedSequence([20261122, int(seed)]))
+    base = hg.GENERIC.as_dict()
+    draw = {k: rng.uniform(lo, hi) for k, (lo, hi) in RANGES.items()}
+    # a real orthognathic patient: the jaws are off by at least 3 mm in one direction
+    if abs(draw["mandible_ap"] - draw["maxilla_ap"]) < 3.0:
+        draw["mandible_ap"] = draw["maxilla_ap"] + (3.0 if draw["mandible_ap"] >= draw["maxilla_ap"] else -3.0)
+    shape = hg.HeadShape.from_dict(draw)
+    for _ in range(20):
+        if face_difference(shape) >= MIN_DIFFERENCE:
+            break
+        draw = {k: base[k] + 1.25 * (v - base[k]) for k, v in draw.items()}
+        shape = hg.HeadShape.from_dict(draw)
+    return shape
+
+
+# ------------------------------------------------------------------------- skin (pygalmesh)
+@numba.njit(cache=True)
+def _skin_implicit(x, y, z, table, t0, p0, step, cx, cy, cz, width, height, asym):
+    """|q - C| - R_skin(theta, phi) at a point, R_skin bilinear in a (phi, theta) table."""
+    if asym != 0.0:
+        s = min(max((z + 35.0) / -45.0, 0.0), 1.0)
+        x = x - asym * s * s * (3.0 - 2.0 * s)
+    qx = (x - cx) / width
+    qy = y - cy
+    qz = (z - cz) / height
+    rho = math.sqrt(qx * qx + qy * qy + qz * qz)
+    theta = math.degrees(math.atan2(qx, qy))
+    phi = math.degrees(math.asin(max(-1.0, min(1.0, qz / max(rho, 1e-12)))))
+    n_p, n_t = table.shape
+    ft = (theta - t0) / step
+    fp = (phi - p0) / step
+    i = min(max(int(ft), 0), n_t - 2)
+    j = min(max(int(fp), 0), n_p - 2)
+    a = min(max(ft - i, 0.0), 1.0)
+    b = min(max(fp - j, 0.0), 1.0)
+    r = (1 - b) * ((1 - a) * table[j, i] + a * table[j, i + 1]) \
+        + b * ((1 - a) * table[j + 1, i] + a * table[j + 1, i + 1])
+    return rho - r
+
+
+def skin_table(shape: hg.HeadShape, step: float = 0.25):
+    """Skin radius tabulated over the whole sphere: (table (phi, theta), theta0, phi0, step)."""
+    t = np.arange(-180.0, 180.0 + step / 2, step)
+    p = np.arange(-90.0, 90.0 + step / 2, step)
+    T, P = np.meshgrid(t, p)
+    return np.ascontiguousarray(hg.skin_radius(T, P, shape)), float(t[0]), float(p[0]), float(step)
+
+
+def skin_surface(shape: hg.HeadShape, size: float = 3.0, distance: float = 0.25, seed: int = 0,
+                 table_step: float = 0.25):
+    """The closed skin of a head shape (trimesh), meshed by pygalmesh from its implicit
+    function: facets of at most `size` mm (Delaunay ball radius), within `distance` mm of
+    the surface, angles >= 25 deg."""
+    import pygalmesh
+    import trimesh
+
+    table, t0, p0, step = skin_table(shape, table_step)
+    args = (table, t0, p0, step, *map(float, hg.CENTRE), float(shape.width), float(shape.height),
+            float(shape.asymmetry))
+    c = hg.CENTRE
+
+    class Skin(pygalmesh.DomainBase):
+        def __init__(self):
+            super().__init__()
+
+        def eval(self, x):
+            # the mesher's origin is the ray centre C, inside the head
+            return _skin_implicit(x[0] + c[0], x[1] + c[1], x[2] + c[2], *args)
+
+        def get_bounding_sphere_squared_radius(self):
+            return 220.0**2
+
+    mesh = pygalmesh.generate_surface_mesh(
+        Skin(), min_facet_angle=25.0, max_radius_surface_delaunay_ball=size,
+        max_facet_distance=distance, verbose=False, seed=seed)
+    tri = np.concatenate([cell.data for cell in mesh.cells if cell.type == "triangle"])
+    out = trimesh.Trimesh(mesh.points + c, tri, process=True)
+    parts = out.split(only_watertight=False)
+    if len(parts) > 1:       # drop tiny spurious bubbles, if any
+        out = max(parts, key=lambda m: len(m.faces))
+    trimesh.repair.fix_normals(out)
+    if out.volume < 0:
+        out.invert()
+    return out
+
+
+# Structured grid sizes of the bone shells (columns, rows) per segment.
+SHELL_GRID = {"skull": (120, 36), "maxilla": (60, 10), "mandible": (120, 24), "chin": (30, 12)}
+
+
+def bone_surfaces(shape: hg.HeadShape, scale: float = 1.0) -> dict:
+    """Closed shells of the bone segments (trimesh per segment), swept structured surfaces
+    of the same radial bone function (their sharp osteotomy edges are exact this way)."""
+    import trimesh
+
+    out = {}
+    for seg, (nt, nphi) in SHELL_GRID.items():
+        v, f = hg.bone_shell(seg, shape, n_theta=max(4, int(nt * scale)), n_phi=max(3, int(nphi * scale)))
+        out[seg] = trimesh.Trimesh(v, f, process=False)
+    return out
+
+
+def landmarks(shape: hg.HeadShape) -> dict:
+    """Soft-tissue landmarks (mm RAS) of a head shape."""
+    out = {}
+    for name, (t, p, sd) in hg.LANDMARK_ANGLES.items():
+        if name == "Stms":
+            p = p + 0.3
+        elif name == "Stmi":
+            p = p - 0.3
+        out[name] = hg.to_cartesian(t, p, hg.skin_radius(t, p, shape, side=sd), shape)
+    return out
+
+
+def synthetic_head(seed: int, size: float = 3.0, distance: float = 0.25,
+                   table_step: float = 0.25) -> SyntheticHead:
+    """Patient `seed`: shape, skin, bone segments, teeth and landmarks (deterministic)."""
+    shape = random_shape(seed)
+    teeth = {"upper": (*hg.teeth_arch("upper", shape), "maxilla"),
+             "lower": (*hg.teeth_arch("lower", shape), "mandible")}
+    return SyntheticHead(seed=int(seed), shape=shape,
+                         skin=skin_surface(shape, size, distance, seed=int(seed) % 2**31,
+                                           table_step=table_step),
+                         bones=bone_surfaces(shape), teeth=teeth, landmarks=landmarks(shape))

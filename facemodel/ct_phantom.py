@@ -151,7 +151,7 @@ def cap_holes(mesh):
     edges = mesh.edges  # directed, as the faces run
     key = np.sort(edges, axis=1)
     _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    boundary = edges[counts[inverse.ravel()] == 1]
+    boundary = edges[counts[inverse.ravel()] == 1]   # edges of a single face
     if len(boundary) == 0:
         return mesh
     n = len(mesh.vertices)
@@ -166,13 +166,27 @@ def cap_holes(mesh):
                            process=True)
 
 
+def is_closed_cycle(mesh) -> bool:
+    """True when every edge is run as often in one direction as in the other.
+
+    That is what the winding number needs: a closed, consistently oriented surface, pinched
+    (non-manifold) edges allowed, as surface meshers leave where two thin shells touch.
+    """
+    edges = mesh.edges
+    key = np.sort(edges, axis=1)
+    forward = edges[:, 0] < edges[:, 1]
+    _, inverse = np.unique(key, axis=0, return_inverse=True)
+    balance = np.bincount(inverse.ravel(), weights=np.where(forward, 1.0, -1.0))
+    return bool(np.all(balance == 0))
+
+
 def _closed_outward(mesh, what: str):
     import trimesh
 
     mesh = trimesh.Trimesh(np.asarray(mesh.vertices, float), np.asarray(mesh.faces), process=True)
-    if not mesh.is_watertight:
+    if not is_closed_cycle(mesh):
         mesh = cap_holes(mesh)
-    if not mesh.is_watertight:
+    if not is_closed_cycle(mesh):
         raise ValueError(f"{what} surface is not closed and its holes cannot be capped: a CT "
                          "phantom needs closed surfaces")
     if mesh.volume < 0:

@@ -37,12 +37,18 @@ def triangulate(facets: np.ndarray) -> np.ndarray:
 
 
 def nodal_areas(nodes: np.ndarray, facets: np.ndarray, n_nodes: int | None = None):
-    """Tributary area of every node of a facet set (each facet's area shared equally)."""
-    tri = triangulate(facets)
-    p = nodes[tri]
-    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    """Tributary area of every node of a facet set (each facet's area shared equally).
+
+    A quad's area (the norm of its vector area, exact for planar quads) goes a quarter to
+    each of its nodes, a triangle's a third: the lumped nodal weights of a uniform pressure.
+    """
+    facets = np.asarray(facets, dtype=np.int64)
+    p = nodes[facets]
+    k = facets.shape[1]
+    vec = sum(np.cross(p[:, i], p[:, (i + 1) % k]) for i in range(k))
+    area = 0.5 * np.linalg.norm(vec, axis=1)
     out = np.zeros(len(nodes) if n_nodes is None else n_nodes)
-    np.add.at(out, tri.ravel(), np.repeat(area / 3.0, 3))
+    np.add.at(out, facets.ravel(), np.repeat(area / k, k))
     return out
 
 

@@ -90,6 +90,7 @@ class RigidSurfaceContact:
         self.stick = bool(stick)
         self.multipliers = np.zeros(len(self.slaves))
         self.n_augmentations = 0
+        self._augmented_load = None
         self.anchor = np.full((len(self.slaves), 3), np.nan)     # stick points, surface frame
         self.last = None
 
@@ -208,6 +209,9 @@ class RigidSurfaceContact:
         else:
             err = float(np.max(-g[p > 0], initial=0.0))
         self.last_error = err
+        if load != self._augmented_load:            # a new step: restart the Uzawa count
+            self._augmented_load = load
+            self.n_augmentations = 0
         if not self.augmented or err <= self.tolerance \
                 or self.n_augmentations >= self.max_augmentations:
             self.n_augmentations = 0

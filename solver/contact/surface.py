@@ -36,6 +36,7 @@ class _Pass:
         self.slave_tri = triangulate(slave_facets)
         self.master = triangulate(master_facets)
         self.multipliers = np.zeros(len(self.slaves))
+        self.previous = np.full(len(self.slaves), -1)       # paired triangle, last evaluation
         # slave -> its own triangles, to compute the slave node normals
         self.slave_pos = np.full(n, -1)
         self.slave_pos[self.slaves] = np.arange(len(self.slaves))
@@ -75,17 +76,39 @@ class _Pass:
                   & (bc.sum(axis=1) <= 1.0 + inside_tol))
         ok = inside & (np.einsum("ij,ij->i", ns, nm) < cos_opposed) \
             & (g > -max_depth) & (g < radius)
-        cand, owner, g = cand[ok], owner[ok], g[ok]
-        # nearest plane per slave
-        order = np.lexsort((np.abs(g), owner))
+        cand, owner, g, bc = cand[ok], owner[ok], g[ok], bc[ok]
+        # nearest plane per slave, preferring projections strictly inside a triangle over
+        # those inside only within the tolerance; a slave keeps its previous triangle while
+        # its projection stays inside it (unless another plane is much nearer), so that a
+        # node near an edge does not flip between two triangles from one iteration to the
+        # next (the status is frozen until the node really crosses the edge)
+        minbc = np.minimum(np.minimum(bc[:, 0], bc[:, 1]), 1.0 - bc.sum(axis=1))
+        key = np.abs(g) + np.where(minbc < 0.0, 2.0 * (rmax + 1.0), 0.0)
+        kept = (cand == self.previous[owner]) & (minbc >= -1e-12)
+        key = np.where(kept, key - 0.05 * rmax, key)
+        order = np.lexsort((key, owner))
         first = np.ones(len(order), dtype=bool)
         first[1:] = owner[order][1:] != owner[order][:-1]
         best = order[first]
         s, t = owner[best], cand[best]
-        pt = p[t]
+        self.previous[:] = -1
+        self.previous[s] = t
+        return self.evaluate_pairs(x, s, t, hessian)
+
+    def frozen_pairs(self, x, radius, max_depth, hessian=True):
+        """The pairs of the last search, kept whatever the projection (status freezing)."""
+        s = np.nonzero(self.previous >= 0)[0]
+        out = self.evaluate_pairs(x, s, self.previous[s], hessian)
+        keep = (out[2] > -max_depth) & (out[2] < radius)
+        return tuple(a[keep] for a in out)
+
+    def evaluate_pairs(self, x, s, t, hessian=True):
+        pt = x[self.master[t]]
         g, grad, hess, _, _ = plane_gap(x[self.slaves[s]], pt[:, 0], pt[:, 1], pt[:, 2],
                                         hessian=hessian)
-        nodes = np.concatenate([self.slaves[s][:, None], tri[t]], axis=1)      # (k, 4)
+        if hess is None:
+            hess = np.zeros((len(s), 0, 0))
+        nodes = np.concatenate([self.slaves[s][:, None], self.master[t]], axis=1)   # (k, 4)
         dofs = (3 * nodes[:, :, None] + np.arange(3)).reshape(len(s), 12)
         return s, t, g, grad, hess, dofs
 
@@ -103,7 +126,7 @@ class SurfaceContact:
     def __init__(self, nodes, surface_a, surface_b, *, two_pass: bool = True,
                  penalty: float = 100.0, augmented: bool = True, tolerance: float = 0.05,
                  max_augmentations: int = 20, search_radius: float = 2.0,
-                 max_depth: float = 2.0):
+                 max_depth: float = 2.0, freeze_after: int | None = 4):
         nodes = np.asarray(nodes, dtype=float)
         if not penalty > 0:
             raise ValueError(f"penalty must be > 0, got {penalty}")
@@ -118,25 +141,37 @@ class SurfaceContact:
         self.search_radius = float(search_radius)
         self.max_depth = float(max_depth)
         self.n_augmentations = 0
+        self._augmented_load = None
         self.last_error = 0.0
+        self.freeze_after = freeze_after
+        self._evals_load, self._evals = None, 0
 
-    def _evaluate(self, x, hessian=True):
+    def _evaluate(self, x, hessian=True, frozen=False):
         out = []
         for ps in self.passes:
             radius = self.search_radius + float(
                 np.max(ps.multipliers / (self.penalty * ps.areas), initial=0.0))
-            s, t, g, grad, hess, dofs = ps.pairs(np.asarray(x, dtype=float), radius,
-                                                 self.max_depth, hessian)
+            search = ps.frozen_pairs if frozen else ps.pairs
+            s, t, g, grad, hess, dofs = search(np.asarray(x, dtype=float), radius,
+                                               self.max_depth, hessian)
             eps = self.penalty * ps.areas[s]
             lam = ps.multipliers[s]
             p = np.maximum(lam - eps * g, 0.0)
             out.append((ps, s, g, grad, hess, dofs, eps, lam, p))
         return out
 
+    def _frozen(self, load) -> bool:
+        """Count the evaluations at this load; freeze the pairing after `freeze_after`."""
+        if load != self._evals_load:
+            self._evals_load, self._evals = load, 0
+        self._evals += 1
+        return self.freeze_after is not None and self._evals > self.freeze_after
+
     def assemble(self, x, load):
         f = np.zeros(3 * self.n_nodes)
         rows, cols, vals = [], [], []
-        for ps, s, g, grad, hess, dofs, eps, lam, p in self._evaluate(x):
+        frozen = self._frozen(load)
+        for ps, s, g, grad, hess, dofs, eps, lam, p in self._evaluate(x, frozen=frozen):
             a = p > 0
             if not np.any(a):
                 continue
@@ -156,7 +191,9 @@ class SurfaceContact:
 
     def energy(self, x, load) -> float:
         e = 0.0
-        for ps, s, g, grad, hess, dofs, eps, lam, p in self._evaluate(x, hessian=False):
+        frozen = self.freeze_after is not None and load == self._evals_load \
+            and self._evals > self.freeze_after
+        for ps, s, g, grad, hess, dofs, eps, lam, p in self._evaluate(x, False, frozen):
             e += float(np.sum((p * p - lam * lam) / (2.0 * eps)))
             # multipliers of slaves that lost their pairing contribute -lambda^2 / (2 eps)
             lost = np.setdiff1d(np.nonzero(ps.multipliers)[0], s)
@@ -173,14 +210,33 @@ class SurfaceContact:
         return worst
 
     def end_step(self, x, load) -> bool:
+        before = [ps.previous.copy() for ps in self.passes]
+        was_frozen = self._evals_load == load and self.freeze_after is not None \
+            and self._evals > self.freeze_after
+        self._evals_load, self._evals = None, 0
         ev = self._evaluate(x, hessian=False)
+        moved = False
+        if was_frozen:
+            # pairs (of nodes in contact) that the frozen solve kept but a fresh search
+            # assigns elsewhere: solve the step again with the new pairing
+            for (ps, s, g, grad, hess, dofs, eps, lam, p), old in zip(ev, before):
+                act = s[p > 0]
+                moved |= bool(np.any(old[act] != ps.previous[act]))
         err = 0.0
         for ps, s, g, grad, hess, dofs, eps, lam, p in ev:
             if np.any(p > 0):
                 err = max(err, float(-g[p > 0].min()))
         self.last_error = err
-        if not self.augmented or err <= self.tolerance \
-                or self.n_augmentations >= self.max_augmentations:
+        if load != self._augmented_load:            # a new step: restart the Uzawa count
+            self._augmented_load = load
+            self.n_augmentations = 0
+        if self.n_augmentations >= self.max_augmentations:
+            self.n_augmentations = 0
+            return False
+        if moved and (not self.augmented or err <= self.tolerance):
+            self.n_augmentations += 1
+            return True
+        if not self.augmented or err <= self.tolerance:
             self.n_augmentations = 0
             return False
         for ps, s, g, grad, hess, dofs, eps, lam, p in ev:

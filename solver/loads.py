@@ -1,0 +1,172 @@
+"""Natural boundary conditions as residual terms: follower pressure on quad facets, body force.
+
+Follower pressure p (kPa) on bilinear quad facets acts along the current normal, traction
+t = -p n, so that p > 0 pushes into the body. With n da = (x_,xi x x_,eta) dxi deta the nodal
+residual contribution is f_a = p int N_a (x_,xi x x_,eta) dxi deta, and its linearisation (the
+load stiffness of Bonet & Wood 2008, sec. 8.4.1; Schweizerhof & Ramm 1984) is
+K_ai,bk = p int N_a [N_b,eta skew(x_,xi) - N_b,xi skew(x_,eta)]_ik dxi deta. The load stiffness
+is symmetric for a closed surface or a surface whose boundary is held; otherwise its symmetric
+part is used (the solver's factorisation is symmetric), which keeps convergence linear-to-
+quadratic. The body force is the dead load f_a = -load * int rho b N_a dV with rho b in mN/mm^3
+(e.g. density 1.0e-3 g/mm^3 times gravity 9810 mm/s^2 = 9.81e-3 mN/mm^3 for soft tissue).
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from solver.element import gauss_hex, gauss_quad, hex8_shape, quad4_gradients, quad4_shape
+from solver.errors import BoundaryConditionError
+
+__all__ = ["FollowerPressure", "BodyForce", "NodalForce", "surface_traction"]
+
+
+def _skew(v):
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+class FollowerPressure:
+    """Pressure `pressure` (kPa, ramped by the load fraction) on quad facets (k, 4).
+
+    `pressure` may be a float or a callable load -> float. Facet node order gives the outward
+    normal by the right-hand rule (as `solver.mesh.boundary_facets` returns them).
+    """
+
+    def __init__(self, facets, pressure, n_nodes: int, symmetric: bool = True):
+        facets = np.asarray(facets, dtype=np.int64)
+        if facets.ndim != 2 or facets.shape[1] != 4:
+            raise BoundaryConditionError(f"pressure facets must be (k, 4) quads, got {facets.shape}")
+        if facets.size and (facets.min() < 0 or facets.max() >= n_nodes):
+            raise BoundaryConditionError("pressure facets refer to nodes outside the mesh")
+        self.facets = facets
+        self.pressure = pressure
+        self.n_nodes = n_nodes
+        self.symmetric = symmetric
+        xg, wg = gauss_quad(2)
+        self.N = quad4_shape(xg)            # (q, 4)
+        self.dN = quad4_gradients(xg)       # (q, 4, 2)
+        self.w = wg
+        dofs = (3 * facets[:, :, None] + np.arange(3)).reshape(len(facets), 12)
+        self._rows = np.repeat(dofs, 12, axis=1).ravel()
+        self._cols = np.tile(dofs, (1, 12)).ravel()
+        self._dofs = dofs
+
+    def _p(self, load):
+        p = self.pressure(load) if callable(self.pressure) else load * float(self.pressure)
+        return float(p)
+
+    def assemble(self, x, load):
+        p = self._p(load)
+        xe = x[self.facets]                                             # (k, 4, 3)
+        t1 = np.einsum("kai,qa->kqi", xe, self.dN[..., 0])              # x_,xi
+        t2 = np.einsum("kai,qa->kqi", xe, self.dN[..., 1])              # x_,eta
+        nda = np.cross(t1, t2)                                          # (k, q, 3)
+        fe = p * np.einsum("q,qa,kqi->kai", self.w, self.N, nda).reshape(len(xe), 12)
+        f = np.bincount(self._dofs.ravel(), fe.ravel(), minlength=3 * self.n_nodes)
+        # K_ai,bk = p sum_q w N_a (N_b,eta skew(t1) - N_b,xi skew(t2))_ik
+        s1 = _skew(t1)
+        s2 = _skew(t2)
+        Kq = (np.einsum("qb,kqik->kqbik", self.dN[..., 1], s1)
+              - np.einsum("qb,kqik->kqbik", self.dN[..., 0], s2))
+        Ke = p * np.einsum("q,qa,kqbik->kaibk", self.w, self.N, Kq).reshape(len(xe), 12, 12)
+        K = sp.csr_matrix((Ke.ravel(), (self._rows, self._cols)),
+                          shape=(3 * self.n_nodes, 3 * self.n_nodes))
+        if self.symmetric:
+            K = 0.5 * (K + K.T)
+        return f, K
+
+    def energy(self, x, load):
+        # -p times the volume enclosed by the facets (exact potential for a closed surface)
+        p = self._p(load)
+        xe = x[self.facets]
+        t1 = np.einsum("kai,qa->kqi", xe, self.dN[..., 0])
+        t2 = np.einsum("kai,qa->kqi", xe, self.dN[..., 1])
+        xq = np.einsum("kai,qa->kqi", xe, self.N)
+        vol = np.einsum("q,kqi,kqi->", self.w, xq, np.cross(t1, t2)) / 3.0
+        return float(p * vol)
+
+    def end_step(self, x, load):
+        return False
+
+
+class BodyForce:
+    """Dead body force rho*b (mN/mm^3, a (3,) vector) on the hexahedra of a mesh, ramped by load.
+
+    `cells` restricts it to some elements (default all).
+    """
+
+    def __init__(self, nodes, hexes, rho_b, cells=None):
+        nodes = np.asarray(nodes, dtype=float)
+        hexes = np.asarray(hexes, dtype=np.int64)
+        if cells is not None:
+            hexes = hexes[np.asarray(cells)]
+        rho_b = np.asarray(rho_b, dtype=float)
+        if rho_b.shape != (3,) or not np.all(np.isfinite(rho_b)):
+            raise BoundaryConditionError(f"body force must be a finite (3,) vector, got {rho_b!r}")
+        from solver.element import hex8_gradients
+        xg, wg = gauss_hex(2)
+        N = hex8_shape(xg)
+        dN = hex8_gradients(xg)
+        detJ = np.linalg.det(np.einsum("mai,qaj->mqij", nodes[hexes], dN))
+        nodal = np.einsum("mq,q,qa->ma", detJ, wg, N)                   # int N_a dV
+        weights = np.bincount(hexes.ravel(), nodal.ravel(), minlength=len(nodes))
+        self.f_unit = -(weights[:, None] * rho_b[None, :]).ravel()      # residual at load 1
+        self.n = len(nodes)
+        self.X = nodes
+        self.rho_b = rho_b
+
+    def assemble(self, x, load):
+        return load * self.f_unit, sp.csr_matrix((3 * self.n, 3 * self.n))
+
+    def energy(self, x, load):
+        return float(load * self.f_unit @ (x - self.X).ravel())
+
+    def end_step(self, x, load):
+        return False
+
+
+class NodalForce:
+    """Dead nodal forces (k, 3) in mN on nodes (k,), ramped by the load fraction."""
+
+    def __init__(self, nodes, forces, n_nodes: int, reference=None):
+        nodes = np.atleast_1d(np.asarray(nodes, dtype=np.int64))
+        self.X = None if reference is None else np.asarray(reference, dtype=float)
+        forces = np.broadcast_to(np.asarray(forces, dtype=float), (len(nodes), 3))
+        self.f_unit = np.zeros(3 * n_nodes)
+        np.add.at(self.f_unit, (3 * nodes[:, None] + np.arange(3)).ravel(), -forces.ravel())
+        self.n = n_nodes
+
+    def assemble(self, x, load):
+        return load * self.f_unit, sp.csr_matrix((3 * self.n, 3 * self.n))
+
+    def energy(self, x, load):
+        if self.X is None:
+            return 0.0
+        return float(load * self.f_unit @ (x - self.X).ravel())
+
+    def end_step(self, x, load):
+        return False
+
+
+def surface_traction(nodes, facets, traction) -> np.ndarray:
+    """Consistent nodal forces (n, 3) of a dead traction (3,) (kPa) on reference quad facets.
+
+    f_a = int N_a t dA over each facet; use with `NodalForce` or as `external` of newton_solve.
+    """
+    nodes = np.asarray(nodes, dtype=float)
+    facets = np.asarray(facets, dtype=np.int64)
+    t = np.asarray(traction, dtype=float)
+    xg, wg = gauss_quad(2)
+    N = quad4_shape(xg)
+    dN = quad4_gradients(xg)
+    xe = nodes[facets]
+    t1 = np.einsum("kai,qa->kqi", xe, dN[..., 0])
+    t2 = np.einsum("kai,qa->kqi", xe, dN[..., 1])
+    dA = np.linalg.norm(np.cross(t1, t2), axis=-1)                       # (k, q)
+    w = np.einsum("kq,q,qa->ka", dA, wg, N)
+    out = np.zeros((len(nodes), 3))
+    np.add.at(out, facets.ravel(), w.ravel()[:, None] * t[None, :])
+    return out

@@ -1,0 +1,345 @@
+"""Newton-Raphson with line search and adaptive load stepping (FEBio-like), `newton_solve`.
+
+The load fraction goes from 0 to 1 in steps. Each step solves r(x) = f_int(x) + sum f_term(x)
+- f_ext = 0 on the free unknowns with the consistent tangent; prescribed values are reached
+through the increments of the constrained unknowns (the first iteration acts as a tangent
+predictor). A trial update that inverts an element or gives NaN is halved; otherwise, if the
+directional residual g(s) = du . r(x + s du) has not dropped below `line_search_tol` |g(0)|, a
+safeguarded secant search on g is made (Matthies & Strang 1979; FEBio's line search). A step
+that does not converge within `max_iterations` (or diverges, or cannot avoid inversion) is
+cut back: the last converged state is restored and the step halved, down to `min_step`. After an
+easy step the step grows again (never beyond the initial size). Convergence needs both the
+residual norm |r_free| <= rtol * max(|f_int|, |f_ext|) (or <= atol) and the energy norm
+|du . r| <= etol * (first energy norm of the step). Each iteration is logged (module `logging`,
+logger "solver.newton") and sent to an optional callback, like FEBio's log: step, load,
+iteration, residual norm, energy norm, displacement norm, line-search step size.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from solver.bc import ConstraintSet
+from solver.errors import SolveFailed
+from solver.linalg import SymmetricSolver
+
+__all__ = ["newton_solve", "NewtonResult", "StepRecord"]
+
+log = logging.getLogger("solver.newton")
+
+
+@dataclass
+class StepRecord:
+    step: int
+    load: float
+    iterations: int
+    residuals: list
+    retries: int = 0
+
+
+@dataclass
+class NewtonResult:
+    """Converged (or last converged) state and history."""
+
+    x: np.ndarray                    # current nodal coordinates (n, 3)
+    u: np.ndarray                    # displacement (n, 3)
+    load: float                      # load fraction reached
+    converged: bool
+    steps: list = field(default_factory=list)
+    iterations: int = 0
+    cutbacks: int = 0
+    log: list = field(default_factory=list)     # one dict per iteration
+    timings: dict = field(default_factory=dict)
+    reactions: np.ndarray | None = None         # internal force at constrained dofs (n, 3)
+
+
+class _System:
+    """Evaluates residual and tangent of body + terms in transformed unknowns."""
+
+    def __init__(self, body, cons: ConstraintSet, terms, external):
+        self.body = body
+        self.cons = cons
+        self.terms = list(terms)
+        self.external = external
+        pat = body.pattern
+        self.rows_of_data = np.repeat(np.arange(pat.n_dofs), np.diff(pat.indptr))
+        self.fast = not cons.any_frame
+        if self.fast:
+            cm = cons.mask
+            self.zero_mask = cm[self.rows_of_data] | cm[pat.indices]
+            self.diag_c = pat.diagonal[cons.dofs]
+        self.timing = {"assembly": 0.0, "solve": 0.0}
+
+    def evaluate(self, x, load, tangent=True, targets=None):
+        """(evaluation, residual r_hat, modified matrix A, coupling K[:, c] gap) at x."""
+        t0 = time.perf_counter()
+        ev = self.body.evaluate(x, load, tangent=tangent)
+        if not ev.valid:
+            self.timing["assembly"] += time.perf_counter() - t0
+            return ev, None, None, None
+        r = ev.force.copy()
+        f_int_norm = np.linalg.norm(r)
+        energy = ev.energy
+        Kt = None
+        for term in self.terms:
+            f, K = term.assemble(x, load)
+            r += f
+            energy += term.energy(x, load)
+            if tangent and K is not None and K.nnz:
+                Kt = K if Kt is None else Kt + K
+        if self.external is not None:
+            r -= load * self.external
+            energy -= load * float(self.external @ (x - self.body.mesh.nodes).ravel())
+        ev.energy = energy
+        ev.force_scale = max(f_int_norm, np.linalg.norm(self.external) * load
+                             if self.external is not None else 0.0)
+        rhat = self.cons.to_local(r)
+        A = None
+        coupling = None
+        if tangent:
+            gap = None
+            if targets is not None:
+                uh = self.cons.to_local((x - self.body.mesh.nodes).ravel())
+                g = targets - uh[self.cons.dofs]
+                if np.any(g != 0.0):
+                    gap = np.zeros(len(rhat))
+                    gap[self.cons.dofs] = g
+            A, coupling = self._matrix(ev.data, Kt, gap)
+        self.timing["assembly"] += time.perf_counter() - t0
+        return ev, rhat, A, coupling
+
+    @staticmethod
+    def _sym_matvec(Ku, v):
+        return Ku @ v + Ku.T @ v - Ku.diagonal() * v
+
+    def _matrix(self, data, Kt, gap=None):
+        """Constrained upper-triangle matrix and the coupling vector K gap (or None)."""
+        pat = self.body.pattern
+        cons = self.cons
+        coupling = None
+        if self.fast and Kt is None:
+            if gap is not None:
+                coupling = self._sym_matvec(pat.matrix(data), gap)
+            data[self.zero_mask] = 0.0
+            data[self.diag_c] = 1.0
+            return pat.matrix(data), coupling
+        Ku = pat.matrix(data)
+        K = Ku + sp.triu(Ku, k=1, format="csr").T
+        if Kt is not None:
+            K = K + 0.5 * (Kt + Kt.T)
+        if cons.any_frame:
+            n = cons.n_nodes
+            T = sp.block_diag([sp.csr_matrix(R) for R in cons.rot], format="csr") if n < 0 else \
+                sp.bsr_matrix((cons.rot, np.arange(n), np.arange(n + 1)), shape=(3 * n, 3 * n)).tocsr()
+            K = (T @ K @ T.T).tocsr()
+        K = sp.triu(K, format="csr")
+        K.sum_duplicates()
+        if gap is not None:
+            coupling = self._sym_matvec(K, gap)
+        cm = cons.mask
+        rows = np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))
+        K.data[cm[rows] | cm[K.indices]] = 0.0
+        K = K + sp.diags(cm.astype(float), format="csr")
+        K.sort_indices()
+        return K, coupling
+
+
+def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 10,
+                 min_step: float = 1e-4, max_iterations: int = 25, rtol: float = 1e-8,
+                 atol: float = 1e-10, etol: float = 1e-10, line_search: bool = True,
+                 line_search_tol: float = 0.9, max_retries: int = 5, grow: bool = True,
+                 x0=None, linear_solver: str = "auto", callback=None,
+                 step_callback=None) -> NewtonResult:
+    """Solve the static equilibrium of `body` from load fraction 0 to 1.
+
+    body: `solver.mechanics.SolidBody`; constraints: `Prescribed` / `LocalFrame` list;
+    terms: objects following `solver.terms.Term`; external: optional dead nodal force vector
+    (3n,) at load 1; steps: initial number of equal load steps (also the largest step size);
+    callback(record: dict) receives every iteration's log record; step_callback(result) each
+    converged step. Raises `SolveFailed` (with the last converged state) if the load cannot
+    be reached.
+    """
+    mesh = body.mesh
+    X = mesh.nodes
+    n = mesh.n_nodes
+    used = np.zeros(n, dtype=bool)
+    used[mesh.hexes.ravel()] = True
+    cons = ConstraintSet(n, list(constraints), unused_nodes=np.nonzero(~used)[0])
+    if external is not None:
+        external = np.asarray(external, dtype=float).ravel()
+        if external.shape != (3 * n,):
+            raise ValueError(f"external must have shape ({3 * n},), got {external.shape}")
+    system = _System(body, cons, terms, external)
+    lin = SymmetricSolver(linear_solver)
+    x = X.copy() if x0 is None else np.array(x0, dtype=float)
+    free = cons.free
+    result = NewtonResult(x=x, u=x - X, load=0.0, converged=False)
+    t_start = time.perf_counter()
+    dt_max = 1.0 / max(int(steps), 1)
+    dt = dt_max
+    load = 0.0
+    step_no = 0
+    cut = 0
+
+    def uhat(xx):
+        return cons.to_local((xx - X).ravel())
+
+    while load < 1.0 - 1e-12:
+        step_no += 1
+        target = min(1.0, load + dt)
+        if 1.0 - target < 0.25 * dt:
+            target = 1.0
+        x_conv = x.copy()
+        retries = 0
+        while True:
+            ok, x_new, info = _solve_step(system, lin, x_conv, target, uhat, free, cons,
+                                          max_iterations, rtol, atol, etol, line_search,
+                                          line_search_tol, step_no, callback, result)
+            if not ok:
+                break
+            again = any([bool(t.end_step(x_new, target)) for t in system.terms])
+            if not again or retries >= max_retries:
+                break
+            retries += 1
+            x_conv = x_new
+        if ok:
+            x = x_new
+            load = target
+            result.steps.append(StepRecord(step_no, load, info["iterations"], info["residuals"],
+                                           retries))
+            result.x, result.u, result.load = x, x - X, load
+            log.info("step %d converged at load %.4g in %d iterations", step_no, load,
+                     info["iterations"])
+            if step_callback is not None:
+                step_callback(result)
+            if grow and info["iterations"] <= 6:
+                dt = min(dt_max, 1.5 * dt)
+        else:
+            cut += 1
+            result.cutbacks = cut
+            x = x_conv
+            dt = 0.5 * (target - load)
+            log.warning("step %d failed at load %.4g (%s); cutting back to step %.4g",
+                        step_no, target, info["reason"], dt)
+            if dt < min_step:
+                result.timings = dict(system.timing, total=time.perf_counter() - t_start)
+                raise SolveFailed(
+                    f"Newton's method failed in step {step_no} at load fraction {target:.4g} "
+                    f"(last converged {load:.4g}): {info['reason']}; worst element "
+                    f"{info['worst_element']} (min J {info['min_J']:.3g}); step size fell below "
+                    f"{min_step:g}",
+                    step=step_no, load=target, last_converged_load=load,
+                    worst_element=info["worst_element"], state=result)
+    ev, rhat, _, _ = system.evaluate(x, load, tangent=False)
+    reac = np.zeros(3 * n)
+    reac[cons.dofs] = ev.force[cons.dofs] if not cons.any_frame else cons.to_global(rhat)[cons.dofs]
+    result.reactions = reac.reshape(n, 3)
+    result.converged = True
+    result.timings = dict(system.timing, total=time.perf_counter() - t_start)
+    return result
+
+
+def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, etol,
+                line_search, ls_tol, step_no, callback, result):
+    X = system.body.mesh.nodes
+    x = x0.copy()
+    targets = cons.targets(target, X)
+    ev, r, A, cpl = system.evaluate(x, target, targets=targets)
+    info = {"iterations": 0, "residuals": [], "reason": "", "worst_element": None, "min_J": np.nan}
+    if not ev.valid:
+        info.update(reason="invalid start state", worst_element=ev.worst_element, min_J=ev.min_J)
+        return False, x, info
+    e0 = None
+    rnorm_hist = []
+    for it in range(1, max_it + 1):
+        gap = targets - uhat(x)[cons.dofs]
+        rhs = -r if cpl is None else -r - cpl
+        rhs[cons.dofs] = gap
+        t0 = time.perf_counter()
+        try:
+            du_hat = lin.solve(A, rhs)
+        except Exception as exc:        # a singular or failed factorisation cuts the step back
+            info.update(reason=f"linear solver failed ({exc})", worst_element=ev.worst_element,
+                        min_J=ev.min_J)
+            return False, x, info
+        system.timing["solve"] += time.perf_counter() - t0
+        if not np.all(np.isfinite(du_hat)):
+            info.update(reason="linear solve gave NaN", worst_element=ev.worst_element, min_J=ev.min_J)
+            return False, x, info
+        du = cons.to_global(du_hat).reshape(-1, 3)
+        # directional derivative of the potential along du (the coupling to the constrained
+        # increments included), its magnitude is FEBio's "energy norm" of the iteration
+        g0 = -float(du_hat[free] @ rhs[free])
+        en_norm0 = abs(g0)
+        has_gap = bool(np.any(gap != 0.0))
+        # line search: halve on invalid states, then secant on g(s) = du . r(x + s du)
+        s = 1.0
+        for _ in range(12):
+            ev1, r1, A1, c1 = system.evaluate(x + s * du, target, targets=targets)
+            if ev1.valid:
+                break
+            s *= 0.5
+        else:
+            info.update(reason="every trial update inverts an element",
+                        worst_element=ev1.worst_element, min_J=ev1.min_J)
+            return False, x, info
+        if line_search and s == 1.0 and g0 < 0 and not has_gap:
+            g1 = float(du_hat[free] @ r1[free])
+            if abs(g1) > ls_tol * abs(g0):
+                sa, ga = 0.0, g0
+                sb, gb = 1.0, g1
+                best = (abs(g1), 1.0)
+                for _ in range(4):
+                    sn = sb - gb * (sb - sa) / (gb - ga) if gb != ga else 0.5 * sb
+                    sn = float(np.clip(sn, 0.1 * sb, 0.9 * sb if gb > 0 else 2.0))
+                    ev2, r2, _, _ = system.evaluate(x + sn * du, target, tangent=False)
+                    if not ev2.valid:
+                        break
+                    g2 = float(du_hat[free] @ r2[free])
+                    if abs(g2) < best[0]:
+                        best = (abs(g2), sn)
+                    if abs(g2) <= ls_tol * abs(g0):
+                        break
+                    sa, ga, sb, gb = sb, gb, sn, g2
+                if best[1] != 1.0:
+                    s = best[1]
+                    ev1, r1, A1, c1 = system.evaluate(x + s * du, target, targets=targets)
+                    if not ev1.valid:
+                        s = 1.0
+                        ev1, r1, A1, c1 = system.evaluate(x + du, target, targets=targets)
+        x = x + s * du
+        ev, r, A, cpl = ev1, r1, A1, c1
+        rn = float(np.linalg.norm(r[free]))
+        en = abs(s * float(du_hat[free] @ r[free]))
+        if e0 is None:
+            e0 = max(en_norm0, 1e-300)
+        dn = float(np.linalg.norm(s * du))
+        gap_after = float(np.max(np.abs(targets - uhat(x)[cons.dofs]))) if len(cons.dofs) else 0.0
+        scale = max(ev.force_scale, 1e-300)
+        rec = {"step": step_no, "load": target, "iteration": it, "residual_norm": rn,
+               "relative_residual": rn / scale, "energy_norm": en_norm0,
+               "energy_ratio": en_norm0 / e0, "displacement_norm": dn, "line_search": s,
+               "constraint_gap": gap_after, "min_J": ev.min_J}
+        result.log.append(rec)
+        result.iterations += 1
+        rnorm_hist.append(rn)
+        log.info("step %3d load %.4f it %2d |R| %.3e (rel %.2e) E %.3e |du| %.3e s %.3g",
+                 step_no, target, it, rn, rn / scale, en_norm0, dn, s)
+        if callback is not None:
+            callback(rec)
+        info["iterations"] = it
+        info["residuals"].append(rn)
+        info["worst_element"], info["min_J"] = ev.worst_element, ev.min_J
+        tiny = 1e-10 * max(1.0, float(np.abs(targets).max()) if len(targets) else 1.0)
+        if gap_after <= tiny and (rn <= rtol * scale or rn <= atol) and \
+                (en_norm0 <= etol * e0 or rn <= atol or it > 1 and rn <= 1e-3 * rtol * scale):
+            return True, x, info
+        if it >= 4 and rn > 1e6 * max(min(rnorm_hist[:3]), 1e-300):
+            info["reason"] = "residual diverges"
+            return False, x, info
+    info["reason"] = f"no convergence in {max_it} iterations (|R| = {rn:.3e})"
+    return False, x, info

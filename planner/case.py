@@ -4,7 +4,8 @@ The pre-op skin comes from `preop/skin.*` (stl, ply, obj, off read by trimesh; v
 read by pyvista) or, when no skin surface is given, is extracted from a CT volume
 (`preop/ct.nii.gz`, `preop/ct.nii` or a DICOM series folder `preop/ct/`) with `facemodel.ct`
 (skin at -400 HU, bone at +300 HU). Bone surfaces come from `preop/bone/<segment>.*`, one per
-segment, or from the same CT as one `bone` surface (thresholds overridable in `case.yaml`,
+segment (dental arches, when given apart, from `preop/teeth/<arch>.*`), or from the same CT as
+one `bone` surface (thresholds overridable in `case.yaml`,
 `ct: {skin_hu: ..., bone_hu: ...}`, e.g. for a cone-beam CT whose grey values are not HU). Landmarks are read from
 `preop/landmarks.json` (`{"Prn": [x, y, z], ...}` in mm RAS) or from a 3D Slicer markups file
 (`preop/landmarks.mrk.json`; control points with labels, in the file's `coordinateSystem`,
@@ -69,6 +70,7 @@ class Case:
     info: CaseInfo
     skin_path: Path | None = None      # the surface file, or the CT it was extracted from
     ct_path: Path | None = None
+    teeth: dict = field(default_factory=dict)   # optional preop/teeth/<arch>.* (upper, lower)
 
     @property
     def from_ct(self) -> bool:
@@ -201,18 +203,24 @@ def _surfaces_from_ct(ct_path: Path, thresholds: dict):
         raise InputError(exc.reason, file=exc.file or str(ct_path), field="preop CT") from exc
 
 
-def _load_bones(folder: Path) -> dict:
-    bones: dict = {}
+def _load_parts(folder: Path, kind: str) -> dict:
+    """Every surface file of a folder, by name (`preop/bone/maxilla.stl` -> "maxilla")."""
+    parts: dict = {}
     files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
     for p in files:
         if p.suffix.lower() not in SURFACE_FORMATS:
-            raise InputError(f"bone: {p.name} is not a surface file ({', '.join(SURFACE_FORMATS)})",
-                             file=str(p), field="bone")
-        segment = p.name[: -len(p.suffix)]
-        if segment in bones:
-            raise InputError(f"bone {segment}: several files for one segment; keep one",
-                             file=str(p), field=f"bone.{segment}")
-        bones[segment] = load_surface(p, f"bone.{segment}")
+            raise InputError(f"{kind}: {p.name} is not a surface file ({', '.join(SURFACE_FORMATS)})",
+                             file=str(p), field=kind)
+        name = p.name[: -len(p.suffix)]
+        if name in parts:
+            raise InputError(f"{kind} {name}: several files for one part; keep one",
+                             file=str(p), field=f"{kind}.{name}")
+        parts[name] = load_surface(p, f"{kind}.{name}")
+    return parts
+
+
+def _load_bones(folder: Path) -> dict:
+    bones = _load_parts(folder, "bone")
     if not bones:
         raise InputError("no bone surface in preop/bone/ (expected <segment>.stl files: skull, "
                          "maxilla, mandible, chin...)", file=str(folder), field="bone")
@@ -475,6 +483,7 @@ def load_case(path) -> Case:
     postop = root / "postop"
     postop_skin = _one_surface_file(postop, "skin", "postop skin") if postop.is_dir() else None
     postop_plan = _optional(postop / "plan_actual.yaml") or _optional(postop / "plan_actual.yml")
+    teeth = _load_parts(preop / "teeth", "teeth") if (preop / "teeth").is_dir() else {}
     return Case(root=root, skin=skin, bones=bones, landmarks=landmarks, plan_path=plan_path,
                 postop_skin_path=postop_skin, postop_plan_path=postop_plan, info=info,
-                skin_path=skin_path, ct_path=ct_path)
+                skin_path=skin_path, ct_path=ct_path, teeth=teeth)

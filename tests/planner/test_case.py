@@ -69,6 +69,18 @@ def test_good_case(case_dir):
     assert case.info.id == "P001" and case.info.follow_up_months == 12.0
     assert case.info.notes == "bimaxillary"
     assert case.postop_skin is None and case.postop_plan_path is None and not case.from_ct
+    assert case.teeth == {}
+
+
+def test_teeth_are_optional_parts(case_dir):
+    (case_dir / "preop" / "teeth").mkdir()
+    arch = ellipsoid((25, 20, 5), (0, 60, -40))
+    arch.export(case_dir / "preop" / "teeth" / "upper.stl")
+    case = load_case(case_dir)
+    assert list(case.teeth) == ["upper"]
+    assert case.teeth["upper"].volume == pytest.approx(arch.volume, rel=1e-6)
+    (case_dir / "preop" / "teeth" / "lower.txt").write_text("x")
+    refused(case_dir, "not a surface file", field="teeth")
 
 
 def test_postop_is_loaded_lazily(case_dir):

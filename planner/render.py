@@ -131,23 +131,31 @@ def render_views(
             m = float(np.max(np.abs(finite))) if finite.size else 1.0
             clim = (-m, m) if cmap in ("RdBu_r", "RdBu", "coolwarm", "bwr", "seismic") else (
                 float(finite.min()) if finite.size else 0.0, m)
-    written: dict[str, Path] = {}
+    views = list(views)
     for view in views:
         if view not in VIEWS:
             raise ValueError(f"unknown view {view!r}; choose from {sorted(VIEWS)}")
-        pl = _plotter(window_size)
-        if field is None:
-            pl.add_mesh(poly, color=color, smooth_shading=True, specular=0.2, ambient=0.2)
-        else:
-            pl.add_mesh(poly, scalars=field, cmap=cmap, clim=clim, nan_color=nan_color,
-                        smooth_shading=True, show_scalar_bar=False, ambient=0.35, diffuse=0.65)
-            pl.add_scalar_bar(title=scalar_bar_title, color="black", vertical=True,
-                              position_x=0.85, position_y=0.15, height=0.7, width=0.08,
-                              n_labels=7, fmt="%.1f", title_font_size=14, label_font_size=12)
-        path = out_prefix.parent / f"{out_prefix.name}_{view}.png"
-        _shoot(pl, poly, view, path, title)
+    if field is not None and field not in poly.point_data:
+        poly = poly.cell_data_to_point_data()
+    smooth = True
+    # one plotter for all views: the surface is uploaded and shaded once, only the camera moves
+    pl = _plotter(window_size)
+    if field is None:
+        pl.add_mesh(poly, color=color, smooth_shading=smooth, specular=0.2, ambient=0.2)
+    else:
+        pl.add_mesh(poly, scalars=field, cmap=cmap, clim=clim, nan_color=nan_color,
+                    smooth_shading=smooth, show_scalar_bar=False, ambient=0.35, diffuse=0.65)
+        pl.add_scalar_bar(title=scalar_bar_title, color="black", vertical=True,
+                          position_x=0.85, position_y=0.15, height=0.7, width=0.08,
+                          n_labels=7, fmt="%.1f", title_font_size=14, label_font_size=12)
+    written: dict[str, Path] = {}
+    try:
+        for view in views:
+            path = out_prefix.parent / f"{out_prefix.name}_{view}.png"
+            _shoot(pl, poly, view, path, title)
+            written[view] = path
+    finally:
         pl.close()
-        written[view] = path
     return written
 
 
@@ -170,18 +178,20 @@ def render_overlay(
     bounds = polys[0].merge(polys[1:]) if len(polys) > 1 else polys[0]
     out_prefix = Path(out_prefix)
     written = {}
-    for view in views:
-        pl = _plotter(window_size)
-        for i, poly in enumerate(polys):
-            pl.add_mesh(poly, color=colors[i % len(colors)], opacity=float(opacity[i]),
-                        smooth_shading=True, label=None if labels is None else labels[i])
-        if labels is not None:
-            pl.add_legend(bcolor="white", border=True, size=(0.3, 0.06 * len(polys)),
-                          loc="upper right", face="rectangle")
-        path = out_prefix.parent / f"{out_prefix.name}_{view}.png"
-        _shoot(pl, bounds, view, path, title)
+    pl = _plotter(window_size)
+    for i, poly in enumerate(polys):
+        pl.add_mesh(poly, color=colors[i % len(colors)], opacity=float(opacity[i]),
+                    smooth_shading=True, label=None if labels is None else labels[i])
+    if labels is not None:
+        pl.add_legend(bcolor="white", border=True, size=(0.3, 0.06 * len(polys)),
+                      loc="upper right", face="rectangle")
+    try:
+        for view in views:
+            path = out_prefix.parent / f"{out_prefix.name}_{view}.png"
+            _shoot(pl, bounds, view, path, title)
+            written[view] = path
+    finally:
         pl.close()
-        written[view] = path
     return written
 
 

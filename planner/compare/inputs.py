@@ -87,13 +87,21 @@ def _own_load_surface(path: Path, what: str) -> Surface:
 def _merge_coincident(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6):
     """Merge vertices closer than `tol` mm (quantised coordinates), keeping first occurrences."""
     key = np.round(vertices / tol).astype(np.int64)
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    if len(first) == len(vertices):
+    order = np.lexsort(key.T[::-1])
+    ks = key[order]
+    new_group = np.empty(len(order), bool)
+    new_group[0] = True
+    new_group[1:] = np.any(ks[1:] != ks[:-1], axis=1)
+    if new_group.all():
         return vertices, faces
-    order = np.argsort(first)
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    return vertices[first[order]], rank[inverse.ravel()][faces]
+    group = np.cumsum(new_group) - 1                      # group id in sorted order
+    first = np.full(group[-1] + 1, len(order), np.int64)
+    np.minimum.at(first, group, order)                    # first occurrence of each group
+    rank = np.empty_like(first)
+    rank[np.argsort(first, kind="stable")] = np.arange(len(first))
+    new_index = np.empty(len(order), np.int64)
+    new_index[order] = rank[group]
+    return vertices[np.sort(first)], new_index[faces]
 
 
 def _validated(vertices, faces, path: Path, what: str, merge: bool = True) -> Surface:

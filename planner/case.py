@@ -13,12 +13,14 @@ LPS by default as in Slicer, converted to RAS by negating x and y; the older fid
 `preop/landmarks.fcsv` too). Every surface is checked
 for what goes wrong in practice: unreadable, empty, NaN coordinates, and the size of a head
 in metres rather than millimetres. Every problem raises `planner.errors.InputError` naming the
-file and the field.
+file and the field. Surfaces extracted from a CT are cached by the CT's content hash.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -44,6 +46,7 @@ SLICER_UNITS_TO_MM = {"mm": 1.0, "um": 1e-3}
 # Triangle budget of surfaces extracted from a CT: a 0.5 mm CT gives a skin of over a million
 # triangles; 200,000 keeps the skin's detail (edges ~1 mm) at a fraction of the cost downstream.
 CT_MAX_FACES = 200_000
+CT_EXTRACTION_VERSION = "faceplan-ct-1"   # part of the CT cache key: bump when extraction changes
 
 
 @dataclass(frozen=True)
@@ -193,14 +196,70 @@ def _ct_source(preop: Path) -> Path | None:
     return None
 
 
-def _surfaces_from_ct(ct_path: Path, thresholds: dict):
-    from facemodel.ct import CTError, ct_surfaces
+def default_cache_dir() -> Path:
+    """Where surfaces extracted from CTs are kept: $FACEPLAN_CACHE/ct, else
+    $XDG_CACHE_HOME/faceplan/ct (~/.cache/faceplan/ct), next to the registration cache."""
+    env = os.environ.get("FACEPLAN_CACHE")
+    if env:
+        return Path(env) / "ct"
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "faceplan" / "ct"
+
+
+def _ct_cache_key(ct_path: Path, options: dict) -> str:
+    """Content hash of the CT (every file of a DICOM folder, with its relative name) and of
+    the extraction options: a changed file or threshold never reuses old surfaces."""
+    h = hashlib.sha256(CT_EXTRACTION_VERSION.encode())
+    files = sorted(q for q in ct_path.rglob("*") if q.is_file()) if ct_path.is_dir() else [ct_path]
+    for q in files:
+        h.update(str(q.relative_to(ct_path) if ct_path.is_dir() else q.name).encode())
+        with open(q, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    h.update(json.dumps(options, sort_keys=True).encode())
+    return h.hexdigest()[:24]
+
+
+def _cache_load(path: Path):
+    import trimesh
 
     try:
-        return ct_surfaces(ct_path, max_faces=CT_MAX_FACES,
-                           **{k: float(v) for k, v in thresholds.items()})
+        with np.load(path) as z:
+            return {k: trimesh.Trimesh(z[f"{k}_vertices"], z[f"{k}_faces"], process=False)
+                    for k in ("skin", "bone")}
+    except (OSError, KeyError, ValueError):
+        return None  # absent or damaged: extract again
+
+
+def _cache_store(path: Path, surfaces: dict) -> None:
+    tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(tmp, **{f"{k}_{a}": getattr(m, a) for k, m in surfaces.items()
+                                    for a in ("vertices", "faces")})
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)  # a cache that cannot be written only costs time
+
+
+def _surfaces_from_ct(ct_path: Path, thresholds: dict, cache_dir: Path | None) -> dict:
+    """{"skin", "bone"} surfaces of the case's CT, from the cache when extracted before."""
+    from facemodel.ct import CTError, ct_surfaces
+
+    options = {"max_faces": CT_MAX_FACES, **{k: float(v) for k, v in thresholds.items()}}
+    cached = None
+    if cache_dir is not None:
+        cached = cache_dir / f"{_ct_cache_key(ct_path, options)}.npz"
+        hit = _cache_load(cached) if cached.is_file() else None
+        if hit is not None:
+            return hit
+    try:
+        surfaces = ct_surfaces(ct_path, **options)
     except CTError as exc:
         raise InputError(exc.reason, file=exc.file or str(ct_path), field="preop CT") from exc
+    out = {"skin": surfaces.skin, "bone": surfaces.bone}
+    if cached is not None:
+        _cache_store(cached, out)
+    return out
 
 
 def _load_parts(folder: Path, kind: str) -> dict:
@@ -432,8 +491,12 @@ def load_case_info(path: Path | None, default_id: str) -> CaseInfo:
 
 
 # --------------------------------------------------------------------------------------- case
-def load_case(path) -> Case:
-    """Read and check a case folder; `InputError` (file + field) on anything wrong."""
+def load_case(path, *, cache: bool = True, cache_dir: str | Path | None = None) -> Case:
+    """Read and check a case folder; `InputError` (file + field) on anything wrong.
+
+    Surfaces extracted from a CT are cached by content hash (`cache_dir`, default
+    `default_cache_dir()`), so that each command does not segment the CT again.
+    """
     root = Path(path)
     if not root.exists():
         raise InputError("no such case folder", file=str(root), field="case")
@@ -459,13 +522,14 @@ def load_case(path) -> Case:
                              "preop/ct/) to extract it from",
                              file=str(preop / ("skin.stl" if skin_file is None else "bone")),
                              field="skin" if skin_file is None else "bone")
-        ct = _surfaces_from_ct(ct_path, info.extra.get("ct") or {})
+        ct = _surfaces_from_ct(ct_path, info.extra.get("ct") or {},
+                               (Path(cache_dir) if cache_dir else default_cache_dir()) if cache else None)
     if skin_file is not None:
         skin = load_surface(skin_file, "skin")
         skin_path = skin_file
     else:
-        skin, skin_path = ct.skin, ct_path
-    bones = _load_bones(bone_dir) if has_bone_dir else {"bone": ct.bone}
+        skin, skin_path = ct["skin"], ct_path
+    bones = _load_bones(bone_dir) if has_bone_dir else {"bone": ct["bone"]}
 
     landmarks: dict = {}
     landmark_file = None

@@ -296,7 +296,7 @@ def ct_case(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def ct_loaded(ct_case):
-    return load_case(ct_case[0])
+    return load_case(ct_case[0], cache=False)
 
 
 # The CT phantom's skin: the same ellipsoid finely facetted (chord error 0.02 mm), so that
@@ -379,7 +379,44 @@ def test_ct_thresholds_from_case_yaml(ct_case, ct_loaded, tmp_path):
     case_dir = tmp_path / "cbct"
     shutil.copytree(ct_case[0], case_dir)
     (case_dir / "case.yaml").write_text("id: cbct\nct: {skin_hu: -480}\n")
-    half_max = signed_distance_to_skin(load_case(case_dir).skin.vertices).mean()
+    half_max = signed_distance_to_skin(load_case(case_dir, cache=False).skin.vertices).mean()
     default = signed_distance_to_skin(ct_loaded.skin.vertices).mean()
     assert abs(half_max) < 0.1
     assert default == pytest.approx(-0.15, abs=0.1)
+
+
+def test_ct_surfaces_are_cached_by_content(ct_case, ct_loaded, tmp_path):
+    import planner.case as case_module
+
+    cache = tmp_path / "cache"
+    root = tmp_path / "case"
+    shutil.copytree(ct_case[0], root)
+    first = load_case(root, cache_dir=cache)
+    stored = sorted(cache.glob("*.npz"))
+    assert len(stored) == 1
+    np.testing.assert_array_equal(first.skin.vertices, ct_loaded.skin.vertices)
+    # A hit returns the stored arrays exactly; the extraction is not run again.
+    calls = []
+    original = case_module._surfaces_from_ct.__globals__["_cache_load"]
+
+    def spy(path):
+        calls.append(path)
+        return original(path)
+
+    case_module._cache_load = spy
+    try:
+        again = load_case(root, cache_dir=cache)
+    finally:
+        case_module._cache_load = original
+    assert calls == stored
+    np.testing.assert_array_equal(again.skin.faces, first.skin.faces)
+    np.testing.assert_array_equal(again.bones["bone"].vertices, first.bones["bone"].vertices)
+    # Other thresholds: another key. A damaged entry is re-extracted and rewritten.
+    (root / "case.yaml").write_text("ct: {bone_hu: 350}\n")
+    load_case(root, cache_dir=cache)
+    assert len(list(cache.glob("*.npz"))) == 2
+    (root / "case.yaml").unlink()
+    stored[0].write_bytes(b"damaged")
+    np.testing.assert_array_equal(load_case(root, cache_dir=cache).skin.vertices,
+                                  first.skin.vertices)
+    assert stored[0].stat().st_size > 1000

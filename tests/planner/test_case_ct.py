@@ -45,7 +45,7 @@ def cases(tmp_path_factory):
     for case in (surf, from_ct):
         (case / "preop" / "landmarks.json").write_text(json.dumps(landmarks))
         (case / "plan.yaml").write_text("faceplan: 1\nframe: RAS\nsegments: {}\n")
-    return load_case(surf), load_case(from_ct)
+    return load_case(surf), load_case(from_ct, cache=False)
 
 
 def test_ct_only_case_has_the_same_skin(cases):

@@ -88,13 +88,16 @@ class CTSurfaces:
 
 # ----------------------------------------------------------------------------------- reading
 def read_ct(path: str | Path) -> CTVolume:
-    """Read a CT volume from a NIfTI file or a DICOM series folder, checked to be in HU."""
+    """Read a CT volume from a NIfTI file or a DICOM series folder (or one of its files),
+    checked to be in HU."""
     path = Path(path)
     if path.is_dir():
         volume = read_dicom_series(path)
     elif path.is_file():
         if path.name.lower().endswith(NIFTI_SUFFIXES):
             volume = read_nifti(path)
+        elif _is_dicom_file(path):  # one slice named: the series is its folder
+            volume = read_dicom_series(path.parent)
         else:
             raise CTError("not a CT volume: expected a NIfTI file (.nii, .nii.gz) or a DICOM "
                           "series folder", path)
@@ -102,6 +105,12 @@ def read_ct(path: str | Path) -> CTVolume:
         raise CTError("no such file or folder", path)
     check_hounsfield(volume)
     return volume
+
+
+def _is_dicom_file(path: Path) -> bool:
+    with open(path, "rb") as fh:
+        head = fh.read(132)
+    return path.suffix.lower() in (".dcm", ".dicom") or head[128:132] == b"DICM"
 
 
 def read_nifti(path: str | Path) -> CTVolume:

@@ -160,6 +160,8 @@ def test_dicom_is_lps_and_reads_back_identically(phantom, dicom_dir, nifti_path)
     assert y_lps == pytest.approx(-SKIN_CENTRE[1], abs=0.5)
 
     from_dicom, from_nifti = ct.read_ct(dicom_dir), ct.read_ct(nifti_path)
+    # Naming one slice reads its whole series.
+    np.testing.assert_array_equal(ct.read_ct(files[3]).hu, from_dicom.hu)
     np.testing.assert_allclose(from_dicom.to_world(np.zeros(3)), affine[:3, 3] + [
         (hu.shape[0] - 1) * affine[0, 0], (hu.shape[1] - 1) * affine[1, 1], 0.0], atol=1e-4)
     # Same world positions for the same values: compare the world coordinates of the brightest

@@ -32,6 +32,12 @@ from pathlib import Path
 
 import numpy as np
 
+from facemodel.errors import CTError
+
+__all__ = ["CTError", "CTVolume", "CTSurfaces", "read_ct", "read_nifti", "read_dicom_series",
+           "check_hounsfield", "isosurface", "skin_surface", "bone_surface", "body_mask",
+           "decimate", "ct_surfaces", "SKIN_HU", "BONE_HU", "AIR_HU"]
+
 AIR_HU = -1000.0
 SKIN_HU = -400.0
 BONE_HU = 300.0
@@ -42,15 +48,6 @@ AIR_MAX_HU = -500.0
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])  # its own inverse
 
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
-
-
-class CTError(ValueError):
-    """A CT volume that cannot be used: unreadable, empty, not CT, or an inconsistent series."""
-
-    def __init__(self, reason: str, file: str | Path | None = None):
-        self.reason = reason
-        self.file = str(file) if file is not None else None
-        super().__init__(f"{self.file}: {reason}" if self.file else reason)
 
 
 @dataclass(frozen=True)

@@ -277,7 +277,9 @@ def test_refuses_non_ct_nifti_and_bad_files(tmp_path):
     empty.mkdir()
     with pytest.raises(CTError, match="no DICOM image"):
         ct.read_ct(empty)
-    assert issubclass(CTError, ValueError)
+    import facemodel.errors
+
+    assert CTError is facemodel.errors.CTError and issubclass(CTError, ValueError)
 
 
 @pytest.fixture()

@@ -373,7 +373,7 @@ def _arch_curve(n: int, t_end: float = 0.85):
     xr, yr = np.interp(u, s, x), np.interp(u, s, y)
     pts = np.concatenate([np.stack([-xr[:0:-1], yr[:0:-1]], -1), np.stack([xr, yr], -1)])
     tang = np.gradient(pts, axis=0)
-    normal = np.stack([tang[:, 1], -tang[:, 0]], -1)
+    normal = np.stack([-tang[:, 1], tang[:, 0]], -1)    # outward (labial/buccal)
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     normal[n] = (0.0, 1.0)
     return pts, normal
@@ -406,7 +406,22 @@ def teeth_arch(arch: str, shape: HeadShape = GENERIC, n_along: int = 24, n_heigh
     else:
         xy[:, 1] += shape.mandible_ap - OVERJET
         z = z0 - 0.3 - 9.7 * params[:, 1]
-    verts = warp(np.column_stack([xy, z]), shape)
+    # keep the crowns behind the lips where the anterior alveolar profile recedes (crown tips
+    # towards the vestibule): pull the front teeth back horizontally to the labial radius
+    # (the innermost layer 2 mm further in, so that no crown flattens)
+    q = np.column_stack([xy, z])
+    side = np.full(len(q), 1.0 if upper else -1.0)
+    for _ in range(3):
+        th, ph, rho = from_cartesian(q)
+        lim = teeth_labial_radius(th, ph, shape, side=side) - 2.0 * params[:, 2]
+        front = np.abs(th) < 22.0
+        cos = np.cos(np.radians(ph))
+        rh = np.hypot(q[:, 0] - CENTRE[0], q[:, 1] - CENTRE[1])
+        new_rh = np.where(front, np.minimum(rh, lim * cos), rh)
+        scale = new_rh / np.maximum(rh, 1e-12)
+        q[:, 0] = CENTRE[0] + (q[:, 0] - CENTRE[0]) * scale
+        q[:, 1] = CENTRE[1] + (q[:, 1] - CENTRE[1]) * scale
+    verts = warp(q, shape)
     return verts, orient_outward(verts, tri)
 
 

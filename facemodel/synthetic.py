@@ -105,12 +105,32 @@ def skin_table(shape: hg.HeadShape, step: float = 0.25):
 
 
 def skin_surface(shape: hg.HeadShape, size: float = 3.0, distance: float = 0.25, seed: int = 0,
-                 table_step: float = 0.25):
-    """The closed skin of a head shape (trimesh), meshed by pygalmesh from its implicit
-    function: facets of at most `size` mm (Delaunay ball radius), within `distance` mm of
-    the surface, angles >= 25 deg."""
-    import pygalmesh
+                 table_step: float = 0.25, mesher: str = "sphere"):
+    """The closed skin of a head shape (trimesh).
+
+    mesher "sphere" (default): a geodesic sphere (icosahedron subdivided to edges of about
+    `size` mm on the face) projected on the star-shaped skin along its rays: watertight by
+    construction and bit-identical for a seed. mesher "pygalmesh": CGAL's restricted Delaunay
+    surface mesher on the implicit function (facets of at most `size` mm, within `distance`
+    mm of the surface, angles >= 25 deg): better-shaped triangles, but CGAL orders its
+    refinement by memory address, so the triangulation (not the surface) varies between
+    runs."""
     import trimesh
+
+    if mesher == "sphere":
+        level = int(np.clip(np.round(np.log2(105.0 / size)), 3, 7))
+        ico = trimesh.creation.icosphere(subdivisions=level, radius=1.0)
+        d = np.asarray(ico.vertices)
+        theta = np.degrees(np.arctan2(d[:, 0], d[:, 1]))
+        phi = np.degrees(np.arcsin(np.clip(d[:, 2], -1.0, 1.0)))
+        verts = hg.to_cartesian(theta, phi, hg.skin_radius(theta, phi, shape), shape)
+        out = trimesh.Trimesh(verts, np.asarray(ico.faces), process=False)
+        if out.volume < 0:
+            out.invert()
+        return _canonical(out)
+    if mesher != "pygalmesh":
+        raise ValueError(f"mesher must be 'sphere' or 'pygalmesh', got {mesher!r}")
+    import pygalmesh
 
     table, t0, p0, step = skin_table(shape, table_step)
     args = (table, t0, p0, step, *map(float, hg.CENTRE), float(shape.width), float(shape.height),
@@ -136,10 +156,29 @@ def skin_surface(shape: hg.HeadShape, size: float = 3.0, distance: float = 0.25,
     parts = out.split(only_watertight=False)
     if len(parts) > 1:       # drop tiny spurious bubbles, if any
         out = max(parts, key=lambda m: len(m.faces))
-    trimesh.repair.fix_normals(out)
+    if not out.is_winding_consistent:
+        trimesh.repair.fix_winding(out)
     if out.volume < 0:
         out.invert()
-    return out
+    return _canonical(out)
+
+
+def _canonical(mesh):
+    """The same surface with faces in a canonical order (each face rotated to start at its
+    smallest vertex, keeping its orientation; faces sorted), so that output is identical
+    between runs whatever order the mesher emits its facets in."""
+    import trimesh
+
+    v = np.asarray(mesh.vertices)
+    order = np.lexsort(v.T[::-1])
+    rank = np.empty(len(v), dtype=np.int64)
+    rank[order] = np.arange(len(v))
+    v = v[order]
+    f = rank[np.asarray(mesh.faces)]
+    r = np.argmin(f, axis=1)
+    f = np.stack([f[np.arange(len(f)), (r + k) % 3] for k in range(3)], axis=1)
+    f = f[np.lexsort(f.T[::-1])]
+    return trimesh.Trimesh(v, f, process=False)
 
 
 # Structured grid sizes of the bone shells (columns, rows) per segment.
@@ -171,12 +210,12 @@ def landmarks(shape: hg.HeadShape) -> dict:
 
 
 def synthetic_head(seed: int, size: float = 3.0, distance: float = 0.25,
-                   table_step: float = 0.25) -> SyntheticHead:
+                   table_step: float = 0.25, mesher: str = "sphere") -> SyntheticHead:
     """Patient `seed`: shape, skin, bone segments, teeth and landmarks (deterministic)."""
     shape = random_shape(seed)
     teeth = {"upper": (*hg.teeth_arch("upper", shape), "maxilla"),
              "lower": (*hg.teeth_arch("lower", shape), "mandible")}
     return SyntheticHead(seed=int(seed), shape=shape,
                          skin=skin_surface(shape, size, distance, seed=int(seed) % 2**31,
-                                           table_step=table_step),
+                                           table_step=table_step, mesher=mesher),
                          bones=bone_surfaces(shape), teeth=teeth, landmarks=landmarks(shape))

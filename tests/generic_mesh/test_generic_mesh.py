@@ -219,7 +219,7 @@ def test_soft_tissue_thickness_is_realistic(standard):
     pq = trimesh.proximity.ProximityQuery(deep)
 
     def thickness(idx):
-        return pq.signed_distance(m.nodes[np.atleast_1d(idx)]) * -1.0
+        return np.abs(pq.signed_distance(m.nodes[np.atleast_1d(idx)]))
 
     # upper lip 12-15 mm, chin 10-12 mm (Holdaway 1983), +-1 mm for the normal-vs-ray
     # measure and the facetted deep surface; cheeks 10-20 mm.
@@ -250,6 +250,12 @@ def test_teeth(model):
     for t in (upper, lower):
         assert t.is_watertight and t.volume > 0
     assert upper.vertices[:, 2].min() > lower.vertices[:, 2].max() - 1e-9
+    # the teeth stay behind the soft tissue: on every ray, inside the deep surface
+    for arch in ("upper", "lower"):
+        v = model.teeth[arch][0]
+        t, p, r = hg.from_cartesian(v)
+        side = np.full_like(t, 1.0 if arch == "upper" else -1.0)
+        assert np.all(r <= hg.deep_radius(t, p, side=side) + 1e-6), arch
     # the lips rest on the incisors: the lip/teeth facets near the midline lie within 1 mm
     # of the teeth surface (TEETH_GAP = 0.25 mm plus the facetting of both surfaces)
     for facets, t in (("lip_upper_teeth", upper), ("lip_lower_teeth", lower)):

@@ -1,0 +1,125 @@
+"""Synthetic heads: closed surfaces, deterministic per seed, different from the generic head,
+landmarks on the skin, the CT volume giving back the skin; the `faceplan synth` command."""
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from facemodel import head_geometry as hg
+from facemodel import synthetic as sy
+
+# 3 mm skin facets (a level-5 geodesic sphere projected on the skin) keep the tests quick
+FAST = dict(size=3.0)
+
+
+@pytest.fixture(scope="module")
+def head():
+    return sy.synthetic_head(11, **FAST)
+
+
+def test_surfaces_are_closed(head):
+    assert head.skin.is_watertight and head.skin.is_winding_consistent and head.skin.volume > 0
+    assert set(head.bones) == {"skull", "maxilla", "mandible", "chin"}
+    for seg, m in head.bones.items():
+        assert m.is_watertight and m.volume > 0, seg
+    for arch, (v, f, seg) in head.teeth.items():
+        t = trimesh.Trimesh(v, f, process=False)
+        assert t.is_watertight and t.volume > 0
+    assert head.teeth["upper"][2] == "maxilla" and head.teeth["lower"][2] == "mandible"
+
+
+def _inside(surface, points):
+    """Points enclosed by a closed surface (VTK's enclosed-points filter, fast)."""
+    import pyvista as pv
+
+    faces = np.hstack([np.full((len(surface.faces), 1), 3), surface.faces]).ravel()
+    closed = pv.PolyData(np.asarray(surface.vertices), faces)
+    sel = pv.PolyData(np.asarray(points, float)).select_interior_points(closed, check_surface=True)
+    name = next(k for k in sel.point_data.keys() if "selected" in k.lower())
+    return np.asarray(sel.point_data[name]).astype(bool)
+
+
+def test_bones_and_teeth_inside_the_skin(head):
+    for seg, m in head.bones.items():
+        assert np.all(_inside(head.skin, m.vertices)), seg
+    for arch, (v, f, _) in head.teeth.items():
+        assert np.all(_inside(head.skin, v))
+    # and the teeth do not cut into the lips: outside the bone shells too
+    assert not np.any(_inside(head.bones["maxilla"], head.teeth["upper"][0]))
+
+
+def test_landmarks_on_the_skin(head):
+    names = list(hg.LANDMARK_ANGLES)
+    pts = np.array([head.landmarks[k] for k in names])
+    d = dict(zip(names, np.abs(trimesh.proximity.ProximityQuery(head.skin).signed_distance(pts))))
+    # landmarks sit on the exact surface; ~3.3 mm facets deviate from it by their sagitta,
+    # e^2 / (8 R) < 0.3 mm for the tightest curvature radius R ~ 5 mm (nose tip, lips): 1 mm.
+    # The stomia sit at the crease where the upper lip overhangs the lower one (a step the
+    # facets cut across): 2 mm there.
+    for k, v in d.items():
+        assert v < (2.0 if k in ("Stms", "Stmi") else 1.0), (k, v)
+
+
+def test_deterministic_per_seed(head):
+    again = sy.synthetic_head(11, **FAST)
+    np.testing.assert_array_equal(again.skin.vertices, head.skin.vertices)
+    np.testing.assert_array_equal(again.skin.faces, head.skin.faces)
+    np.testing.assert_array_equal(again.teeth["upper"][0], head.teeth["upper"][0])
+    for seg in head.bones:
+        np.testing.assert_array_equal(again.bones[seg].vertices, head.bones[seg].vertices)
+    assert again.shape == head.shape
+    assert sy.random_shape(12) != head.shape
+
+
+def test_heads_differ_from_the_generic_head():
+    generic = {k: hg.to_cartesian(t, p, hg.skin_radius(t, p, side=s))
+               for k, (t, p, s) in hg.LANDMARK_ANGLES.items()}
+    for seed in range(12):
+        shape = sy.random_shape(seed)
+        assert sy.face_difference(shape) >= sy.MIN_DIFFERENCE
+        assert abs(shape.mandible_ap - shape.maxilla_ap) >= 3.0 - 1e-9
+        marks = sy.landmarks(shape)
+        moved = np.mean([np.linalg.norm(marks[k] - generic[k]) for k in generic])
+        assert moved > 2.0, seed
+
+
+def test_ct_volume_gives_back_the_skin(head):
+    from facemodel import ct
+    from facemodel.ct_phantom import ct_volume_from_surfaces
+
+    hu, affine = ct_volume_from_surfaces(head.skin, head.bones, spacing=1.5, seed=1)
+    vol = ct.CTVolume(hu, affine)
+    skin = ct.skin_surface(vol)
+    d = np.abs(trimesh.proximity.ProximityQuery(head.skin).signed_distance(skin.vertices[::25]))
+    assert d.mean() < 0.5
+
+
+def test_synth_command_writes_case_folders(tmp_path):
+    from planner.case import load_case
+    from planner.cli import main
+    from planner.plan import load_plan
+
+    out = tmp_path / "cases"
+    key = tmp_path / "key.json"
+    assert main(["synth", "--out", str(out), "--count", "2", "--seed", "4", "--surface-size", "4",
+                 "--key", str(key)]) == 0
+    cases = sorted(p.name for p in out.iterdir())
+    assert cases == ["synth_0004", "synth_0005"]
+    case = load_case(out / "synth_0004")
+    assert set(case.bones) == {"skull", "maxilla", "mandible", "chin"}
+    assert set(case.landmarks) >= {"Prn", "Sn", "Ls", "Li", "Pog", "Me", "ChL", "ChR"}
+    plan = load_plan(out / "synth_0004" / "plan.yaml")
+    assert {"maxilla", "mandible"} <= set(plan.segments)
+    truth = json.loads(key.read_text())
+    assert [c["seed"] for c in truth["cases"]] == [4, 5]
+    assert truth["cases"][0]["shape"] == sy.random_shape(4).as_dict()
+
+
+@pytest.mark.parametrize("argv", [["--withheld-effect", "sliding"], ["--count", "0"], ["--seed", "-1"]])
+def test_synth_refuses_bad_input(tmp_path, argv):
+    from planner.cli import main
+
+    out = tmp_path / "cases"
+    assert main(["synth", "--out", str(out), *argv]) == 2
+    assert not out.exists()

@@ -1,0 +1,197 @@
+"""`mesh_match_and_repair`: the generic FaceModel registered onto a patient's surfaces.
+
+Wraps the array pipeline of `registration.mesh_match` for a `facemodel.FaceModel`: the skin
+facet set and the bone attachment node sets (attach_<segment>) drive the registration; the
+result keeps the model's connectivity, labels, node and facet sets, regions and landmarks
+(node ids), re-orients the fibres with the deformation gradient of each element
+(f' = F f / |F f|, F = J' J^-1 from the isoparametric Jacobians at the element centre) and
+moves each set of teeth with the similarity that best maps its bone segment's attachment
+nodes (Umeyama). Results are cached on disk under a key hashing every input (model arrays,
+patient surfaces, landmarks, options and the registration code itself), so that re-running a
+prediction on the same case reuses the registration.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+
+from registration.alignment import umeyama
+from registration.errors import RegistrationInputError
+from registration.mesh_match import MatchInput, MatchOptions, match_and_repair_arrays
+from registration.quality import EDGE_OPERATOR
+from registration.surface import TargetSurface
+
+CACHE_FORMAT = 1
+
+
+def as_target(surface, name: str) -> TargetSurface:
+    """TargetSurface from a trimesh / pyvista-like object, a (vertices, faces) pair or itself."""
+    if isinstance(surface, TargetSurface):
+        return surface
+    if isinstance(surface, (tuple, list)) and len(surface) == 2:
+        v, f = surface
+    elif hasattr(surface, "vertices") and hasattr(surface, "faces"):
+        v, f = surface.vertices, surface.faces
+    else:
+        raise RegistrationInputError(f"{name}: expected a triangle surface, got {type(surface).__name__}",
+                                     field=name)
+    v = np.asarray(v, dtype=float)
+    f = np.asarray(f)
+    if f.ndim == 1:  # VTK cell array [3, a, b, c, 3, ...]
+        f = f.reshape(-1, 4)[:, 1:]
+    try:
+        return TargetSurface(v, f.astype(np.int64), name)
+    except ValueError as exc:
+        raise RegistrationInputError(str(exc), field=name) from exc
+
+
+def centre_jacobians(nodes: np.ndarray, hexes: np.ndarray) -> np.ndarray:
+    """Isoparametric Jacobians (m, 3, 3) at the element centres (columns: d x / d xi_k, x 2)."""
+    e = np.einsum("kn,mnd->mdk", EDGE_OPERATOR[8], np.asarray(nodes)[np.asarray(hexes)])
+    return e
+
+
+def reorient_fibres(old_nodes, new_nodes, hexes, fibres) -> np.ndarray:
+    fibres = np.asarray(fibres, dtype=float)
+    norm = np.linalg.norm(fibres, axis=1)
+    out = np.zeros_like(fibres)
+    sel = norm > 0
+    if not sel.any():
+        return out
+    j0 = centre_jacobians(old_nodes, hexes[sel])
+    j1 = centre_jacobians(new_nodes, hexes[sel])
+    f = j1 @ np.linalg.solve(j0, fibres[sel][..., None])
+    f = f[..., 0]
+    out[sel] = f / np.linalg.norm(f, axis=1)[:, None]
+    return out
+
+
+def _segment_of_teeth(model, name: str, segment: str | None) -> str | None:
+    if segment:
+        return segment
+    return {"upper": "maxilla", "lower": "mandible"}.get(name)
+
+
+def move_teeth(model, new_nodes: np.ndarray, similarity) -> dict:
+    teeth = {}
+    for name, (v, f, seg) in model.teeth.items():
+        seg = _segment_of_teeth(model, name, seg)
+        ids = np.asarray(model.node_sets.get(f"attach_{seg}", []), dtype=int)
+        if len(ids) >= 4:
+            tf = umeyama(model.nodes[ids], new_nodes[ids])
+        else:
+            tf = similarity
+        teeth[name] = (tf.apply(np.asarray(v, float)), np.asarray(f), seg)
+    return teeth
+
+
+def _hash_arrays(h, *arrays):
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(str(a.dtype).encode() + str(a.shape).encode())
+        h.update(a.tobytes())
+
+
+def cache_key(model, skin: TargetSurface, bones: dict, landmarks, options: MatchOptions) -> str:
+    h = hashlib.sha256()
+    h.update(f"faceplan-registration-{CACHE_FORMAT}".encode())
+    src = Path(__file__).parent
+    for py in sorted(src.glob("*.py")):  # the code is part of the key
+        h.update(py.read_bytes())
+    _hash_arrays(h, model.nodes, model.hexes, model.facet_sets["skin"])
+    for k in sorted(model.node_sets):
+        h.update(k.encode()); _hash_arrays(h, model.node_sets[k])
+    _hash_arrays(h, skin.vertices, skin.faces)
+    for k in sorted(bones):
+        h.update(k.encode()); _hash_arrays(h, bones[k].vertices, bones[k].faces)
+    for k in sorted(landmarks or {}):
+        h.update(k.encode()); _hash_arrays(h, np.asarray(landmarks[k], float))
+    h.update(json.dumps(asdict(options), sort_keys=True, default=str).encode())
+    return h.hexdigest()[:24]
+
+
+def default_cache_dir() -> Path:
+    env = os.environ.get("FACEPLAN_CACHE")
+    if env:
+        return Path(env) / "registration"
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "faceplan" / "registration"
+
+
+def _cache_load(path: Path, model):
+    try:
+        with np.load(path / "result.npz") as z:
+            nodes, fibres = z["nodes"], z["fibres"]
+            teeth = {k: (z[f"teeth_{k}"], np.asarray(model.teeth[k][1]), model.teeth[k][2])
+                     for k in model.teeth}
+        report = json.loads((path / "report.json").read_text())
+    except (OSError, KeyError, ValueError):
+        return None
+    if nodes.shape != model.nodes.shape:
+        return None
+    return replace(model, nodes=nodes, fibres=fibres, teeth=teeth), report
+
+
+def _cache_store(path: Path, patient, report: dict) -> None:
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    try:
+        tmp.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(tmp / "result.npz", nodes=patient.nodes, fibres=patient.fibres,
+                            **{f"teeth_{k}": np.asarray(v[0]) for k, v in patient.teeth.items()})
+        (tmp / "report.json").write_text(json.dumps(report))
+        os.replace(tmp, path)
+    except OSError:
+        pass  # a cache that cannot be written only costs time
+
+
+def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dict | None = None, *,
+                          options: MatchOptions | None = None, threshold: float | None = None,
+                          cache: bool = True, cache_dir: str | os.PathLike | None = None,
+                          files: dict | None = None):
+    """Register the generic `model` onto the patient: returns (patient_model, report).
+
+    skin: the patient skin (trimesh, (vertices, faces) or TargetSurface); bones: segment name ->
+    bone surface (a segment missing from `bones` is fitted to the union of the others);
+    landmarks: optional name -> (3,) mm RAS. Raises RegistrationInputError for data that cannot
+    be registered and RegistrationFailure if the result would not be valid."""
+    t0 = time.perf_counter()
+    opt = options or MatchOptions()
+    if threshold is not None:
+        opt = replace(opt, threshold=float(threshold))
+    skin_t = as_target(skin, "skin")
+    bone_t = {k: as_target(v, f"bone.{k}") for k, v in (bones or {}).items()}
+    lms = {k: np.asarray(v, dtype=float).reshape(3) for k, v in (landmarks or {}).items()}
+    key = cache_key(model, skin_t, bone_t, lms, opt)
+    cdir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    if cache:
+        hit = _cache_load(cdir / key, model) if (cdir / key).is_dir() else None
+        if hit is not None:
+            patient, report = hit
+            report.update(cached=True, cache_key=key)
+            return patient, report
+    segs = [s for s in model.segments if f"attach_{s}" in model.node_sets]
+    arrays = MatchInput(
+        nodes=np.asarray(model.nodes, float), hexes=np.asarray(model.hexes),
+        skin_quads=np.asarray(model.facet_sets["skin"]),
+        bone_node_sets={s: np.asarray(model.node_sets[f"attach_{s}"]) for s in segs},
+        landmark_nodes=dict(model.landmarks),
+        bone_quads=np.asarray(model.facet_sets["deep_bone"]) if "deep_bone" in model.facet_sets else None,
+    )
+    x, sim, report = match_and_repair_arrays(arrays, skin_t, bone_t, lms or None, opt, files)
+    t1 = time.perf_counter()
+    fibres = reorient_fibres(model.nodes, x, np.asarray(model.hexes), model.fibres)
+    teeth = move_teeth(model, x, sim)
+    patient = replace(model, nodes=x, fibres=fibres, teeth=teeth)
+    report["time"]["carry_s"] = time.perf_counter() - t1
+    report["time"]["total_s"] = time.perf_counter() - t0
+    report["elements_repaired"] = report["repair"]["elements_needing_repair"]
+    report["n_nodes"], report["n_elements"] = int(len(x)), int(len(model.hexes))
+    report.update(cached=False, cache_key=key)
+    if cache:
+        _cache_store(cdir / key, patient, report)
+    return patient, report

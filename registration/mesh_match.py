@@ -1,0 +1,262 @@
+"""Mesh-Match-and-Repair on plain arrays: align, register elastically, snap, repair, measure.
+
+The stages follow Bucki, Lobos and Payan (Med. Image Anal. 14, 2010): (1) a similarity from
+landmarks (Umeyama) or from the surfaces (principal axes + trimmed ICP), (2) the joint elastic
+registration of skin and bone-attachment nodes by a composed multilevel B-spline FFD
+(`registration.elastic`), (3) a snap of the surface nodes onto the patient surfaces with a
+harmonic spread into the volume, (4) the repair of every element whose minimum scaled Jacobian
+is below the threshold (`registration.repair`), then fit errors (mean / 95th percentile / max
+of node-to-surface distances where the patient surface covers the model) and quality figures.
+Inputs that cannot give a trustworthy mesh (wrong units, a surface that covers too little of
+the face, landmarks that contradict the surface) raise `RegistrationInputError`; a result that
+misses the validity gates raises `RegistrationFailure` -- an inverted or badly fitting mesh is
+never returned.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from registration.alignment import Similarity, align_surfaces, umeyama
+from registration.elastic import (ElasticSchedule, SurfaceGroup, elastic_register, mesh_laplacian,
+                                  snap_to_surfaces, vertex_normals)
+from registration.errors import RegistrationFailure, RegistrationInputError
+from registration.quality import min_scaled_jacobian, quality_summary
+from registration.repair import SurfaceConstraint, repair_mesh
+from registration.surface import TargetSurface
+
+
+@dataclass
+class MatchOptions:
+    threshold: float = 0.2  # minimum scaled Jacobian after repair
+    schedule: ElasticSchedule = field(default_factory=ElasticSchedule)
+    use_landmarks: bool = True
+    max_snap_mm: float = 3.0
+    coverage_min: float = 0.25  # fraction of generic skin nodes the patient skin must cover
+    landmark_rms_max_mm: float = 8.0  # Umeyama residual above which landmarks are refused
+    skin_mean_gate_mm: float = 1.0  # refuse to return a mesh fitting worse than this
+    seed: int = 0
+
+
+@dataclass
+class MatchInput:
+    """The generic mesh, as arrays."""
+
+    nodes: np.ndarray
+    hexes: np.ndarray
+    skin_quads: np.ndarray  # (k, 4) node ids, outward
+    bone_node_sets: dict  # segment name -> node ids attached to it
+    landmark_nodes: dict = field(default_factory=dict)  # landmark name -> node id
+    bone_quads: np.ndarray | None = None  # (k, 4) deep facets on bone, outward from the tissue
+
+
+def _fit_stats(d: np.ndarray) -> dict:
+    if len(d) == 0:
+        return {"mean_mm": None, "p95_mm": None, "max_mm": None, "n_points": 0}
+    return {"mean_mm": float(d.mean()), "p95_mm": float(np.percentile(d, 95)),
+            "max_mm": float(d.max()), "n_points": int(len(d))}
+
+
+def _extent(v: np.ndarray) -> float:
+    return float(np.linalg.norm(np.ptp(v, axis=0)))
+
+
+def check_units(name: str, vertices: np.ndarray, reference_extent: float, file: str | None = None):
+    """Refuse surfaces whose size says they are not in mm (metres, centimetres, inches)."""
+    ext = _extent(vertices)
+    ratio = ext / reference_extent
+    if 0.4 <= ratio <= 2.5:
+        return
+    for unit, factor in (("metres", 1000.0), ("centimetres", 10.0), ("inches", 25.4)):
+        if 0.4 <= ratio * factor <= 2.5:
+            raise RegistrationInputError(
+                f"the {name} surface spans {ext:.4g} units where a face spans about "
+                f"{reference_extent:.0f} mm: it looks like {unit}; export it in mm "
+                f"(scale by {factor:g})", file=file, field="units")
+    raise RegistrationInputError(
+        f"the {name} surface spans {ext:.4g} units where a face spans about "
+        f"{reference_extent:.0f} mm; faceplan expects surfaces in mm", file=file, field="units")
+
+
+def initial_alignment(model: MatchInput, skin: TargetSurface, landmarks: dict | None,
+                      options: MatchOptions) -> tuple[Similarity, dict]:
+    """Similarity generic -> patient, and how it was found."""
+    info: dict = {}
+    if landmarks and options.use_landmarks:
+        common = [k for k in model.landmark_nodes if k in landmarks]
+        if len(common) >= 4:
+            src = model.nodes[[model.landmark_nodes[k] for k in common]]
+            dst = np.array([landmarks[k] for k in common], dtype=float)
+            sim = umeyama(src, dst)
+            rms = float(np.sqrt(np.mean(np.sum((sim.apply(src) - dst) ** 2, axis=1))))
+            info.update(method="landmarks", landmarks_used=common, landmark_rms_mm=rms)
+            if rms > options.landmark_rms_max_mm:
+                raise RegistrationInputError(
+                    f"the landmarks cannot be matched to the face model by a similarity "
+                    f"(residual {rms:.1f} mm over {', '.join(common)}): check their names, frame "
+                    f"(RAS vs LPS) and units", field="landmarks")
+            if not 0.6 <= sim.scale <= 1.6:
+                raise RegistrationInputError(
+                    f"the landmarks imply a head {sim.scale:.3g} times the generic size: check "
+                    f"their units (mm expected)", field="landmarks")
+            info.update(scale=sim.scale, rotation_deg=sim.rotation_deg)
+            return sim, info
+        info["landmarks_ignored"] = f"only {len(common)} landmark(s) in common with the model (4 needed)"
+    q = np.asarray(model.skin_quads)
+    generic_skin = TargetSurface(model.nodes, np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]]), "generic skin")
+    icp = align_surfaces(generic_skin, skin, seed=options.seed)
+    sim = icp.similarity
+    info.update(method="surfaces", trimmed_rms_mm=icp.rms_mm, inlier_fraction=icp.inliers,
+                scale=sim.scale, rotation_deg=sim.rotation_deg)
+    if not 0.65 <= sim.scale <= 1.5:
+        raise RegistrationInputError(
+            f"the patient skin matches the face model only at scale {sim.scale:.3g}: it does not "
+            f"look like a face in mm", field="skin")
+    return sim, info
+
+
+def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
+                            landmarks: dict | None = None, options: MatchOptions | None = None,
+                            files: dict | None = None):
+    """Register the generic mesh onto the patient surfaces. Returns (nodes, similarity, report).
+
+    `bones` maps segment names to TargetSurface; a segment of the model without a patient bone
+    surface is fitted to the union of the given bones."""
+    opt = options or MatchOptions()
+    files = files or {}
+    times: dict[str, float] = {}
+    t0 = time.perf_counter()
+    hexes = np.asarray(model.hexes)
+    skin_tris = np.concatenate([model.skin_quads[:, [0, 1, 2]], model.skin_quads[:, [0, 2, 3]]])
+    skin_ids = np.unique(model.skin_quads)
+    ref_extent = _extent(model.nodes[skin_ids])
+    check_units("skin", skin.vertices, ref_extent, files.get("skin"))
+    for name, b in bones.items():
+        ext = _extent(b.vertices)
+        if not 0.05 * ref_extent <= ext <= 2.5 * ref_extent:
+            hint = " it looks like metres;" if 0.05 * ref_extent <= 1000 * ext <= 2.5 * ref_extent else ""
+            raise RegistrationInputError(
+                f"the bone surface '{name}' spans {ext:.4g} units, not a bone segment in mm;{hint} "
+                f"export it in mm", file=files.get(name), field="units")
+    if landmarks:
+        for name, p in landmarks.items():
+            if not np.all(np.isfinite(np.asarray(p, float))):
+                raise RegistrationInputError(f"landmark {name} is not a finite point", field=name)
+
+    sim, align_info = initial_alignment(model, skin, landmarks, opt)
+    x = sim.apply(model.nodes)
+    # bones in the same units as the skin (checked after alignment: bones must sit under the skin)
+    skin_box = np.array([skin.vertices.min(0), skin.vertices.max(0)])
+    for name, b in bones.items():
+        c = b.vertices.mean(0)
+        margin = 0.5 * (skin_box[1] - skin_box[0])
+        if np.any(c < skin_box[0] - margin) or np.any(c > skin_box[1] + margin):
+            raise RegistrationInputError(
+                f"the bone surface '{name}' lies outside the skin surface (centre "
+                f"{np.round(c, 1).tolist()} mm): bones and skin must share one frame and unit",
+                file=files.get(name), field="bone")
+    times["align_s"] = time.perf_counter() - t0
+
+    # coverage: how much of the face the patient skin covers once aligned
+    normals = vertex_normals(x, skin_tris)
+    cl = skin.closest(x[skin_ids])
+    covered = (~cl.on_boundary & (cl.distance < 10.0)
+               & (np.einsum("ij,ij->i", normals[skin_ids], cl.normal) > 0.5))
+    coverage = float(covered.mean())
+    if coverage < opt.coverage_min:
+        raise RegistrationInputError(
+            f"after alignment the patient skin covers only {100 * coverage:.0f}% of the face "
+            f"model (at least {100 * opt.coverage_min:.0f}% needed): is it a face, in mm, "
+            f"with the face itself scanned?", file=files.get("skin"), field="skin")
+
+    t1 = time.perf_counter()
+    union = None
+    groups = []
+    bone_tris = None
+    if model.bone_quads is not None and len(model.bone_quads):
+        bq = np.asarray(model.bone_quads)
+        bone_tris = np.concatenate([bq[:, [0, 1, 2]], bq[:, [0, 2, 3]]])
+    for seg, ids in model.bone_node_sets.items():
+        ids = np.asarray(ids, dtype=np.int64)
+        if len(ids) == 0:
+            continue
+        if seg in bones:
+            target = bones[seg]
+        elif bones:
+            if union is None:
+                vs, fs, off = [], [], 0
+                for b in bones.values():
+                    vs.append(b.vertices); fs.append(b.faces + off); off += len(b.vertices)
+                union = TargetSurface(np.vstack(vs), np.vstack(fs), "bones")
+            target = union
+        else:
+            continue
+        groups.append(SurfaceGroup(seg, ids, target, weight=1.0 / max(len(model.bone_node_sets), 1),
+                                   tris=bone_tris, facing=-1.0))
+    skin_group = SurfaceGroup("skin", skin_ids, skin, weight=1.0, tris=skin_tris, facing=1.0)
+    lm = None
+    if landmarks and opt.use_landmarks:
+        common = [k for k in model.landmark_nodes if k in landmarks]
+        if common:
+            lm = (np.array([model.landmark_nodes[k] for k in common]),
+                  np.array([landmarks[k] for k in common], dtype=float))
+    x, elog = elastic_register(x, skin_group, skin_tris, groups, lm, opt.schedule, seed=opt.seed)
+    times["elastic_s"] = time.perf_counter() - t1
+
+    t2 = time.perf_counter()
+    lap = mesh_laplacian(len(x), hexes)
+    x, snapped = snap_to_surfaces(x, hexes, skin_group, skin_tris, groups, opt.max_snap_mm, lap)
+    times["snap_s"] = time.perf_counter() - t2
+
+    t3 = time.perf_counter()
+    constraints = [SurfaceConstraint("skin", snapped["skin"], skin)]
+    constraints += [SurfaceConstraint(g.name, snapped[g.name], g.target) for g in groups]
+    x, rep = repair_mesh(x, hexes, threshold=opt.threshold, constraints=constraints)
+    times["repair_s"] = time.perf_counter() - t3
+
+    t4 = time.perf_counter()
+    normals = vertex_normals(x, skin_tris)
+    cl = skin.closest(x[skin_ids])
+    valid = ~cl.on_boundary & (np.einsum("ij,ij->i", normals[skin_ids], cl.normal) > 0.5)
+    samples = skin.sample(20000, seed=opt.seed + 1)
+    mesh_skin = TargetSurface(x[skin_ids], np.searchsorted(skin_ids, skin_tris), "registered skin")
+    back = mesh_skin.closest(samples)
+    bone_fit, bone_all = {}, []
+    for g in groups:
+        cb = g.target.closest(x[g.node_ids])
+        d = cb.distance[g.accept(x, cb)]
+        bone_fit[g.name] = {**_fit_stats(d), "n_outside_patient_surface": int(len(cb.distance) - len(d))}
+        bone_all.append(d)
+    report = {
+        "alignment": {**align_info, "matrix": sim.matrix.tolist()},
+        "coverage": coverage,
+        "fit": {
+            "skin": {**_fit_stats(cl.distance[valid]), "n_outside_patient_surface": int((~valid).sum())},
+            "skin_patient_to_mesh": _fit_stats(back.distance[~back.on_boundary]),
+            "bone": _fit_stats(np.concatenate(bone_all) if bone_all else np.zeros(0)),
+            "bone_segments": bone_fit,
+        },
+        "quality": quality_summary(x, hexes, opt.threshold),
+        "repair": rep,
+        "elastic": elog.levels,
+    }
+    if lm is not None:
+        err = np.linalg.norm(x[lm[0]] - lm[1], axis=1)
+        names = [k for k in model.landmark_nodes if k in landmarks]
+        report["landmarks"] = {n: {"error_mm": float(e)} for n, e in zip(names, err)}
+    times["measure_s"] = time.perf_counter() - t4
+    times["total_s"] = time.perf_counter() - t0
+    report["time"] = times
+
+    q = min_scaled_jacobian(x, hexes)
+    if q.min() < opt.threshold:
+        raise RegistrationFailure(
+            f"repair left {int((q < opt.threshold).sum())} element(s) below scaled Jacobian "
+            f"{opt.threshold} (min {q.min():.3f}, {int((q <= 0).sum())} inverted)", report)
+    skin_mean = report["fit"]["skin"]["mean_mm"]
+    if skin_mean is None or skin_mean > opt.skin_mean_gate_mm:
+        raise RegistrationFailure(f"the registered skin misses the patient skin by {skin_mean} mm "
+                                  f"on average (gate {opt.skin_mean_gate_mm} mm)", report)
+    return x, sim, report

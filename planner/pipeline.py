@@ -119,35 +119,35 @@ class Prediction:
 
 # --------------------------------------------------------------------------- model options
 
-def default_materials(model, overrides: dict[str, dict[str, float]] | None = None, stiffness: float = 1.0):
-    """The per-label materials (`facemodel.simulation.default_face_materials`) with the plan's
-    parameter overrides and a stiffness factor on every passive stiffness parameter (unit kPa,
-    active stress T_max excepted), or None when nothing changes (the simulation's defaults)."""
-    if not overrides and stiffness == 1.0:
-        return None
-    from facemodel.simulation import default_face_materials
+def face_materials(model, overrides: dict[str, dict[str, float]] | None = None, stiffness: float = 1.0):
+    """Solver materials per tissue label from the default table (`facemodel.materials`: Yeoh for
+    passive tissue, the active transversely isotropic `Muscle` for muscles), with the plan's
+    parameter overrides and the `stiffness` effect (a factor on every modulus, active stress
+    excepted, as `facemodel.materials.parameters` defines it)."""
+    from facemodel import materials as fm
+    from solver.constitution import Yeoh
+    from solver.constitution.muscle import Muscle
 
-    table = dict(default_face_materials(model))
-    for label in overrides or {}:
-        if label not in table:
-            raise InputError(f"unknown tissue label {label!r} (labels: {', '.join(table)})",
+    laws = {"Yeoh": Yeoh, "Muscle": Muscle}
+    overrides = overrides or {}
+    for label in overrides:
+        if label not in model.label_names:
+            raise InputError(f"unknown tissue label {label!r} (labels: {', '.join(model.label_names)})",
                              field=f"model.materials.{label}")
     out = {}
-    for label, mat in table.items():
-        params = {k: float(v[0]) for k, v in mat.parameters.items()}
-        units = {k: v[1] for k, v in mat.parameters.items()}
-        for k, v in (overrides or {}).get(label, {}).items():
+    for label in model.label_names:
+        entry = fm.material(label)
+        params = dict(fm.parameters(label, stiffness))
+        for k, v in overrides.get(label, {}).items():
             if k not in params:
                 raise InputError(f"material {label!r} has no parameter {k!r} "
                                  f"(parameters: {', '.join(params)})", field=f"model.materials.{label}.{k}")
             params[k] = v
-        if stiffness != 1.0:
-            params = {k: v * stiffness if units[k] == "kPa" and k != "T_max" else v for k, v in params.items()}
-        kwargs = dict(params)
-        if hasattr(mat, "volumetric"):
-            kwargs["volumetric"] = mat.volumetric
+        law = laws.get(entry.law)
+        if law is None:
+            raise SolveError(f"material table: unknown law {entry.law!r} for {label!r}")
         try:
-            out[label] = type(mat)(**kwargs)
+            out[label] = law(**params)
         except (TypeError, ValueError) as exc:
             raise InputError(f"material {label!r}: {exc}", field=f"model.materials.{label}") from None
     return out
@@ -260,7 +260,7 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
         for m in PERIORAL_MUSCLES[:3]:
             if m in present:
                 activations[m] = max(activations.get(m, 0.0), tone)
-    materials = default_materials(model, plan.model.materials, effects.get("stiffness", 1.0))
+    materials = face_materials(model, plan.model.materials, effects.get("stiffness", 1.0))
     from solver import errors as solver_errors
 
     motions = plan.motions(include_identity=True)
@@ -275,7 +275,7 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
             raise SolveError(f"Newton failed at load step {exc.step} (load {exc.load:.3g}, last converged "
                              f"{exc.last_converged_load:.3g}{label}): {exc}") from exc
         except solver_errors.MaterialError as exc:
-            if materials is None:       # the default table itself: not the user's doing
+            if not plan.model.materials:     # the default table itself: not the user's doing
                 raise SolveError(f"material table: {exc}") from exc
             raise InputError(f"material: {exc}", file=plan.path,
                              field=f"model.materials ({exc.parameter})" if exc.parameter else "model.materials") from exc
@@ -288,11 +288,24 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
         raise SolveError("the solution contains NaN or infinite displacements")
     bad = rep.inverted_elements(np.asarray(model.nodes, float) + u, model.hexes)
     if bad.size:
-        raise SolveError(f"{bad.size} elements are inverted in the predicted face "
-                         f"(first: {bad[:5].tolist()}); the movement is too large for this mesh")
+        raise SolveError(_inverted_message(model, bad))
     stats["sliding"] = list(sliding)
     stats["activations"] = activations
     return Prediction(model, plan, u, stress, stats, bone_vertices, assignment, effects)
+
+
+def _inverted_message(model, bad: np.ndarray) -> str:
+    x = np.asarray(model.nodes, float)
+    where = []
+    for e in bad[:4]:
+        hx = np.asarray(model.hexes[e])
+        segs = [s for s in model.segments if np.isin(hx, model.node_sets.get("attach_" + s, ())).any()]
+        where.append(f"element {int(e)} ({model.label_names[model.labels[e]]}, at "
+                     f"{np.round(x[hx].mean(axis=0), 1).tolist()} mm, attached to {'+'.join(segs) or 'no bone'})")
+    return (f"{bad.size} element(s) of the predicted face are inverted (a corner Jacobian <= 0): "
+            + "; ".join(where) + ". The relative movement of neighbouring bone segments shears the "
+            "soft tissue between them more than this mesh resolution can follow: use a finer "
+            "--resolution, --effect sliding=1, or a smaller relative movement")
 
 
 # --------------------------------------------------------------------------- outputs
@@ -536,48 +549,56 @@ DEMO_PLAN = {
         # region that raises the posterior maxilla (rotation about +x, right-hand rule).
         "maxilla": {"translation": [0.0, 5.0, 1.0],
                     "rotation": {"axis": [1, 0, 0], "angle_deg": -2.0, "center": [0.0, 60.0, -25.0]}},
-        # BSSO: 4 mm mandibular setback of the distal segment.
-        "mandible": {"translation": [0.0, -4.0, 0.0]},
-        # Genioplasty: chin 4 mm forward (relative to pre-op), 1 mm up.
-        "chin": {"translation": [0.0, 4.0, 1.0]},
+        # BSSO: 3 mm mandibular setback of the distal segment.
+        "mandible": {"translation": [0.0, -3.0, 0.0]},
+        # Genioplasty: the chin segment rides with the mandible and is advanced 5 mm and raised
+        # 1 mm on it; movements are pre-op -> post-op, so 2 mm forward overall.
+        "chin": {"translation": [0.0, 2.0, 1.0]},
     },
     "muscles": {"orbicularis_oris": 0.0, "mentalis": 0.0},
 }
 
 
-def _find_case(root: Path) -> Path:
-    for p in sorted(root.rglob("preop")):
-        if p.is_dir():
-            return p.parent
-    raise SolveError(f"faceplan synth wrote no case folder under {root}")
+DEMO_HEAD = Path(__file__).parent / "data" / "demo_head.npz"
+
+
+def write_demo_case(folder: str | Path, plan: dict | None = None) -> Path:
+    """Write the embedded synthetic head (`facemodel.synthetic.synthetic_head(7)`, stored in
+    `planner/data/demo_head.npz`: skin, bone segments, landmarks) as a case folder with a plan
+    (default: the bimaxillary demo plan)."""
+    import trimesh
+    import yaml
+
+    folder = Path(folder)
+    data = np.load(DEMO_HEAD)
+    (folder / "preop" / "bone").mkdir(parents=True, exist_ok=True)
+    trimesh.Trimesh(data["skin_vertices"].astype(float), data["skin_faces"], process=False).export(
+        folder / "preop" / "skin.stl")
+    for key in data.files:
+        if key.startswith("bone_") and key.endswith("_vertices"):
+            seg = key[len("bone_"):-len("_vertices")]
+            trimesh.Trimesh(data[key].astype(float), data[f"bone_{seg}_faces"], process=False).export(
+                folder / "preop" / "bone" / f"{seg}.stl")
+    landmarks = {str(n): [float(c) for c in p] for n, p in zip(data["landmark_names"], data["landmark_points"])}
+    (folder / "preop" / "landmarks.json").write_text(json.dumps(landmarks, indent=1))
+    (folder / "case.yaml").write_text(yaml.safe_dump({"id": f"synthetic-{int(data['seed'])}", "synthetic": True,
+                                                      "seed": int(data["seed"]),
+                                                      "notes": "embedded synthetic head of the faceplan demo"}))
+    (folder / "plan.yaml").write_text(
+        "# faceplan demo: bimaxillary surgery (Le Fort I advancement, BSSO setback, genioplasty)\n"
+        + yaml.safe_dump(plan or DEMO_PLAN, sort_keys=False))
+    return folder
 
 
 def run_demo(out_dir: str | Path, *, resolution: str = "coarse", render: bool = True,
              echo: bool | Callable[[str], None] = True) -> Path:
-    """The bimaxillary demo: a synthetic head (`faceplan synth`, fixed seed), the demo plan,
-    the whole prediction into `out_dir` (with the generated case in `out_dir/case`)."""
+    """The bimaxillary demo on the embedded synthetic head: the whole prediction into
+    `out_dir`, with the case folder it was made from in `out_dir/case`."""
     import shutil
     import tempfile
 
-    import yaml
-
-    from planner.commands import synth
-
     with tempfile.TemporaryDirectory(prefix="faceplan-demo-") as tmp:
-        tmp = Path(tmp)
-        import argparse
-
-        parser = argparse.ArgumentParser()
-        synth.add_arguments(parser)
-        args = parser.parse_args(["--out", str(tmp / "cases"), "--count", "1", "--seed", str(DEMO_SEED)])
-        code = synth.run(args)
-        if code:
-            raise SolveError(f"the synthetic head could not be generated (faceplan synth exit {code})")
-        case = _find_case(tmp / "cases")
-        plan = dict(DEMO_PLAN, model={"resolution": resolution})
-        (case / "plan.yaml").write_text(
-            "# faceplan demo: bimaxillary surgery (Le Fort I advancement, BSSO setback, genioplasty)\n"
-            + yaml.safe_dump(plan, sort_keys=False))
+        case = write_demo_case(Path(tmp) / "case", dict(DEMO_PLAN, model={"resolution": resolution}))
 
         def keep_case(folder: Path) -> None:
             shutil.copytree(case, folder / "case", ignore=shutil.ignore_patterns("predict", ".*"))

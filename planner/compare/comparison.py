@@ -88,8 +88,14 @@ def _locate_landmarks(pred: Prediction, pred_surface: TriangleSurface, scan: Tri
     if not names:
         return {}
     guesses = [pred.landmarks[n] for n in names]
+    # the same operator on both surfaces: search and fit balls scale with the coarser mesh
+    # (a piecewise-linear surface needs a fit over a few facets to have a curvature at all)
+    spacing = max(pred_surface.mean_edge_length, scan.mean_edge_length)
+    radius = max(radius, 1.5 * spacing)
+    fit_radius = max(3.0, 1.2 * spacing)
     pred_pts = _densified(pred_surface.vertices, pred_surface.faces, guesses, radius)
-    on_pred = LandmarkLocator(pred_pts, pred_surface.vertices[pred_surface.vertex_on_boundary], radius=radius)
+    on_pred = LandmarkLocator(pred_pts, pred_surface.vertices[pred_surface.vertex_on_boundary],
+                              radius=radius, fit_radius=fit_radius)
     found = {}
     for name, guess in zip(names, guesses):
         p = on_pred.locate(name, guess)
@@ -98,7 +104,8 @@ def _locate_landmarks(pred: Prediction, pred_surface: TriangleSurface, scan: Tri
     if not found:
         return {}
     scan_pts = _densified(scan.vertices, scan.faces, list(found.values()), radius)
-    on_scan = LandmarkLocator(scan_pts, scan.vertices[scan.vertex_on_boundary], radius=radius)
+    on_scan = LandmarkLocator(scan_pts, scan.vertices[scan.vertex_on_boundary], radius=radius,
+                              fit_radius=fit_radius)
     out = {}
     for name, p in found.items():
         q = on_scan.locate(name, p)

@@ -25,7 +25,8 @@ SURFACE_SUFFIXES = (".stl", ".ply", ".obj", ".vtp", ".vtk", ".off", ".glb", ".gl
 # face-model region names that orthognathic surgery leaves untouched (used when the prediction
 # does not list them): upper face, nasal bridge, infra-orbital rims, temples, ears
 DEFAULT_UNOPERATED = (
-    "forehead", "glabella", "nasal_bridge", "nose_bridge", "nasion", "upper_face",
+    "forehead", "glabella", "nasal_root", "nasal_bridge", "nose_bridge", "nasion", "upper_face",
+    "preauricular_left", "preauricular_right",
     "infraorbital_left", "infraorbital_right", "orbit_left", "orbit_right", "temple_left",
     "temple_right", "ear_left", "ear_right", "eyes", "eye_left", "eye_right",
 )

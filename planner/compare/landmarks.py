@@ -6,12 +6,13 @@ the landmark's definition (Farkas, *Anthropometry of the Head and Face*, 1994):
 - profile extremes on the mid-sagittal profile: pronasale (Prn), labrale superius (Ls), labrale
   inferius (Li) and soft-tissue pogonion (Pog) are the most anterior (+y) points, subnasale (Sn)
   the deepest (most posterior) point between columella and upper lip, soft-tissue menton (Me)
-  the most inferior (-z) point of the chin;
+  the lowest point of the chin (measured downwards and slightly forwards);
 - cheilion (ChR on the patient's right, ChL) is the deepest point of the mouth corner, measured
   against a quadric fitted to its neighbourhood.
 Refinement is sub-vertex: a quadratic height h(x, s) is fitted by least squares to the points
 near the extremal vertex and its stationary point is taken (this averages scan noise out and
-makes the result independent of the triangulation). Applying the same operator to the
+makes the result independent of the triangulation; the balls grow with the mesh spacing so
+that a piecewise-linear surface is fitted over several facets). Applying the same operator to the
 prediction and to the scan makes the landmark error a difference of like with like.
 """
 from __future__ import annotations
@@ -23,16 +24,19 @@ from scipy.spatial import cKDTree
 
 __all__ = ["RULES", "locate_landmark", "LandmarkLocator"]
 
-# name -> (kind, height axis, sign, profile axis). Height = sign * coordinate[axis].
-RULES: dict[str, tuple[str, int, float, int]] = {
-    "Prn": ("profile", 1, +1.0, 2),
-    "Ls": ("profile", 1, +1.0, 2),
-    "Li": ("profile", 1, +1.0, 2),
-    "Pog": ("profile", 1, +1.0, 2),
-    "Sn": ("profile", 1, -1.0, 2),
-    "Me": ("profile", 2, -1.0, 1),
-    "ChR": ("deepest", 1, +1.0, 2),
-    "ChL": ("deepest", 1, +1.0, 2),
+# name -> (kind, direction d in the mid-sagittal (y, z) plane along which the landmark is
+# extreme). Menton's direction is tilted 26.6 degrees anteriorly from straight down, so that a
+# submental contour sloping down into the neck does not carry it away from the chin.
+_ME = (0.0, 1.0 / np.sqrt(5.0), -2.0 / np.sqrt(5.0))
+RULES: dict[str, tuple[str, tuple[float, float, float]]] = {
+    "Prn": ("profile", (0.0, 1.0, 0.0)),
+    "Ls": ("profile", (0.0, 1.0, 0.0)),
+    "Li": ("profile", (0.0, 1.0, 0.0)),
+    "Pog": ("profile", (0.0, 1.0, 0.0)),
+    "Sn": ("profile", (0.0, -1.0, 0.0)),
+    "Me": ("profile", _ME),
+    "ChR": ("deepest", (0.0, 1.0, 0.0)),
+    "ChL": ("deepest", (0.0, 1.0, 0.0)),
 }
 
 
@@ -66,14 +70,19 @@ class LandmarkLocator:
         if name not in RULES:
             return None
         guess = np.asarray(guess, float)
-        kind, axis, sign, along = RULES[name]
+        kind, direction = RULES[name]
+        if kind == "deepest" and self._btree is not None:
+            # an open mouth fissure (a hole in the skin surface): cheilion is its lateral corner
+            corner = self._fissure_corner(guess)
+            if corner is not None:
+                return corner
         for _ in range(2):  # one re-centring if the extreme sits on the edge of the ball
             idx = np.asarray(self.tree.query_ball_point(guess, self.radius), dtype=np.int64)
             if len(idx) < self.min_points:
                 return None
             cand = self.points[idx]
             if kind == "profile":
-                point, on_edge = self._profile(cand, guess, axis, sign, along)
+                point, on_edge = self._profile(cand, guess, np.asarray(direction))
             else:
                 point, on_edge = self._deepest(cand, guess)
             if point is None:
@@ -87,31 +96,39 @@ class LandmarkLocator:
             return None
         return point
 
-    def _profile(self, cand, guess, axis, sign, along):
+    def _fissure_corner(self, guess):
+        idx = self._btree.query_ball_point(guess, 0.5 * self.radius)
+        if len(idx) < 3:
+            return None
+        b = self.boundary_points[idx]
+        side = 1.0 if guess[0] >= 0 else -1.0        # ChR on +x (patient's right), ChL on -x
+        return b[int(np.argmax(side * b[:, 0]))].copy()
+
+    def _profile(self, cand, guess, d):
+        """Extreme of h = d.p on the mid-sagittal profile x = guess_x (d in the y-z plane)."""
+        e = np.array([0.0, -d[2], d[1]])                 # along the profile, in the y-z plane
         band = np.abs(cand[:, 0] - guess[0]) < 1.5
         if band.sum() < 5:
             band = np.abs(cand[:, 0] - guess[0]) < 3.0
             if band.sum() < 5:
                 return None, False
         b = cand[band]
-        h = sign * b[:, axis]
-        k = int(np.argmax(h))
+        k = int(np.argmax(b @ d))
         best = b[k]
         on_edge = np.linalg.norm(best - guess) > self.radius - 1.0
-        near = cand[np.linalg.norm(cand - best, axis=1) < self.fit_radius]
-        x = near[:, 0] - best[0]
-        s = near[:, along] - best[along]
-        coef = _quadratic_fit(x, s, sign * near[:, axis])
+        near = cand[np.linalg.norm(cand - best, axis=1) < self.fit_radius] - best
+        coef = _quadratic_fit(near[:, 0], near @ e, near @ d)
+        # a flat profile (curvature radius over 500 mm) has no defined extreme
+        if coef is None or coef[5] > -1.0 / (2 * 500.0):
+            return None, False
         point = best.copy()
         # on the mid-sagittal plane of the transferred landmark, x = guess_x
         xg = float(np.clip(guess[0] - best[0], -self.fit_radius, self.fit_radius))
-        if coef is not None and coef[5] < 0:
-            s0 = -(coef[2] + coef[4] * xg) / (2 * coef[5])   # stationary along the profile
-            if abs(s0) < self.fit_radius:
-                point[0] = best[0] + xg
-                point[along] = best[along] + s0
-                point[axis] = sign * (coef[0] + coef[1] * xg + coef[2] * s0 + coef[3] * xg * xg
-                                      + coef[4] * xg * s0 + coef[5] * s0 * s0)
+        s0 = -(coef[2] + coef[4] * xg) / (2 * coef[5])   # stationary along the profile
+        if abs(s0) < self.fit_radius:
+            h0 = (coef[0] + coef[1] * xg + coef[2] * s0 + coef[3] * xg * xg + coef[4] * xg * s0
+                  + coef[5] * s0 * s0)
+            point = best + np.array([xg, 0.0, 0.0]) + s0 * e + h0 * d
         return point, on_edge
 
     def _deepest(self, cand, guess):

@@ -33,7 +33,7 @@ UNOPERATED = ("forehead", "nasal_bridge", "infraorbital_left", "infraorbital_rig
 # landmark -> base coordinates (q_x, q_z) in mm
 _LANDMARKS = {
     "Prn": (0.0, 8.0), "Sn": (0.0, -8.0), "Ls": (0.0, -20.0), "Stms": (0.0, -29.5),
-    "Li": (0.0, -40.0), "Pog": (0.0, -76.0), "Me": (0.0, -93.0),
+    "Li": (0.0, -40.0), "Pog": (0.0, -76.0),
     "ChR": (26.0, -30.0), "ChL": (-26.0, -30.0),
 }
 
@@ -141,6 +141,11 @@ def face_phantom(spacing: float = 1.5, jitter: float = 0.0, seed: int = 0,
     remap[used] = np.arange(len(used))
     vertices, q, faces = vertices[used], q[used], remap[faces]
     landmarks = {k: surface_at(*v).tolist() for k, v in _LANDMARKS.items()}
+    # soft-tissue menton: lowest chin point measured downwards and 26.6 degrees forwards (the
+    # direction planner.compare.landmarks uses), found on the dense analytic profile
+    el = np.radians(np.arange(-70.0, -30.0, 0.01))
+    prof, _ = _surface(_directions(np.zeros_like(el), el))
+    landmarks["Me"] = prof[int(np.argmax(prof @ np.array([0.0, 1.0, -2.0]) / np.sqrt(5.0)))].tolist()
     return Phantom(vertices, faces, regions_from_base(q[:, 0], q[:, 2]), REGION_NAMES,
                    landmarks, UNOPERATED)
 

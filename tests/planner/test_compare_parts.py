@@ -11,7 +11,7 @@ from planner.compare import phantom
 from planner.compare.alignment import apply, rotation_matrix, trimmed_icp
 from planner.compare.distances import TriangleSurface, vertex_areas
 from planner.compare.inputs import _merge_coincident
-from planner.compare.landmarks import LandmarkLocator
+from planner.compare.landmarks import RULES, LandmarkLocator
 from planner.compare.metrics import distance_metrics, weighted_percentile
 
 
@@ -107,7 +107,8 @@ def test_profile_landmarks_match_the_analytic_profile(face):
     for name, sel, key in (("Prn", prof[:, 2] > 0, lambda p: p[:, 1]),
                            ("Pog", (prof[:, 2] < -60) & (prof[:, 2] > -85), lambda p: p[:, 1]),
                            ("Li", (prof[:, 2] < -33) & (prof[:, 2] > -50), lambda p: p[:, 1]),
-                           ("Me", (prof[:, 2] < -85) & (prof[:, 1] > 60), lambda p: -p[:, 2])):
+                           ("Me", (prof[:, 2] < -85) & (prof[:, 1] > 60),
+                            lambda p: p @ np.array(RULES["Me"][1]))):
         exact = prof[sel][np.argmax(key(prof[sel]))]
         found = locator.locate(name, face.landmarks[name])
         assert found is not None, name

@@ -114,3 +114,14 @@ def table_rows() -> list:
     """The table as rows for a report: label, law, parameters, sources."""
     return [dict(label=e.label, law=e.law, parameters=dict(e.parameters),
                  sources={k: SOURCES[v] for k, v in e.sources.items()}) for e in MATERIALS.values()]
+
+
+def default_materials(model=None, stiffness: float = 1.0) -> dict:
+    """Solver material objects per label (solver.constitution `Yeoh` / `Muscle`), for the
+    labels of `model` (all labels of the table when None)."""
+    from solver.constitution import Yeoh
+    from solver.constitution.muscle import Muscle
+
+    laws = {"Yeoh": Yeoh, "Muscle": Muscle}
+    labels = LABEL_NAMES if model is None else tuple(model.label_names)
+    return {label: laws[material(label).law](**parameters(label, stiffness)) for label in labels}

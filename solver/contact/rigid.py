@@ -120,8 +120,14 @@ class RigidSurfaceContact:
         g = np.full(len(self.slaves), np.nan)
         n0 = np.zeros((len(self.slaves), 3))
         reg = np.full(len(self.slaves), -1)
-        pn = self.surface.pseudo_normal(face, region)
         d = y[idx] - c
+        # a point whose closest feature is an edge or vertex but which lies on the normal
+        # line of the face (e.g. exactly above the diagonal of a flat quad) is a face point:
+        # the distance has no curvature there
+        fn = self.surface.face_normals[face]
+        along = np.abs(np.einsum("ij,ij->i", d, fn)) >= (1.0 - 1e-9) * dist
+        region = np.where(along, FACE, region)
+        pn = self.surface.pseudo_normal(face, region)
         inside_face = region == FACE
         gi = np.where(inside_face, np.einsum("ij,ij->i", d, pn), 0.0)
         # off the face interiors the gradient is the unit vector to the closest point, signed

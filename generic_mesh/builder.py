@@ -354,4 +354,18 @@ def report(model: FaceModel, resolution: str) -> str:
     lines.append("  labels: " + ", ".join(f"{n} {c}" for n, c in zip(model.label_names, counts)))
     lines.append("  node sets: " + ", ".join(f"{k} {len(v)}" for k, v in model.node_sets.items()))
     lines.append("  facet sets: " + ", ".join(f"{k} {len(v)}" for k, v in model.facet_sets.items()))
+    # soft-tissue thickness along the rays (skin node to the deep node of its column)
+    nk = round(model.n_elements / len(model.facet_sets["skin"]))
+    def thick(nodes):
+        nodes = np.atleast_1d(nodes)
+        return np.linalg.norm(model.nodes[nodes] - model.nodes[nodes - nk], axis=1)
+    marks = ", ".join(f"{k} {thick(model.landmarks[k])[0]:.1f}" for k in ("Prn", "Sn", "Ls", "Li", "Pog", "Me"))
+    cheek = np.median(thick(model.regions["cheek_right"]))
+    infra = np.median(thick(model.regions["infraorbital_right"]))
+    layer = [np.median(np.linalg.norm(model.nodes[model.node_sets["skin"] - nk + k + 1]
+                                      - model.nodes[model.node_sets["skin"] - nk + k], axis=1))
+             for k in range(nk)]
+    lines.append(f"  soft-tissue thickness (mm): {marks}; cheek median {cheek:.1f}, "
+                 f"infraorbital median {infra:.1f}")
+    lines.append("  median layer thickness deep -> skin (mm): " + ", ".join(f"{t:.1f}" for t in layer))
     return "\n".join(lines)

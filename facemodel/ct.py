@@ -16,8 +16,10 @@ subcutaneous tissue (fat ... soft tissue, -100...+40 HU), which places a partial
 its true position (the half-maximum-height principle, Spoor, Zonneveld & Macho 1993, Am J Phys
 Anthropol 91:469-484). Bone is taken at +300 HU, the usual single threshold for craniofacial
 bone models from CT (Friedli et al. 2020, Sci Rep 10:4398, studied the effect of moving it).
-The skin keeps only the connected component enclosing the largest volume (internal airways
-and the scanner table are dropped); bone keeps every component of a sizeable area that lies inside the skin and
+Before the skin is extracted, air lying deeper than a few mm inside the body's outer envelope
+(a morphological closing: nasal cavity, sinuses, pharynx, trachea, all open to the outside
+through the nostrils) is filled, so that the skin does not line the airways; the skin keeps
+only the connected component enclosing the largest volume (the scanner table is dropped); bone keeps every component of a sizeable area that lies inside the skin and
 encloses material (marrow cavities, whose marching-cubes shells face inwards, are dropped), so
 that a mandible separate from the skull is not lost. The surface is cleaned (merged vertices,
 no degenerate or duplicate faces, normals outward) and optionally smoothed with Taubin's
@@ -36,7 +38,7 @@ from facemodel.errors import CTError
 
 __all__ = ["CTError", "CTVolume", "CTSurfaces", "read_ct", "read_nifti", "read_dicom_series",
            "check_hounsfield", "isosurface", "skin_surface", "bone_surface", "body_mask",
-           "decimate", "ct_surfaces", "SKIN_HU", "BONE_HU", "AIR_HU"]
+           "decimate", "seal_airways", "ct_surfaces", "SKIN_HU", "BONE_HU", "AIR_HU"]
 
 AIR_HU = -1000.0
 SKIN_HU = -400.0
@@ -46,6 +48,11 @@ BONE_HU = 300.0
 # a volume normalised to [0, 1], or raw stored values without their rescale intercept).
 AIR_MAX_HU = -500.0
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])  # its own inverse
+# Airway sealing: the body's envelope is its closing by a ball of this radius, wide enough to
+# span an adult nostril (~10 x 15 mm, Farkas 1994) or a parted mouth; air deeper than
+# AIRWAY_DEPTH_MM inside the envelope is airway, shallower is a fold of the face.
+AIRWAY_CLOSING_MM = 10.0
+AIRWAY_DEPTH_MM = 5.0
 
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
 
@@ -374,8 +381,9 @@ def _mostly_inside(volume: CTVolume, mesh, labels, inside: np.ndarray) -> np.nda
     return np.bincount(labels, weights=face_in) >= 0.5 * n
 
 
-def body_mask(volume: CTVolume, level: float = SKIN_HU) -> np.ndarray:
-    """Voxels of the largest connected body above `level`, cavities filled (boolean (i,j,k))."""
+def body_mask(volume: CTVolume, level: float = SKIN_HU, margin: int = 2) -> np.ndarray:
+    """Voxels of the largest connected body above `level`, enclosed cavities filled, dilated
+    by `margin` voxels (boolean (i, j, k))."""
     from scipy import ndimage
 
     tissue = volume.hu > level
@@ -386,12 +394,44 @@ def body_mask(volume: CTVolume, level: float = SKIN_HU) -> np.ndarray:
     sizes[0] = 0
     body = labels == np.argmax(sizes)
     body = ndimage.binary_fill_holes(body)
-    return ndimage.binary_dilation(body, iterations=2)
+    return ndimage.binary_dilation(body, iterations=margin) if margin > 0 else body
+
+
+def seal_airways(volume: CTVolume, level: float = SKIN_HU, *, closing_mm: float = AIRWAY_CLOSING_MM,
+                 depth_mm: float = AIRWAY_DEPTH_MM, fill_hu: float = 40.0) -> CTVolume:
+    """The volume with the air deep inside the body turned to soft tissue (`fill_hu`).
+
+    The outer envelope of the body is its morphological closing by a ball of `closing_mm`
+    (it spans the nostrils, an open mouth, the trachea's cut); air more than `depth_mm`
+    inside that envelope -- nasal cavity, sinuses, pharynx, trachea -- is filled, so that the
+    skin isosurface stops a few mm inside the nostrils instead of lining the airways. Air in
+    the folds of the face (nasolabial, alar, mentolabial) stays: it lies within `depth_mm` of
+    the envelope. Closing and erosion are thresholds of Euclidean distance transforms
+    (Maurer et al. 2003, via scipy), erosion by R then by d being erosion by R + d.
+    """
+    from scipy import ndimage
+
+    spacing = volume.spacing
+    body = body_mask(volume, level, margin=0)
+    pad = int(np.ceil((closing_mm + depth_mm) / spacing.min())) + 1
+    body = np.pad(body, pad)
+    dilated = ndimage.distance_transform_edt(~body, sampling=spacing) <= closing_mm
+    depth = ndimage.distance_transform_edt(dilated, sampling=spacing)
+    deep = depth[pad:-pad, pad:-pad, pad:-pad] > closing_mm + depth_mm
+    fill = deep & (volume.hu < fill_hu)
+    if not fill.any():
+        return volume
+    hu = volume.hu.copy()
+    hu[fill] = fill_hu
+    return CTVolume(hu=hu, affine=volume.affine, source=volume.source)
 
 
 def skin_surface(volume: CTVolume, level: float = SKIN_HU, smooth_iterations: int = 10,
-                 max_faces: int | None = None):
-    """The skin: the air/tissue isosurface enclosing the largest volume."""
+                 max_faces: int | None = None, seal: bool = True):
+    """The skin: the air/tissue isosurface enclosing the largest volume, with the airways
+    sealed first (`seal_airways`) unless `seal=False`."""
+    if seal:
+        volume = seal_airways(volume, level)
     return isosurface(volume, level, keep="largest", smooth_iterations=smooth_iterations,
                       max_faces=max_faces)
 
@@ -408,15 +448,17 @@ def bone_surface(volume: CTVolume, level: float = BONE_HU, skin_level: float = S
 
 
 def ct_surfaces(source, *, skin_hu: float = SKIN_HU, bone_hu: float = BONE_HU,
-                smooth_iterations: int = 10, max_faces: int | None = None) -> CTSurfaces:
+                smooth_iterations: int = 10, max_faces: int | None = None,
+                seal: bool = True) -> CTSurfaces:
     """Skin and bone surfaces of a CT (a path to NIfTI / DICOM folder, or a `CTVolume`).
 
     `max_faces` caps the triangle count of each surface (quadric decimation): a 0.5 mm CT
-    gives a skin of over a million triangles, more than registration needs.
+    gives a skin of over a million triangles, more than registration needs. `seal` fills
+    the airways before the skin is extracted (`seal_airways`).
     """
     volume = source if isinstance(source, CTVolume) else read_ct(source)
     if isinstance(source, CTVolume):
         check_hounsfield(volume, skin_hu)
-    skin = skin_surface(volume, skin_hu, smooth_iterations, max_faces)
+    skin = skin_surface(volume, skin_hu, smooth_iterations, max_faces, seal=seal)
     bone = bone_surface(volume, bone_hu, skin_hu, smooth_iterations, max_faces=max_faces)
     return CTSurfaces(skin=skin, bone=bone, volume=volume)

@@ -6,7 +6,7 @@ measured from every scan vertex to the predicted skin (positive: the real face l
 prediction, i.e. it is fuller than predicted) and, in reverse, from every prediction vertex to
 the scan (same sign convention). Only distances between existing surfaces count: a point whose
 closest point on the other surface is on that surface's boundary, or farther than the gate, is
-dropped. Statistics are weighted by the area each vertex represents, so that the figures do not
+dropped (a point right above the other surface's edge is kept). Statistics are weighted by the area each vertex represents, so that the figures do not
 depend on the scan density (`metrics`). Each scan point takes the region of the nearest corner
 of its closest predicted triangle. Landmarks are located on both surfaces with the same
 anatomical operator (`landmarks`) and their distance is the landmark error.
@@ -161,7 +161,7 @@ def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: 
         alignment = Alignment(np.eye(4), float("nan"), float("nan"), 0, 0, True)
     aligned = apply(alignment.matrix, scan_pts)
     fwd = pred_surface.closest(aligned)
-    valid = ~fwd.on_boundary & (fwd.distance <= gate)
+    valid = ~fwd.beyond_boundary & (fwd.distance <= gate)
     n_valid = int(valid.sum())
     scan_surface = TriangleSurface(aligned, scan.faces)
     weights = vertex_areas(aligned, scan.faces)
@@ -182,7 +182,7 @@ def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: 
                "regions": _region_metrics(signed, weights, region, names)}
     # reverse: prediction vertices to the scan, same sign (post-op minus prediction)
     rev = scan_surface.closest(pred.vertices)
-    rvalid = ~rev.on_boundary & (rev.distance <= gate)
+    rvalid = ~rev.beyond_boundary & (rev.distance <= gate)
     reverse = np.where(rvalid, -rev.signed, np.nan)
     rweights = vertex_areas(pred.vertices, pred.faces)
     metrics_reverse = {"overall": distance_metrics(reverse, rweights),

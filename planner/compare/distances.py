@@ -6,9 +6,10 @@ candidate the closest point on the triangle is computed with the Voronoi-region 
 Ericson, *Real-Time Collision Detection* (2005), sect. 5.1.5 (numba kernel). The distance is
 signed with the normal interpolated (barycentric) from area-weighted vertex normals at the
 closest point: positive when the query point lies on the outer side of the surface. A closest
-point that lies on a boundary edge or boundary vertex of the surface is flagged, so callers can
-drop points where the two surfaces do not overlap (a point beyond the edge of a partial scan is
-not a distance between two existing surfaces).
+point that lies on a boundary edge or boundary vertex of the surface is flagged, and so is a
+query point beyond that edge (its offset is not along the normal), so callers can drop points
+where the two surfaces do not overlap (a point beyond the edge of a partial scan is not a
+distance between two existing surfaces).
 """
 from __future__ import annotations
 
@@ -112,6 +113,8 @@ class ClosestPoints:
     signed: np.ndarray       # (p,) signed distance, > 0 on the outer side (mm)
     normal: np.ndarray       # (p, 3) unit surface normal at `point`
     on_boundary: np.ndarray  # (p,) bool: `point` lies on the surface's boundary
+    beyond_boundary: np.ndarray  # (p,) bool: on the boundary and the query point lies beyond
+                                 # the edge (offset not along the normal), i.e. no overlap
 
     @property
     def nearest_vertex_slot(self) -> np.ndarray:
@@ -223,7 +226,11 @@ class TriangleSurface:
         on_edge = (zero[:, 2] & edge_b[:, 0]) | (zero[:, 0] & edge_b[:, 1]) | (zero[:, 1] & edge_b[:, 2])
         at_vertex = self.vertex_on_boundary[self.faces[face]] & (bary >= 1.0 - 1e-12)
         on_boundary = on_edge | np.any(at_vertex, axis=1)
-        return ClosestPoints(point, face, bary, distance, signed, normal, on_boundary)
+        # beyond the edge: the offset has a tangential part (more than 0.05 mm, far above
+        # round-off, far below any scan's resolution); a point right above an edge is not
+        tangential = np.linalg.norm(points - point - side[:, None] * normal, axis=1)
+        beyond = on_boundary & (tangential > 0.05)
+        return ClosestPoints(point, face, bary, distance, signed, normal, on_boundary, beyond)
 
 
 def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -258,6 +258,12 @@ def _read_bare_prediction(case: Path | None, path: Path) -> Prediction:
 
     d, nearest = cKDTree(points).query(surf.vertices, workers=-1)
     region_v = np.where(d < 15.0, region[nearest], -1)
+    if lms:  # pre-op landmarks projected on the predicted surface: starting points only
+        from planner.compare.distances import TriangleSurface
+
+        names_l = list(lms)
+        proj = TriangleSurface(surf.vertices, surf.faces).closest(np.array([lms[n] for n in names_l]))
+        lms = {n: proj.point[i] for i, n in enumerate(names_l)}
     unop_names, source = _unoperated(names, ("register/report.json", unop))
     return Prediction(surf.vertices, surf.faces, region_v, names, unop_names, lms, path,
                       notes=[f"regions transferred by nearest point from {case / 'register'}",
@@ -275,6 +281,19 @@ def _registered_model(case: Path | None):
     import pyvista as pv
 
     report = _read_json(folder / "report.json") if (folder / "report.json").exists() else {}
+    if vtu.with_suffix(".json").exists():        # a FaceModel saved with its JSON sidecar
+        from facemodel.model import FaceModel
+
+        try:
+            model = FaceModel.load(vtu)
+        except (OSError, ValueError, KeyError) as exc:
+            raise InputError(f"cannot read the registered model ({exc})", file=str(vtu)) from None
+        names = tuple(model.regions)
+        ids = [np.asarray(model.regions[n], np.int64) for n in names]
+        pts = model.nodes[np.concatenate(ids)]
+        reg = np.concatenate([np.full(len(i), k) for k, i in enumerate(ids)])
+        lms = {k: model.nodes[v].astype(float) for k, v in model.landmarks.items()}
+        return pts, reg, names, list(model.unoperated_regions), lms
     try:
         grid = pv.read(str(vtu))
     except Exception as exc:  # VTK readers raise assorted errors on bad files

@@ -53,3 +53,21 @@ def test_generic_skin_moved_and_retriangulated(tmp_path, skin):
     assert set(m["landmarks"]) >= {"Prn", "Pog", "ChL", "ChR"}
     for name, block in m["landmarks"].items():
         assert block["error_mm"] < 0.3, name
+
+
+def test_bare_prediction_surface_takes_regions_from_the_registered_model(tmp_path, skin):
+    model, x, tris, region, names, landmarks = skin
+    case = tmp_path / "B"
+    # a registered model as `faceplan register` saves it (FaceModel VTU + JSON sidecar)
+    model.save(case / "register" / "patient_mesh.vtu")
+    (case / "postop").mkdir(parents=True)
+    trimesh.Trimesh(x, tris, process=False).export(case / "postop" / "skin.stl")
+    bare = tmp_path / "some_prediction.stl"
+    trimesh.Trimesh(x, tris, process=False).export(bare)
+    assert main(["compare", str(case), "--prediction", str(bare), "--no-images"]) == 0
+    report = json.loads((case / "compare" / "report.json").read_text())
+    assert set(report["unoperated_regions"]) == set(model.unoperated_regions)
+    for name in ("upper_lip", "chin", "nose", "cheek_left"):
+        # the same nodes carry the same regions: the counts match the model's skin nodes
+        assert report["metrics"]["regions"][name]["n_points"] == len(model.regions[name]), name
+    assert report["metrics"]["overall"]["mean_abs_mm"] < 1e-6

@@ -46,6 +46,10 @@ def test_boundary_flags_and_sign_on_a_flat_patch():
     cp = surf.closest(np.vstack([inner, outer]))
     np.testing.assert_allclose(cp.signed[:3], inner[:, 2], atol=1e-12)
     assert not cp.on_boundary[:3].any() and cp.on_boundary[3:].all()
+    assert cp.beyond_boundary[3:].all()
+    # right above an edge (offset along the normal) is on the boundary but not beyond it
+    edge = surf.closest(np.array([[10.0, 5.0, 0.7]]))
+    assert edge.on_boundary[0] and not edge.beyond_boundary[0]
     assert vertex_areas(v, f).sum() == pytest.approx(100.0)
 
 

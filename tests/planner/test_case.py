@@ -385,16 +385,21 @@ def test_ct_thresholds_from_case_yaml(ct_case, ct_loaded, tmp_path):
     assert default == pytest.approx(-0.15, abs=0.1)
 
 
-def test_ct_surfaces_are_cached_by_content(ct_case, ct_loaded, tmp_path):
+def test_ct_surfaces_are_cached_by_content(tmp_path):
     import planner.case as case_module
+    from facemodel.ct_phantom import ct_volume_from_surfaces, write_nifti
 
     cache = tmp_path / "cache"
     root = tmp_path / "case"
-    shutil.copytree(ct_case[0], root)
+    (root / "preop").mkdir(parents=True)
+    small_head = ellipsoid((30, 35, 40), (0, 0, 0))
+    hu, affine = ct_volume_from_surfaces(small_head, {"b": ellipsoid((15, 15, 15), (0, 0, 5))},
+                                         spacing=2.0, margin=4)
+    write_nifti(root / "preop" / "ct.nii.gz", hu, affine)
     first = load_case(root, cache_dir=cache)
     stored = sorted(cache.glob("*.npz"))
     assert len(stored) == 1
-    np.testing.assert_array_equal(first.skin.vertices, ct_loaded.skin.vertices)
+    np.testing.assert_array_equal(first.skin.vertices, load_case(root, cache=False).skin.vertices)
     # A hit returns the stored arrays exactly; the extraction is not run again.
     calls = []
     original = case_module._surfaces_from_ct.__globals__["_cache_load"]

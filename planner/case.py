@@ -3,17 +3,18 @@
 The pre-op skin comes from `preop/skin.*` (stl, ply, obj, off read by trimesh; vtk, vtp, vtu
 read by pyvista) or, when no skin surface is given, is extracted from a CT volume
 (`preop/ct.nii.gz`, `preop/ct.nii` or a DICOM series folder `preop/ct/`) with `facemodel.ct`
-(skin at -400 HU, bone at +300 HU). Bone surfaces come from `preop/bone/<segment>.*`, one per
-segment (dental arches, when given apart, from `preop/teeth/<arch>.*`), or from the same CT as
-one `bone` surface (thresholds overridable in `case.yaml`,
-`ct: {skin_hu: ..., bone_hu: ...}`, e.g. for a cone-beam CT whose grey values are not HU). Landmarks are read from
-`preop/landmarks.json` (`{"Prn": [x, y, z], ...}` in mm RAS) or from a 3D Slicer markups file
-(`preop/landmarks.mrk.json`; control points with labels, in the file's `coordinateSystem`,
-LPS by default as in Slicer, converted to RAS by negating x and y; the older fiducial list
-`preop/landmarks.fcsv` too). Every surface is checked
-for what goes wrong in practice: unreadable, empty, NaN coordinates, and the size of a head
-in metres rather than millimetres. Every problem raises `planner.errors.InputError` naming the
-file and the field. Surfaces extracted from a CT are cached by the CT's content hash.
+(skin at -400 HU with the airways sealed, bone at +300 HU; thresholds overridable in
+`case.yaml` as `ct: {skin_hu: ..., bone_hu: ...}`, e.g. for a cone-beam CT whose grey values
+are only roughly HU). Bone surfaces come from `preop/bone/<segment>.*`, one per segment, or
+from the same CT as one `bone` surface; dental arches, when given apart, from
+`preop/teeth/<arch>.*`. Landmarks are read from `preop/landmarks.json` (`{"Prn": [x, y, z],
+...}` in mm RAS), from a 3D Slicer markups file `preop/landmarks.mrk.json` (labelled control
+points in the file's `coordinateSystem`, LPS by default as in Slicer, turned to RAS by
+negating x and y) or from an older Slicer fiducial list `preop/landmarks.fcsv`. Every
+surface is checked for what goes wrong in practice: unreadable, empty, NaN coordinates, and
+the size of a head in metres rather than millimetres. Every problem raises
+`planner.errors.InputError` naming the file and the field. Surfaces extracted from a CT are
+cached by the CT's content hash.
 """
 from __future__ import annotations
 

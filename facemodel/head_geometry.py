@@ -171,7 +171,7 @@ def slit_taper(theta) -> np.ndarray:
 def _upper_weight(theta, phi, side):
     """Weight of the upper jaw (1) against the lower jaw (0): a step at the mouth line
     between the commissures, a smooth transition outside."""
-    smooth = smoothstep(PHI_STOMION - 3.0, PHI_STOMION + 3.0, phi)
+    smooth = smoothstep(PHI_STOMION - 10.0, PHI_STOMION + 6.0, phi)
     step = (_side(phi, side) > 0).astype(float)
     tap = slit_taper(theta)
     return tap * step + (1.0 - tap) * smooth
@@ -209,7 +209,7 @@ def deep_radius(theta, phi, shape: HeadShape = GENERIC, side=None) -> np.ndarray
     ax = 60.0 - 10.0 * smoothstep(-5.0, -50.0, phi)
     face = _ellipsoid_radius(d, (0.0, -15.0, -10.0), np.stack(np.broadcast_arrays(ax, 95.0, 85.0), -1))
     cranium = _ellipsoid_radius(d, (0.0, -20.0, 50.0), (72.0, 95.0, 85.0))
-    r = _smax(face, cranium, 4.0)
+    r = _smax(face, cranium, 10.0)
     dz = d[..., 2]
     floor = np.where(dz < -1e-6, 78.0 / np.maximum(-dz, 1e-6), 1e6)
     r = _smin(r, floor, 5.0)
@@ -217,7 +217,7 @@ def deep_radius(theta, phi, shape: HeadShape = GENERIC, side=None) -> np.ndarray
     r = r + 5.0 * _gauss(th - 45.0, 12.0) * _gauss(phi - 2.0, 9.0)
     r = r + 15.0 * smoothstep(8.0, 28.0, phi) * (1.0 - smoothstep(35.0, 50.0, phi)) * _gauss(theta, 8.5)
     # Anterior dento-alveolar profile and symphysis, blended in around the mouth.
-    w = (1.0 - smoothstep(8.0, 36.0, th)) * smoothstep(-60.0, -46.0, phi) * (1.0 - smoothstep(-4.0, 2.0, phi))
+    w = (1.0 - smoothstep(4.0, 34.0, th)) * smoothstep(-64.0, -45.0, phi) * (1.0 - smoothstep(-8.0, 6.0, phi))
     r = (1.0 - w) * r + w * _front_radius(theta, phi, side, shape)
     # Jaw positions (class II / III): antero-posterior shifts of the regions.
     return r + _jaw_shift(theta, phi, side, shape)
@@ -241,7 +241,8 @@ def soft_tissue_thickness(theta, phi, shape: HeadShape = GENERIC) -> np.ndarray:
     phi = np.asarray(phi, dtype=float)
     th = np.abs(theta)
     t = 12.0 + 4.0 * _gauss(th - 38.0, 12.0) * _gauss(phi + 15.0, 10.0)   # buccal fat
-    t = t - 5.0 * smoothstep(0.0, 12.0, phi)                                # infraorbital
+    t = t + 3.0 * _gauss(th - 24.0, 10.0) * _gauss(phi + 6.0, 8.0)          # malar fat over the canine fossa
+    t = t - 5.0 * smoothstep(-5.0, 25.0, phi)                               # infraorbital
     t = t - 3.0 * smoothstep(60.0, 85.0, th)                                # preauricular
     t = t + 3.0 * smoothstep(-50.0, -65.0, phi)                             # submental
     t = t - 3.0 * smoothstep(20.0, 60.0, phi)                               # scalp, far away

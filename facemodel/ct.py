@@ -8,18 +8,19 @@ built from ImageOrientationPatient, PixelSpacing and the slice positions, then c
 DICOM's LPS frame to RAS (x -> -x, y -> -y).
 
 Surfaces are isosurfaces (Lorensen & Cline 1987 marching cubes, Lewiner et al. 2003 variant in
-scikit-image) at standard Hounsfield thresholds. The Hounsfield scale puts air at -1000 HU,
-fat at -100...-50 HU, soft tissue at +20...+80 HU, cancellous bone at about +300...+700 HU and
-cortical bone above +1000 HU (Hounsfield 1973; Buzug, *Computed Tomography*, Springer 2008,
-ch. 1). The skin isosurface is taken at -400 HU: near the half-maximum between air and the
-subcutaneous tissue (fat ... soft tissue, -100...+40 HU), which places a partial-volume edge at
-its true position (the half-maximum-height principle, Spoor, Zonneveld & Macho 1993, Am J Phys
-Anthropol 91:469-484). Bone is taken at +300 HU, the usual single threshold for craniofacial
-bone models from CT (Friedli et al. 2020, Sci Rep 10:4398, studied the effect of moving it).
-Before the skin is extracted, air lying deeper than a few mm inside the body's outer envelope
-(a morphological closing: nasal cavity, sinuses, pharynx, trachea, all open to the outside
-through the nostrils) is filled, so that the skin does not line the airways; the skin keeps
-only the connected component enclosing the largest volume (the scanner table is dropped); bone keeps every component of a sizeable area that lies inside the skin and
+scikit-image) at standard Hounsfield thresholds. The Hounsfield scale puts air at -1000 HU, fat
+at -100...-50 HU, soft tissue at +20...+80 HU, cancellous bone at about +300...+700 HU and
+cortical bone above +1000 HU (Hounsfield 1973, Br J Radiol 46:1016-1022; Buzug, *Computed
+Tomography*, Springer 2008). The skin isosurface is taken at -400 HU: near the half-maximum
+between air and the subcutaneous tissue (fat ... soft tissue, -100...+40 HU), which places a
+partial-volume edge at its true position (the half-maximum-height principle, Spoor, Zonneveld &
+Macho 1993, Am J Phys Anthropol 91:469-484). Bone is taken at +300 HU, the usual single
+threshold for craniofacial bone models from CT (Friedli et al., Sci Rep 2020, studied the
+effect of moving it). Before the skin is extracted, air lying deeper than a few mm inside the
+body's outer envelope (a morphological closing: nasal cavity, sinuses, pharynx, trachea, all
+open to the outside through the nostrils) is filled, so that the skin does not line the
+airways; the skin keeps only the connected component enclosing the largest volume (the scanner
+table is dropped); bone keeps every component of a sizeable area that lies inside the skin and
 encloses material (marrow cavities, whose marching-cubes shells face inwards, are dropped), so
 that a mandible separate from the skull is not lost. The surface is cleaned (merged vertices,
 no degenerate or duplicate faces, normals outward) and optionally smoothed with Taubin's
@@ -49,7 +50,7 @@ BONE_HU = 300.0
 AIR_MAX_HU = -500.0
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])  # its own inverse
 # Airway sealing: the body's envelope is its closing by a ball of this radius, wide enough to
-# span an adult nostril (~10 x 15 mm, Farkas 1994) or a parted mouth; air deeper than
+# span an adult nostril (about 1 cm across) or a parted mouth; air deeper than
 # AIRWAY_DEPTH_MM inside the envelope is airway, shallower is a fold of the face.
 AIRWAY_CLOSING_MM = 10.0
 AIRWAY_DEPTH_MM = 5.0
@@ -407,7 +408,7 @@ def seal_airways(volume: CTVolume, level: float = SKIN_HU, *, closing_mm: float 
     skin isosurface stops a few mm inside the nostrils instead of lining the airways. Air in
     the folds of the face (nasolabial, alar, mentolabial) stays: it lies within `depth_mm` of
     the envelope. Closing and erosion are thresholds of Euclidean distance transforms
-    (Maurer et al. 2003, via scipy), erosion by R then by d being erosion by R + d.
+    (scipy.ndimage), erosion by R then by d being erosion by R + d.
     """
     from scipy import ndimage
 

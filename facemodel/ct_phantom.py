@@ -2,7 +2,7 @@
 
 A head given as closed triangle surfaces (skin, bone segments) is turned into a Hounsfield-unit
 volume: air -1000 HU outside the skin, soft tissue +40 HU between skin and bone, bone +1000 HU
-(Hounsfield scale values as in Buzug, *Computed Tomography*, Springer 2008, ch. 1). Partial
+(Hounsfield scale values as in Buzug, *Computed Tomography*, Springer 2008). Partial
 volume is modelled as the exact fraction of each voxel occupied by each material: rays parallel
 to the k (z) axis are cast through `supersample**2` points per voxel column, their crossings
 with the surfaces are sorted and swept with the winding number (inside where > 0, so that

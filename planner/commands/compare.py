@@ -34,6 +34,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="fraction of best-matching points kept by the trimmed ICP (default 0.9)")
     p.add_argument("--no-align", action="store_true",
                    help="the scan is already superimposed on the pre-op frame: skip the ICP")
+    p.add_argument("--global-init", action="store_true",
+                   help="the scan is in its own (camera) frame: search a rough placement over "
+                        "24 orientations before the ICP (by default the scan must be in the "
+                        "patient's RAS frame, within ~2 cm and ~15 degrees)")
     p.add_argument("--no-images", action="store_true", help="skip the pictures")
 
 
@@ -42,6 +46,8 @@ def _check_args(args) -> None:
         raise InputError("--gate must be in (0, 100] mm", field="--gate")
     if not 0.3 <= args.keep <= 1.0:
         raise InputError("--keep must be in [0.3, 1]", field="--keep")
+    if args.global_init and args.no_align:
+        raise InputError("--global-init and --no-align exclude each other", field="--global-init")
     if args.postop and len(args.cases) > 1:
         raise InputError("--postop works with a single case only", field="--postop")
     for c in args.cases:
@@ -65,7 +71,7 @@ def run(args) -> int:
         postop_path = find_postop(case, args.postop)
         scan = load_surface(postop_path, "post-op scan")
         result = compare_surfaces(prediction, scan, gate=args.gate, keep=args.keep,
-                                  align=not args.no_align)
+                                  align=not args.no_align, global_init=args.global_init)
         header = {
             "faceplan": 1,
             "command": "compare",
@@ -74,7 +80,7 @@ def run(args) -> int:
             "prediction": str(prediction.path),
             "postop": str(postop_path),
             "settings": {"gate_mm": args.gate, "keep": args.keep, "align": not args.no_align,
-                         "threshold_mm": 2.0},
+                         "global_init": args.global_init, "threshold_mm": 2.0},
             "n_scan_vertices": int(len(scan.vertices)),
             "timings_s": {"compare": round(time.perf_counter() - t0, 3)},
         }

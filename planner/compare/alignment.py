@@ -9,6 +9,9 @@ not touch: forehead, nasal bridge, infra-orbital) and not on the reference bound
 and of those the `keep` fraction with the smallest residuals (the rest are outliers: hair,
 swelling, eyes, scan noise). A first coarse stage uses the whole face with a wide gate to
 capture the scan from a rough placement; the second stage uses only the unoperated regions.
+A scan in its own camera frame can be brought near first by `global_initialisation`: coarse
+trimmed ICP from the 24 rotations of the cube group about the matched centroids, keeping the
+start with the smallest trimmed residual.
 The root-mean-square residual of the final inliers is the noise floor of the comparison.
 """
 from __future__ import annotations
@@ -19,7 +22,8 @@ import numpy as np
 
 from planner.compare.distances import TriangleSurface
 
-__all__ = ["Alignment", "trimmed_icp", "align_to_reference", "rotation_matrix", "apply"]
+__all__ = ["Alignment", "trimmed_icp", "align_to_reference", "global_initialisation",
+           "rotation_matrix", "apply"]
 
 
 def rotation_matrix(omega: np.ndarray) -> np.ndarray:
@@ -166,6 +170,7 @@ def align_to_reference(
     max_points: int = 10000,
     coarse_points: int = 4000,
     seed: int = 0,
+    init: np.ndarray | None = None,
 ) -> Alignment:
     """Coarse whole-face trimmed ICP, then fine trimmed ICP on the unoperated regions.
 
@@ -175,9 +180,60 @@ def align_to_reference(
     pts = np.asarray(scan_points, float)
     if len(pts) > max_points:
         pts = pts[np.random.default_rng(seed).choice(len(pts), max_points, replace=False)]
-    coarse = trimmed_icp(pts[:coarse_points], reference, None, keep=0.6, gate=coarse_gate,
-                         max_iterations=30, tol_mm=1e-2)
+    coarse = trimmed_icp(pts[:coarse_points], reference, None, init=init, keep=0.6,
+                         gate=coarse_gate, max_iterations=30, tol_mm=1e-2)
     fine = trimmed_icp(pts, reference, unoperated_faces, init=coarse.matrix, keep=keep, gate=gate)
     fine.iterations += coarse.iterations
     fine.history = coarse.history + fine.history
     return fine
+
+
+def _cube_rotations() -> list[np.ndarray]:
+    """The 24 proper rotations of the cube (signed permutation matrices with det +1)."""
+    import itertools
+
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            R = np.zeros((3, 3))
+            R[range(3), perm] = signs
+            if np.linalg.det(R) > 0:
+                out.append(R)
+    return out
+
+
+def global_initialisation(scan_points: np.ndarray, reference: TriangleSurface,
+                          n_points: int = 1000, seed: int = 0) -> np.ndarray:
+    """A rough 4x4 placement of a scan given in an arbitrary frame onto the reference.
+
+    Each of the 24 cube rotations about the scan centroid, with the centroids matched, starts
+    a coarse trimmed ICP (half the points kept, 60 mm gate); the four starts with the smallest
+    trimmed residual after six iterations are run to convergence and the best one wins.
+    """
+    pts = np.asarray(scan_points, float)
+    rng = np.random.default_rng(seed)
+    if len(pts) > n_points:
+        pts = pts[rng.choice(len(pts), n_points, replace=False)]
+    c_scan = pts.mean(axis=0)
+    c_ref = reference.vertices.mean(axis=0)
+    need = len(pts) // 3
+
+    def run(T, iterations):
+        return trimmed_icp(pts, reference, None, init=T, keep=0.5, gate=60.0,
+                           max_iterations=iterations, tol_mm=1e-2, min_points=need)
+
+    # a few iterations from every start, then the four most promising to convergence
+    trials = []
+    for R in _cube_rotations():
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = c_ref - R @ c_scan
+        a = run(T, 6)
+        if a.n_points >= need:
+            trials.append((a.residual_rms_mm, a.matrix))
+    best, best_score = np.eye(4), np.inf
+    for _, T in sorted(trials, key=lambda t: t[0])[:4]:
+        a = run(T, 30)
+        if a.n_points >= need and a.residual_rms_mm < best_score:
+            best, best_score = a.matrix, a.residual_rms_mm
+    return best

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planner.compare.alignment import Alignment, align_to_reference, apply
+from planner.compare.alignment import Alignment, align_to_reference, apply, global_initialisation
 from planner.compare.distances import TriangleSurface, vertex_areas
 from planner.compare.inputs import Prediction, Surface
 from planner.compare.landmarks import RULES, LandmarkLocator
@@ -121,7 +121,8 @@ def _locate_landmarks(pred: Prediction, pred_surface: TriangleSurface, scan: Tri
 
 
 def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: float = 0.9,
-                     align: bool = True, max_residual_mm: float = 3.0) -> Comparison:
+                     align: bool = True, max_residual_mm: float = 3.0,
+                     global_init: bool = False) -> Comparison:
     """Superimpose `scan` on the prediction's unoperated regions and measure the differences."""
     warnings: list[str] = list(pred.notes)
     pred_surface = TriangleSurface(pred.vertices, pred.faces)
@@ -142,7 +143,8 @@ def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: 
 
     scan_pts = scan.vertices
     if align:
-        alignment = align_to_reference(scan_pts, pred_surface, unop_faces, keep=keep)
+        init = global_initialisation(scan_pts, pred_surface) if global_init else None
+        alignment = align_to_reference(scan_pts, pred_surface, unop_faces, keep=keep, init=init)
         min_inliers = 50
         if alignment.n_points < min_inliers:
             raise InputError(

@@ -110,8 +110,15 @@ class FaceModel:
 
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
+        # point data for viewing (ParaView): attachment segment (index into `segments`, len =
+        # free deep node, -1 none) and skin region (index into sorted region names, -1 none)
+        attach = np.full(self.n_nodes, -1, dtype=np.int32)
+        for i, seg in enumerate(self.segments):
+            attach[self.node_sets.get(ATTACHMENT_SETS.get(seg, ""), [])] = i
+        attach[self.node_sets.get("deep_free", [])] = len(self.segments)
         mesh = meshio.Mesh(
             self.nodes, [("hexahedron", np.asarray(self.hexes, dtype=np.int64))],
+            point_data={"attachment": attach, "region": self.skin_region_of_node.astype(np.int32)},
             cell_data={"label": [np.asarray(self.labels, dtype=np.int32)],
                        "fibre": [np.asarray(self.fibres, dtype=float)]},
         )

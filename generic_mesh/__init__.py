@@ -12,7 +12,7 @@ from pathlib import Path
 DATA = Path(__file__).parent / "data"
 RESOLUTIONS = ("coarse", "standard", "fine")
 
-__all__ = ["load", "path_of", "RESOLUTIONS", "DATA"]
+__all__ = ["load", "path_of", "mean_head", "RESOLUTIONS", "DATA"]
 
 
 def path_of(resolution: str) -> Path:
@@ -42,3 +42,19 @@ def load(resolution: str = "standard"):
     """The generic FaceModel at `resolution` ('coarse' <= 2,000 hexahedra, 'standard'
     8,000-15,000, 'fine' >= 40,000). The model is immutable and shared between calls."""
     return _load(resolution)
+
+
+@lru_cache(maxsize=2)
+def mean_head(size: float = 2.0):
+    """The closed surfaces of the mean head the generic mesh was built in (same geometry,
+    same frame): `facemodel.synthetic.SyntheticHead` with the generic shape (skin, bone
+    segments skull/maxilla/mandible/chin, teeth, landmarks), e.g. to register the generic
+    bones onto a patient's."""
+    from facemodel import head_geometry as hg
+    from facemodel import synthetic as sy
+
+    shape = hg.GENERIC
+    teeth = {"upper": (*hg.teeth_arch("upper", shape), "maxilla"),
+             "lower": (*hg.teeth_arch("lower", shape), "mandible")}
+    return sy.SyntheticHead(seed=-1, shape=shape, skin=sy.skin_surface(shape, size),
+                            bones=sy.bone_surfaces(shape), teeth=teeth, landmarks=sy.landmarks(shape))

@@ -268,3 +268,16 @@ def test_teeth(model):
 def test_load_rejects_unknown_resolution():
     with pytest.raises(ValueError):
         generic_mesh.load("huge")
+
+
+def test_mean_head_is_the_generic_geometry(coarse):
+    head = generic_mesh.mean_head(size=4.0)
+    assert head.skin.is_watertight and all(m.is_watertight for m in head.bones.values())
+    # the generic skin nodes lie on the mean head's skin (facets of ~3.3 mm: sagitta < 0.5 mm
+    # away from the lip crease and the nose tip)
+    d = np.abs(trimesh.proximity.ProximityQuery(head.skin).signed_distance(
+        coarse.nodes[coarse.node_sets["skin"]]))
+    assert np.median(d) < 0.2 and np.percentile(d, 95) < 1.0
+    for k, v in head.landmarks.items():
+        if k not in ("Stms", "Stmi"):
+            np.testing.assert_allclose(v, coarse.landmark_positions[k], atol=1e-9)

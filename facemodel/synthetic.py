@@ -5,14 +5,17 @@ III jaw positions, chin projection, lip and soft-tissue thickness, nose, mild as
 ranges of adult orthognathic patients (jaw discrepancies of a few mm to ~8 mm, the range of
 cephalometric norms +-2 SD, e.g. McNamara J.A., Am J Orthod 86:449-469, 1984), with a
 guaranteed difference from the generic head so that registration has real work (RMS skin
-difference over the face of at least MIN_DIFFERENCE mm). The skin (closed head) and the bone
-segments (skull, maxilla, mandible, chin: closed shells of the facial skeleton cut along
-Le Fort I, the mouth line and a genioplasty line) are the zero sets of the radial implicit
-functions, meshed by CGAL's surface mesher through pygalmesh (restricted Delaunay: facet
-angle, size and distance criteria, Boissonnat & Oudot, Graph Models 67:405-451, 2005); the
-teeth are swept closed arches; landmarks are the skin points on their rays. The implicit
-functions are tabulated on a 0.2 deg (theta, phi) grid and evaluated by bilinear
-interpolation, so that the mesher's many scalar queries stay cheap.
+difference over the face of at least MIN_DIFFERENCE mm). The skin is the zero set of the
+radial implicit function |q - C| - R_skin(theta, phi); it is meshed either by projecting a
+geodesic sphere along the rays (default: watertight by construction and bit-reproducible)
+or by CGAL's restricted-Delaunay surface mesher through pygalmesh (facet angle, size and
+distance criteria, Boissonnat & Oudot, Graph Models 67:405-451, 2005; the implicit function
+is tabulated on a (theta, phi) grid and evaluated by a numba kernel, so that the mesher's
+scalar queries stay cheap; CGAL's triangulation is not reproducible run to run). The bone
+segments (skull, maxilla, mandible, chin) are closed shells of the facial skeleton cut along
+Le Fort I, the mouth line and a genioplasty line, swept as structured surfaces of the same
+radial bone function; the teeth are swept closed arches; landmarks are the skin points on
+their rays.
 """
 from __future__ import annotations
 

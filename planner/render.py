@@ -77,15 +77,25 @@ def _plotter(window_size):
 
 
 def _shoot(pl, poly, view: str, path: Path, title: str | None):
-    pl.camera_position = _camera(poly, view)
-    pl.reset_camera()
-    pl.camera.zoom(1.15)
+    # set the camera on the VTK objects directly: pyvista's setters each trigger a render,
+    # and software rendering makes every render count
+    position, focal, up = _camera(poly, view)
+    cam = pl.renderer.GetActiveCamera()
+    cam.SetFocalPoint(*focal)
+    cam.SetPosition(*position)
+    cam.SetViewUp(*up)
+    pl.renderer.ResetCamera(*poly.bounds)
+    cam.Zoom(1.15)
+    pl.renderer.ResetCameraClippingRange()
     if title:
         pl.add_text(title, position="upper_left", font_size=10, color="black", name="title")
     pl.add_text(view.replace("_", "-"), position="lower_left", font_size=8, color="gray",
                 name="view")
     path.parent.mkdir(parents=True, exist_ok=True)
-    pl.screenshot(str(path))
+    from PIL import Image
+
+    # light PNG compression: a third of the encoding time for files ~1.5x larger
+    Image.fromarray(pl.screenshot(return_img=True)).save(path, compress_level=2)
 
 
 def render_views(

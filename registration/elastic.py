@@ -57,11 +57,11 @@ class SurfaceGroup:
 
 @dataclass
 class ElasticSchedule:
-    spacings: tuple[float, ...] = (40.0, 20.0, 10.0, 5.0)
-    iterations: int = 4
-    smoothness: tuple[float, ...] = (5.0, 2.0, 1.0, 0.5)
+    spacings: tuple[float, ...] = (40.0, 20.0, 10.0, 5.0)  # lattice spacing per level, mm
+    iterations: tuple[int, ...] = (4, 4, 4, 2)  # correspondence updates per level
+    smoothness: tuple[float, ...] = (5.0, 2.0, 1.0, 0.5)  # bending weight per level
     reverse_samples: int = 6000
-    landmark_weight: float = 0.1
+    landmark_weight: float = 0.5
 
 
 @dataclass
@@ -155,7 +155,7 @@ def elastic_register(nodes: np.ndarray, skin: SurfaceGroup, skin_tris: np.ndarra
     for level, h in enumerate(sched.spacings):
         lam = sched.smoothness[min(level, len(sched.smoothness) - 1)]
         ffd = FFDFit(BSplineLattice.covering(x, h), x, lam)
-        for it in range(sched.iterations):
+        for it in range(sched.iterations[min(level, len(sched.iterations) - 1)]):
             p, r, wt, stats = _correspondences(x, skin, skin_tris, bones, landmarks, samples, h, sched)
             c = ffd.fit(p, r, wt)
             x = x + ffd.evaluate(c, x)

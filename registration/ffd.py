@@ -82,12 +82,41 @@ class BSplineLattice:
         return sp.vstack(blocks).tocsr()
 
 
+_PARDISO: list = []
+
+
+def _pardiso():
+    """One PARDISO solver per process (creating one searches the disk for oneMKL)."""
+    if not _PARDISO:
+        try:
+            import pypardiso
+
+            _PARDISO.append(pypardiso.PyPardisoSolver(mtype=2))  # real symmetric pos. definite
+        except (ImportError, OSError):  # platforms without oneMKL wheels
+            _PARDISO.append(None)
+    return _PARDISO[0]
+
+
+def solve_spd(system: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:
+    """Direct solve of the sparse SPD control-point system: PARDISO (oneMKL, through
+    pypardiso) when available, else SuperLU with a symmetric minimum-degree ordering."""
+    solver = _pardiso() if system.shape[0] > 500 else None
+    if solver is not None:
+        solver.set_phase(13)
+        upper = sp.triu(system, format="csr")
+        upper.sort_indices()
+        out = solver.solve(upper, np.ascontiguousarray(rhs))
+        solver.free_memory(everything=True)
+        return np.asarray(out).reshape(rhs.shape)
+    return splu(system.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                options={"SymmetricMode": True}).solve(rhs)
+
+
 class FFDFit:
     """Regularised least-squares fits of control displacements on one lattice.
 
     The active control points are fixed at construction (the support of the points the map will
-    move); each fit solves its sparse SPD system directly (LU with a symmetric minimum-degree
-    ordering, pivoting on the diagonal)."""
+    move); each fit solves its sparse SPD system directly (`solve_spd`)."""
 
     def __init__(self, lattice: BSplineLattice, support_points: np.ndarray, smoothness: float,
                  ridge: float = 1e-6):
@@ -111,8 +140,7 @@ class FFDFit:
         system = (ata + self.smoothness * scale * self.bending
                   + self.ridge * scale * sp.identity(len(self.active))).tocsr()
         rhs = np.asarray(aw @ residuals)
-        c = splu(system.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                 options={"SymmetricMode": True}).solve(rhs)
+        c = solve_spd(system, rhs)
         limit = INJECTIVE_FRACTION * self.lattice.spacing
         return np.clip(c, -limit, limit)
 

@@ -6,7 +6,9 @@ registration of skin and bone-attachment nodes by a composed multilevel B-spline
 (`registration.elastic`), (3) a snap of the surface nodes onto the patient surfaces with a
 harmonic spread into the volume, (4) the repair of every element whose minimum scaled Jacobian
 is below the threshold (`registration.repair`), then fit errors (mean / 95th percentile / max
-of node-to-surface distances where the patient surface covers the model) and quality figures.
+of the distances from the registered skin -- its nodes and points inside its facets -- to the
+patient skin where the patient surface covers the model, the reverse distances, and the
+bone-attachment node distances) and quality figures.
 Inputs that cannot give a trustworthy mesh (wrong units, a surface that covers too little of
 the face, landmarks that contradict the surface) raise `RegistrationInputError`; a result that
 misses the validity gates raises `RegistrationFailure` -- an inverted or badly fitting mesh is
@@ -33,7 +35,7 @@ class MatchOptions:
     threshold: float = 0.2  # minimum scaled Jacobian after repair
     schedule: ElasticSchedule = field(default_factory=ElasticSchedule)
     use_landmarks: bool = True
-    max_snap_mm: float = 3.0
+    max_snap_mm: float = 5.0
     coverage_min: float = 0.25  # fraction of generic skin nodes the patient skin must cover
     landmark_rms_max_mm: float = 8.0  # Umeyama residual above which landmarks are refused
     skin_mean_gate_mm: float = 1.0  # refuse to return a mesh fitting worse than this
@@ -229,11 +231,23 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         d = cb.distance[g.accept(x, cb)]
         bone_fit[g.name] = {**_fit_stats(d), "n_outside_patient_surface": int(len(cb.distance) - len(d))}
         bone_all.append(d)
+    # the skin surface itself (bilinear quads sampled at 5 points each, corners excluded)
+    # against the patient skin, over quads whose four nodes lie on the patient surface
+    node_ok = np.zeros(len(x), bool)
+    node_ok[skin_ids[valid]] = True
+    quads = np.asarray(model.skin_quads)[node_ok[np.asarray(model.skin_quads)].all(axis=1)]
+    uv = np.array([[0.5, 0.5], [0.25, 0.25], [0.75, 0.25], [0.75, 0.75], [0.25, 0.75]])
+    shape_fn = np.stack([(1 - uv[:, 0]) * (1 - uv[:, 1]), uv[:, 0] * (1 - uv[:, 1]),
+                         uv[:, 0] * uv[:, 1], (1 - uv[:, 0]) * uv[:, 1]], axis=1)
+    facet_pts = np.einsum("sc,qcd->qsd", shape_fn, x[quads]).reshape(-1, 3)
+    facet_d = skin.closest(facet_pts).distance if len(facet_pts) else np.zeros(0)
     report = {
         "alignment": {**align_info, "matrix": sim.matrix.tolist()},
         "coverage": coverage,
         "fit": {
-            "skin": {**_fit_stats(cl.distance[valid]), "n_outside_patient_surface": int((~valid).sum())},
+            "skin": {**_fit_stats(np.concatenate([facet_d, cl.distance[valid]])),
+                     "n_outside_patient_surface": int((~valid).sum())},
+            "skin_nodes": _fit_stats(cl.distance[valid]),
             "skin_patient_to_mesh": _fit_stats(back.distance[~back.on_boundary]),
             "bone": _fit_stats(np.concatenate(bone_all) if bone_all else np.zeros(0)),
             "bone_segments": bone_fit,

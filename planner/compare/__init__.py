@@ -9,11 +9,11 @@ face with regions and landmarks used by the tests and the benchmark.
 from planner.compare.alignment import Alignment, align_to_reference, trimmed_icp
 from planner.compare.comparison import Comparison, compare_surfaces
 from planner.compare.distances import TriangleSurface, vertex_areas
-from planner.compare.inputs import Prediction, Surface, load_surface, read_prediction
+from planner.compare.inputs import Prediction, Surface, load_surface, read_inputs, read_prediction
 from planner.compare.metrics import distance_metrics
 
 __all__ = [
     "Alignment", "align_to_reference", "trimmed_icp", "Comparison", "compare_surfaces",
     "TriangleSurface", "vertex_areas", "Prediction", "Surface", "load_surface",
-    "read_prediction", "distance_metrics",
+    "read_prediction", "read_inputs", "distance_metrics",
 ]

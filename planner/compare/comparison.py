@@ -122,8 +122,14 @@ def _locate_landmarks(pred: Prediction, pred_surface: TriangleSurface, scan: Tri
 
 def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: float = 0.9,
                      align: bool = True, max_residual_mm: float = 3.0,
-                     global_init: bool = False) -> Comparison:
-    """Superimpose `scan` on the prediction's unoperated regions and measure the differences."""
+                     global_init: bool = False, alignment: Alignment | None = None,
+                     landmarks: bool = True) -> Comparison:
+    """Superimpose `scan` on the prediction's unoperated regions and measure the differences.
+
+    `alignment` reuses a superimposition computed before (e.g. when many candidate
+    predictions of one case are compared with its scan) instead of running the ICP;
+    `landmarks=False` skips the landmark search.
+    """
     warnings: list[str] = list(pred.notes)
     pred_surface = TriangleSurface(pred.vertices, pred.faces)
     names = pred.region_names
@@ -142,7 +148,7 @@ def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: 
     unop_faces = np.all(unop_vertex[pred.faces], axis=1)
 
     scan_pts = scan.vertices
-    if align:
+    if alignment is None and align:
         init = global_initialisation(scan_pts, pred_surface) if global_init else None
         alignment = align_to_reference(scan_pts, pred_surface, unop_faces, keep=keep, init=init)
         min_inliers = 50
@@ -159,7 +165,7 @@ def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: 
         if alignment.residual_rms_mm > 1.0:
             warnings.append(f"alignment residual {alignment.residual_rms_mm:.2f} mm is large: "
                             "distances below it are within the noise floor")
-    else:
+    elif alignment is None:
         alignment = Alignment(np.eye(4), float("nan"), float("nan"), 0, 0, True)
     aligned = apply(alignment.matrix, scan_pts)
     fwd = pred_surface.closest(aligned)
@@ -189,12 +195,12 @@ def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: 
     rweights = vertex_areas(pred.vertices, pred.faces)
     metrics_reverse = {"overall": distance_metrics(reverse, rweights),
                        "regions": _region_metrics(reverse, rweights, np.where(rvalid, pred.region, -1), names)}
-    metrics["landmarks"] = _locate_landmarks(pred, pred_surface, scan_surface)
+    metrics["landmarks"] = _locate_landmarks(pred, pred_surface, scan_surface) if landmarks else {}
     missing = [n for n in REPORTED_LANDMARKS if n in pred.landmarks and n not in metrics["landmarks"]]
     if missing:
         warnings.append("landmarks not found on the post-op scan (not covered or ambiguous): "
                         + ", ".join(missing))
-    if not pred.landmarks:
+    if landmarks and not pred.landmarks:
         warnings.append("the prediction gives no landmarks (report.json landmarks_predicted)")
     return Comparison(alignment, aligned, scan.faces, signed, region, reverse, pred, metrics,
                       metrics_reverse, metrics["landmarks"], warnings)

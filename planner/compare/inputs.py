@@ -18,7 +18,7 @@ import numpy as np
 
 from planner.errors import InputError
 
-__all__ = ["Prediction", "Surface", "load_surface", "read_prediction", "find_postop",
+__all__ = ["Prediction", "Surface", "load_surface", "read_prediction", "find_postop", "read_inputs",
            "DEFAULT_UNOPERATED", "SURFACE_SUFFIXES"]
 
 SURFACE_SUFFIXES = (".stl", ".ply", ".obj", ".vtp", ".vtk", ".off", ".glb", ".gltf")
@@ -322,3 +322,12 @@ def _registered_model(case: Path | None):
     lms_src = report.get("landmarks") or report.get("landmarks_registered") or {}
     lms = _landmarks(lms_src, folder / "report.json", points)
     return pts, reg, tuple(names), report.get("unoperated_regions"), lms
+
+
+def read_inputs(case: str | Path, prediction: str | None = None,
+                postop: str | None = None) -> tuple[Prediction, Surface]:
+    """The prediction and the post-op scan of a case, as `faceplan compare` reads them."""
+    case = Path(case)
+    pred = read_prediction(case, prediction)
+    path = find_postop(case, postop)
+    return pred, load_surface(path, "post-op scan")

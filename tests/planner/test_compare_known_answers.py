@@ -137,3 +137,18 @@ def test_noise_is_reported_as_its_mean_absolute_value(phantoms):
     assert result.metrics["overall"]["rms_mm"] == pytest.approx(sigma, abs=0.015)
     # the ICP residual of the trimmed inliers is the noise floor: below sigma (trimmed), above 0
     assert 0.05 < result.alignment.residual_rms_mm < sigma
+
+
+def test_reused_alignment_gives_the_same_figures(phantoms, chin_offset):
+    # diagnosis compares many candidate predictions with one scan: the superimposition found
+    # once can be passed back in, and then the figures are those of a full run
+    full, T = chin_offset
+    pred, scan = phantoms
+    chin = pred.region_names.index("chin")
+    normals = TriangleSurface(pred.vertices, pred.faces).vertex_normals
+    moved = pred.vertices + 1.0 * (pred.region == chin)[:, None] * normals
+    again = compare_surfaces(_prediction(pred, moved), Surface(apply(T, scan.vertices), scan.faces, Path("scan")),
+                             alignment=full.alignment, landmarks=False)
+    for name, m in full.metrics["regions"].items():
+        assert again.metrics["regions"][name]["mean_abs_mm"] == pytest.approx(m["mean_abs_mm"], abs=1e-12)
+    assert again.metrics["landmarks"] == {}

@@ -8,7 +8,6 @@ import trimesh
 
 from planner.cli import main
 from planner.compare.alignment import apply, rotation_matrix
-from planner.compare.phantom import write_prediction_folder
 
 
 @pytest.fixture(scope="module")
@@ -26,9 +25,17 @@ def skin():
 def test_generic_skin_moved_and_retriangulated(tmp_path, skin):
     model, x, tris, region, names, landmarks = skin
     case = tmp_path / "G"
-    # the predict layout without `unoperated_regions`: compare falls back to its default list,
-    # which holds the face model's unoperated region names
-    write_prediction_folder(case / "predict", x, tris, region, names, landmarks)
+    # the prediction folder written by `faceplan predict`'s own writer (zero displacement);
+    # it stores no `unoperated_regions`: compare falls back to its default list, which holds
+    # the face model's unoperated region names
+    from types import SimpleNamespace
+
+    from planner.pipeline import write_skin
+
+    (case / "predict").mkdir(parents=True)
+    write_skin(SimpleNamespace(model=model, predicted_nodes=model.nodes,
+                               displacement=np.zeros_like(model.nodes)), case / "predict")
+    (case / "predict" / "report.json").write_text(json.dumps({"landmarks_predicted": landmarks}))
     # the same piecewise-linear surface, each triangle split in four (other triangulation,
     # 4x the density), moved by a rigid motion of 4 degrees and 5 mm
     v, f = trimesh.remesh.subdivide(x, tris)

@@ -3,7 +3,8 @@
 For every region (overall, each face region, each landmark) and every metric, the mean and
 sample standard deviation (n - 1) over the cases that have it, as validation studies tabulate
 them ("mean +- SD"). Written as `summary.csv` (long form: region, metric, mean, sd, n_cases),
-`cases.csv` (one row per case and region), `summary.json` and a self-contained `summary.html`.
+`cases.csv` (one row per case and region), `summary.json`, a bar chart `summary_regions.png`
+and a self-contained `summary.html`.
 """
 from __future__ import annotations
 
@@ -96,6 +97,16 @@ def write_cohort(out: Path, reports: dict[str, dict]) -> dict:
         tables["Landmark errors across cases (mm)"] = (["landmark", "error_mm", "cases"], lm_rows)
     tables["Per case (overall)"] = (["case", "mean_abs_mm", "rms_mm", "within_2mm_pct",
                                      "alignment residual (mm)"], per_case)
+    from planner.render import bar_chart
+
+    regions = [r for r, m in summary.items() if not r.startswith("landmark") and "mean_abs_mm" in m]
+    chart = bar_chart(regions, [summary[r]["mean_abs_mm"]["mean"] for r in regions],
+                      out / "summary_regions.png",
+                      errors=[summary[r]["mean_abs_mm"]["sd"] or 0.0 for r in regions],
+                      ylabel="mean |d| (mm)",
+                      title=f"mean absolute distance per region, mean ± SD over {len(reports)} cases")
     write_html_report(out / "summary.html", f"faceplan compare: {len(reports)} cases",
-                      {"cases": list(reports), "n_cases": len(reports)}, [], tables=tables)
+                      {"cases": list(reports), "n_cases": len(reports)},
+                      [(chart, "mean absolute distance per region (mean ± SD over cases; dashed: 2 mm)")],
+                      tables=tables)
     return doc

@@ -79,6 +79,7 @@ def test_cohort_summary(tmp_path, phantoms):
     assert chin["n_cases"] == "2"
     assert ("landmark Pog", "error_mm") in rows
     assert (out / "summary.html").read_text().count("±") > 5
+    assert (out / "summary_regions.png").stat().st_size > 5000
     assert len(list(csv.DictReader(open(out / "cases.csv")))) > 20
 
 

@@ -264,6 +264,16 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
     from solver import errors as solver_errors
 
     motions = plan.motions(include_identity=True)
+    moving = {k: m for k, m in motions.items() if not np.allclose(m, np.eye(4), atol=1e-12)}
+    if not moving and not any(a > 0 for a in activations.values()):
+        # No bone moves, no muscle contracts, no load: the stress-free reference configuration
+        # is in equilibrium whatever the materials, so it is the exact solution.
+        progress.say("  nothing moves and no muscle is active: the prediction is the pre-op face")
+        u = np.zeros_like(np.asarray(model.nodes, float))
+        stats = {"converged": True, "steps": 0, "iterations": 0,
+                 "note": "no movement planned: the rest state is the solution"}
+        return Prediction(model, plan, u, np.zeros((len(model.hexes), 3, 3)), stats, bone_vertices,
+                          assignment, effects)
     with progress.stage("solve"):
         try:
             result = _call_simulate(model, motions, activations=activations, contact=plan.model.contact,

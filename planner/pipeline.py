@@ -14,7 +14,6 @@ only when complete (`planner.atomic`): `prediction.vtu`, `skin_predicted.{stl,pl
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import json
 import sys
 import time
@@ -33,9 +32,8 @@ from planner.segments import as_trimesh, assign_segments, with_segments
 # sliding: 0/1 (1: every attachment slides on its bone); muscle_tone: resting activation of the
 # perioral muscles in [0, 1]; stiffness: factor on every tissue's stiffness parameters.
 SUPPORTED_EFFECTS = ("sliding", "muscle_tone", "stiffness")
-PERIORAL_MUSCLES = ("orbicularis_oris", "mentalis", "depressor_labii_inferioris",
-                    "depressor_anguli_oris", "levator_labii_superioris", "zygomaticus_major",
-                    "risorius", "buccinator")
+# muscle_tone: the resting tone of the lip sphincter and the chin/lower-lip muscles.
+TONE_MUSCLES = ("orbicularis_oris", "mentalis", "depressor_labii_inferioris")
 
 
 def parse_effects(items: list[str] | None) -> dict[str, float]:
@@ -61,6 +59,20 @@ def parse_effects(items: list[str] | None) -> dict[str, float]:
             raise InputError(f"effect stiffness: factor must be in [0.1, 10], got {v:g}", field="--effect")
         out[name] = v
     return out
+
+
+def check_effects(plan: Plan, effects: dict[str, float] | None = None) -> dict[str, float]:
+    """The plan's effects overridden by the command line's; InputError for one not available."""
+    for name, value in plan.model.effects.items():
+        if name not in SUPPORTED_EFFECTS:
+            raise InputError(f"effect {name!r} is not available in predictions yet "
+                             f"(available: {', '.join(SUPPORTED_EFFECTS)})", file=plan.path,
+                             field=f"model.effects.{name}")
+        try:
+            parse_effects([f"{name}={value}"])
+        except InputError as exc:
+            raise InputError(str(exc).split(": ", 1)[-1], file=plan.path, field=f"model.effects.{name}") from None
+    return dict(plan.model.effects, **(effects or {}))
 
 
 class Progress:
@@ -160,59 +172,21 @@ def _sliding_sets(model, segments: tuple[str, ...]) -> tuple[str, ...]:
 # --------------------------------------------------------------------------- solve
 
 def _call_simulate(model, motions, *, activations, contact, sliding, materials, progress: Progress):
+    """`facemodel.simulation.simulate` with every Newton iteration sent to the progress log."""
     from facemodel.simulation import simulate
 
-    kwargs = dict(activations=activations, contact=contact, sliding=sliding, materials=materials)
-    sig = inspect.signature(simulate)
-    accepts_var = any(p.kind is p.VAR_KEYWORD for p in sig.parameters.values())
-    for name in ("progress", "callback", "log", "verbose"):
-        if name in sig.parameters or accepts_var:
-            if name in ("progress", "callback", "log"):
-                kwargs[name] = progress.say
-            else:
-                kwargs[name] = False
-            break
-    kwargs = {k: v for k, v in kwargs.items() if k in sig.parameters or accepts_var}
-    return simulate(model, motions, **kwargs)
+    return simulate(model, motions, activations, contact=contact, sliding=sliding,
+                    materials=materials, log=progress.say)
 
 
 def _unpack_result(result, model) -> tuple[np.ndarray, np.ndarray | None, dict]:
-    """(displacement (n,3), Cauchy stress per element or None, solver statistics)."""
-    n = len(model.nodes)
-    if isinstance(result, tuple):
-        result = {"displacement": result[0], **(result[1] if len(result) > 1 and isinstance(result[1], dict) else {})}
-    get = (lambda k: result.get(k)) if isinstance(result, dict) else (lambda k: getattr(result, k, None))
-    u = None
-    for k in ("displacement", "u", "displacements"):
-        if get(k) is not None:
-            u = np.asarray(get(k), float).reshape(n, 3)
-            break
-    if u is None:
-        for k in ("x", "nodes", "positions", "deformed_nodes"):
-            if get(k) is not None:
-                u = np.asarray(get(k), float).reshape(n, 3) - np.asarray(model.nodes, float)
-                break
-    if u is None:
-        raise SolveError("the simulation returned no displacement field")
-    stress = None
-    for k in ("cauchy", "stress", "cauchy_stress", "sigma"):
-        s = get(k)
-        if s is not None:
-            s = np.asarray(s, float)
-            if s.shape[-2:] == (3, 3):
-                stress = s.reshape(-1, *s.shape[-2:]) if s.ndim > 3 else s
-                if stress.ndim == 4:
-                    stress = stress.mean(axis=1)
-            break
-    stats = {}
-    for k in ("stats", "statistics", "info", "solver", "log", "history", "convergence"):
-        v = get(k)
-        if v is not None:
-            stats[k] = _jsonable(v)
-    for k in ("converged", "iterations", "steps", "n_steps", "newton_iterations", "time_s", "residual"):
-        v = get(k)
-        if v is not None:
-            stats[k] = _jsonable(v)
+    """(displacement (n, 3), element Cauchy stress (m, 3, 3), solver statistics) of a
+    `facemodel.simulation.SimulationResult`."""
+    u = np.asarray(result.displacement, float).reshape(len(model.nodes), 3)
+    stress = None if result.cauchy is None else np.asarray(result.cauchy, float)
+    stats = {"converged": bool(result.converged), "load": float(result.load),
+             "iterations": int(result.iterations), "steps": int(result.steps),
+             "time_s": round(float(result.time_s), 3), "info": _jsonable(result.info)}
     return u, stress, stats
 
 
@@ -238,7 +212,7 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
                progress: Progress | None = None) -> Prediction:
     """Assign attachments, impose the plan's movements and solve. `bones`: surfaces by name."""
     progress = progress or Progress(echo=False)
-    effects = dict(plan.model.effects, **(effects or {}))
+    effects = check_effects(plan, effects)
     bone_vertices = {k: np.asarray(as_trimesh(v).vertices, float) for k, v in (bones or {}).items()}
     assignment = {}
     if bones:
@@ -256,9 +230,8 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
     activations = dict(plan.muscles)
     tone = effects.get("muscle_tone", 0.0)
     if tone > 0:
-        present = set(getattr(model, "label_names", PERIORAL_MUSCLES))
-        for m in PERIORAL_MUSCLES[:3]:
-            if m in present:
+        for m in TONE_MUSCLES:
+            if m in model.label_names:
                 activations[m] = max(activations.get(m, 0.0), tone)
     materials = face_materials(model, plan.model.materials, effects.get("stiffness", 1.0))
     from solver import errors as solver_errors
@@ -530,6 +503,7 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
         plan = load_plan(plan_path, max_translation_mm=max_translation_mm, max_rotation_deg=max_rotation_deg)
         bone_vertices = {k: np.asarray(v.vertices, float) for k, v in case.bones.items()}
         check_against_bones(plan, bone_vertices)
+        check_effects(plan, effects)
         res = resolution or plan.model.resolution
         progress.say(f"  case {case.info.id}: {len(case.bones)} bone surface(s), plan moves "
                      f"{', '.join(plan.motions()) or 'nothing'}; resolution {res}")

@@ -2,7 +2,6 @@
 message naming the file/field, and no output folder. These are refused before registration, so
 a small hand-made case folder (spheres and boxes in mm) is enough."""
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -103,3 +102,12 @@ def test_large_movement_accepted_when_asked_explicitly(tmp_path, case_template):
     plan = load_plan(case / "plan.yaml", max_translation_mm=1e3)
     bones = {"maxilla": np.asarray(trimesh.load(case / "preop" / "bone" / "maxilla.stl").vertices)}
     assert check_against_bones(plan, bones)["maxilla"] == pytest.approx(26.0)
+
+
+def test_unavailable_effect_in_the_plan(tmp_path, case_template, capsys):
+    plan = dict(GOOD_PLAN, model={"resolution": "coarse", "effects": {"gravity": 1.0}})
+    case = _case(tmp_path, case_template, plan)
+    assert main(["predict", str(case), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "model.effects.gravity" in err and "plan.yaml" in err
+    assert not (tmp_path / "out").exists()

@@ -25,6 +25,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="prediction folder from `faceplan predict` or any surface file "
                         "(default CASE/predict); a relative path is looked up in each case first")
     p.add_argument("--postop", metavar="FILE", help="post-op scan (default CASE/postop/skin.*)")
+    p.add_argument("--postop-landmarks", metavar="FILE",
+                   help="landmarks placed on the post-op scan (json, Slicer .mrk.json or .fcsv; "
+                        "default CASE/postop/landmarks.* when present); they replace the "
+                        "automatic location for the landmarks they name")
     p.add_argument("--out", metavar="DIR",
                    help="output folder (one case: default CASE/compare; several cases: the "
                         "cohort summary, default compare_summary/ beside the first case)")
@@ -48,11 +52,25 @@ def _check_args(args) -> None:
         raise InputError("--keep must be in [0.3, 1]", field="--keep")
     if args.global_init and args.no_align:
         raise InputError("--global-init and --no-align exclude each other", field="--global-init")
+    if args.postop_landmarks and len(args.cases) > 1:
+        raise InputError("--postop-landmarks works with a single case only", field="--postop-landmarks")
     if args.postop and len(args.cases) > 1:
         raise InputError("--postop works with a single case only", field="--postop")
     for c in args.cases:
         if not Path(c).is_dir():
             raise InputError("case folder not found", file=str(c))
+
+
+def _postop_landmarks_file(case: Path, given: str | None) -> Path | None:
+    if given:
+        p = Path(given)
+        if not p.is_file():
+            raise InputError("post-op landmarks file not found", file=str(p), field="--postop-landmarks")
+        return p
+    for name in ("landmarks.json", "landmarks.mrk.json", "landmarks.fcsv"):
+        if (case / "postop" / name).is_file():
+            return case / "postop" / name
+    return None
 
 
 def run(args) -> int:
@@ -70,8 +88,16 @@ def run(args) -> int:
         prediction = read_prediction(case, args.prediction)
         postop_path = find_postop(case, args.postop)
         scan = load_surface(postop_path, "post-op scan")
+        lm_path = _postop_landmarks_file(case, args.postop_landmarks)
+        manual = None
+        if lm_path is not None:
+            from planner.case import load_landmarks
+
+            manual = load_landmarks(lm_path)
         result = compare_surfaces(prediction, scan, gate=args.gate, keep=args.keep,
-                                  align=not args.no_align, global_init=args.global_init)
+                                  align=not args.no_align, global_init=args.global_init,
+                                  postop_landmarks=manual,
+                                  postop_landmarks_file=None if lm_path is None else str(lm_path))
         header = {
             "faceplan": 1,
             "command": "compare",
@@ -79,6 +105,7 @@ def run(args) -> int:
             "case_dir": str(case.resolve()),
             "prediction": str(prediction.path),
             "postop": str(postop_path),
+            "postop_landmarks": None if lm_path is None else str(lm_path),
             "settings": {"gate_mm": args.gate, "keep": args.keep, "align": not args.no_align,
                          "global_init": args.global_init, "threshold_mm": 2.0},
             "n_scan_vertices": int(len(scan.vertices)),

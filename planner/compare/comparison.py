@@ -82,9 +82,12 @@ def _densified(vertices: np.ndarray, faces: np.ndarray, centres: list[np.ndarray
 
 
 def _locate_landmarks(pred: Prediction, pred_surface: TriangleSurface, scan: TriangleSurface,
-                      radius: float = 8.0) -> dict:
+                      radius: float = 8.0, manual: dict[str, np.ndarray] | None = None) -> dict:
+    """Landmark errors. `manual`: landmarks placed on the post-op scan (pre-op frame), used
+    instead of the automatic location on the scan where given."""
+    manual = manual or {}
     names = [n for n in REPORTED_LANDMARKS if n in pred.landmarks] + [
-        n for n in pred.landmarks if n in RULES and n not in REPORTED_LANDMARKS]
+        n for n in pred.landmarks if (n in RULES or n in manual) and n not in REPORTED_LANDMARKS]
     if not names:
         return {}
     guesses = [pred.landmarks[n] for n in names]
@@ -101,6 +104,8 @@ def _locate_landmarks(pred: Prediction, pred_surface: TriangleSurface, scan: Tri
         p = on_pred.locate(name, guess)
         if p is not None:
             found[name] = p
+        elif name in manual:          # no definition to refine with: the model's own point
+            found[name] = np.asarray(guess, float)
     if not found:
         return {}
     scan_pts = _densified(scan.vertices, scan.faces, list(found.values()), radius)
@@ -108,14 +113,16 @@ def _locate_landmarks(pred: Prediction, pred_surface: TriangleSurface, scan: Tri
                               fit_radius=fit_radius)
     out = {}
     for name, p in found.items():
-        q = on_scan.locate(name, p)
+        source = "manual" if name in manual else "located"
+        q = manual[name] if name in manual else on_scan.locate(name, p)
         if q is None:
             continue
         out[name] = {
             "error_mm": float(np.linalg.norm(q - p)),
             "vector_mm": (q - p).tolist(),
             "predicted": p.tolist(),
-            "postop": q.tolist(),
+            "postop": np.asarray(q, float).tolist(),
+            "postop_source": source,
         }
     return out
 
@@ -123,12 +130,16 @@ def _locate_landmarks(pred: Prediction, pred_surface: TriangleSurface, scan: Tri
 def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: float = 0.9,
                      align: bool = True, max_residual_mm: float = 3.0,
                      global_init: bool = False, alignment: Alignment | None = None,
-                     landmarks: bool = True) -> Comparison:
+                     landmarks: bool = True,
+                     postop_landmarks: dict[str, np.ndarray] | None = None,
+                     postop_landmarks_file: str | None = None) -> Comparison:
     """Superimpose `scan` on the prediction's unoperated regions and measure the differences.
 
     `alignment` reuses a superimposition computed before (e.g. when many candidate
     predictions of one case are compared with its scan) instead of running the ICP;
-    `landmarks=False` skips the landmark search.
+    `landmarks=False` skips the landmark search. `postop_landmarks` ({name: [x, y, z]} in
+    the scan's frame, e.g. placed by hand in 3D Slicer) replace the automatic location on the
+    scan for the landmarks they name.
     """
     warnings: list[str] = list(pred.notes)
     pred_surface = TriangleSurface(pred.vertices, pred.faces)
@@ -195,7 +206,18 @@ def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: 
     rweights = vertex_areas(pred.vertices, pred.faces)
     metrics_reverse = {"overall": distance_metrics(reverse, rweights),
                        "regions": _region_metrics(reverse, rweights, np.where(rvalid, pred.region, -1), names)}
-    metrics["landmarks"] = _locate_landmarks(pred, pred_surface, scan_surface) if landmarks else {}
+    manual = None
+    if postop_landmarks:
+        names_m = list(postop_landmarks)
+        manual_pts = apply(alignment.matrix, np.array([postop_landmarks[n] for n in names_m], float))
+        off = scan_surface.closest(manual_pts).distance
+        far = [f"{n} ({d:.1f} mm)" for n, d in zip(names_m, off) if d > 5.0]
+        if far:
+            raise InputError("post-op landmarks lie off the post-op scan (another frame?): "
+                             + ", ".join(far), file=postop_landmarks_file)
+        manual = dict(zip(names_m, manual_pts))
+    metrics["landmarks"] = (_locate_landmarks(pred, pred_surface, scan_surface, manual=manual)
+                            if landmarks else {})
     missing = [n for n in REPORTED_LANDMARKS if n in pred.landmarks and n not in metrics["landmarks"]]
     if missing:
         warnings.append("landmarks not found on the post-op scan (not covered or ambiguous): "

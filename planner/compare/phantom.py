@@ -141,11 +141,19 @@ def face_phantom(spacing: float = 1.5, jitter: float = 0.0, seed: int = 0,
     remap[used] = np.arange(len(used))
     vertices, q, faces = vertices[used], q[used], remap[faces]
     landmarks = {k: surface_at(*v).tolist() for k, v in _LANDMARKS.items()}
-    # soft-tissue menton: lowest chin point measured downwards and 26.6 degrees forwards (the
-    # direction planner.compare.landmarks uses), found on the dense analytic profile
-    el = np.radians(np.arange(-70.0, -30.0, 0.01))
+    # profile landmarks at their analytic extremes on the dense mid-sagittal profile (the
+    # definitions planner.compare.landmarks uses): most anterior point of nose, lips and chin,
+    # deepest point below the nose, lowest chin point measured downwards and 26.6 degrees
+    # forwards (menton)
+    el = np.radians(np.arange(-75.0, 40.0, 0.005))
     prof, _ = _surface(_directions(np.zeros_like(el), el))
-    landmarks["Me"] = prof[int(np.argmax(prof @ np.array([0.0, 1.0, -2.0]) / np.sqrt(5.0)))].tolist()
+    z = prof[:, 2]
+    me = np.array([0.0, 1.0, -2.0]) / np.sqrt(5.0)
+    for name, lo, hi, h in (("Prn", -5, 30, prof[:, 1]), ("Sn", -14, -2, -prof[:, 1]),
+                            ("Ls", -28, -12, prof[:, 1]), ("Li", -48, -34, prof[:, 1]),
+                            ("Pog", -88, -62, prof[:, 1]), ("Me", -100, -80, prof @ me)):
+        sel = np.flatnonzero((z > lo) & (z < hi))
+        landmarks[name] = prof[sel[np.argmax(h[sel])]].tolist()
     return Phantom(vertices, faces, regions_from_base(q[:, 0], q[:, 2]), REGION_NAMES,
                    landmarks, UNOPERATED)
 

@@ -152,3 +152,25 @@ def test_scan_in_its_own_frame_needs_global_init(tmp_path, phantoms, capsys):
     report = json.loads((case / "compare" / "report.json").read_text())
     # found the pose: as good as a scan given in the patient's frame (2.0/2.5 mm meshes)
     assert report["metrics"]["overall"]["mean_abs_mm"] < 0.05
+
+
+def test_manual_postop_landmarks(tmp_path, phantoms, capsys):
+    pred, scan = phantoms
+    case = _case(tmp_path, "L", pred, scan)
+    # hand-placed post-op landmarks in the scan's frame (the scan file is shifted by
+    # [0.7, -1.2, 0.9] in _case): Pog placed 2 mm below the predicted one
+    shift = np.array([0.7, -1.2, 0.9])
+    pog = np.asarray(pred.landmarks["Pog"]) + shift + [0.0, 0.0, -2.0]
+    (case / "postop" / "landmarks.json").write_text(json.dumps({"Pog": pog.tolist()}))
+    assert main(["compare", str(case), "--no-images"]) == 0
+    lm = json.loads((case / "compare" / "report.json").read_text())["metrics"]["landmarks"]
+    assert lm["Pog"]["postop_source"] == "manual" and lm["Prn"]["postop_source"] == "located"
+    # the predicted Pog is refined on the prediction (within ~0.1 mm of the phantom's point),
+    # the manual one is 2 mm below it after superimposition
+    assert lm["Pog"]["error_mm"] == pytest.approx(2.0, abs=0.2)
+    # landmarks far off the scan are refused
+    (case / "postop" / "landmarks.json").write_text(json.dumps({"Pog": (pog + [0, 40.0, 0]).tolist()}))
+    import shutil
+
+    shutil.rmtree(case / "compare")
+    assert "off the post-op scan" in _bad(tmp_path, capsys, case)

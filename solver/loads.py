@@ -69,9 +69,9 @@ class FollowerPressure:
         # K_ai,bk = p sum_q w N_a (N_b,eta skew(t1) - N_b,xi skew(t2))_ik
         s1 = _skew(t1)
         s2 = _skew(t2)
-        Kq = (np.einsum("qb,kqik->kqbik", self.dN[..., 1], s1)
-              - np.einsum("qb,kqik->kqbik", self.dN[..., 0], s2))
-        Ke = p * np.einsum("q,qa,kqbik->kaibk", self.w, self.N, Kq).reshape(len(xe), 12, 12)
+        Kq = (np.einsum("qb,fqik->fqbik", self.dN[..., 1], s1)
+              - np.einsum("qb,fqik->fqbik", self.dN[..., 0], s2))
+        Ke = p * np.einsum("q,qa,fqbik->faibk", self.w, self.N, Kq).reshape(len(xe), 12, 12)
         K = sp.csr_matrix((Ke.ravel(), (self._rows, self._cols)),
                           shape=(3 * self.n_nodes, 3 * self.n_nodes))
         if self.symmetric:

@@ -59,7 +59,9 @@ class NewtonResult:
     cutbacks: int = 0
     log: list = field(default_factory=list)     # one dict per iteration
     timings: dict = field(default_factory=dict)
-    reactions: np.ndarray | None = None         # internal force at constrained dofs (n, 3)
+    # forces the constraints exert on the body (residual at the constrained dofs), (n, 3), in
+    # each node's local frame where a LocalFrame is given, zero at unconstrained components
+    reactions: np.ndarray | None = None
 
 
 class _System:
@@ -244,7 +246,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
                     worst_element=info["worst_element"], state=result)
     ev, rhat, _, _ = system.evaluate(x, load, tangent=False)
     reac = np.zeros(3 * n)
-    reac[cons.dofs] = ev.force[cons.dofs] if not cons.any_frame else cons.to_global(rhat)[cons.dofs]
+    reac[cons.dofs] = rhat[cons.dofs]
     result.reactions = reac.reshape(n, 3)
     result.converged = True
     result.timings = dict(system.timing, total=time.perf_counter() - t_start)

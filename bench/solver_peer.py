@@ -1,0 +1,157 @@
+"""faceplan's FE core vs. FElupe + PARDISO on the same nearly incompressible Yeoh cube.
+
+Problem (issue 2): a 20 x 20 x 20 hexahedral cube of 20 mm, Yeoh C10 = 2.5, C20 = 1.175 kPa,
+K = 2500 kPa with U = K/2 (J - 1)^2 (FElupe's `NearlyIncompressible` volumetric function), the
+Q1/P0 mean-dilatation formulation in both codes (FElupe: `FieldsMixed(n=3)` with piecewise
+constant pressure and dilatation + `NearlyIncompressible`), face x = 0 clamped, face x = 20
+pulled 6 mm in x (its y, z held) in 4 equal steps, PARDISO as FElupe's linear solver. Prints
+both wall times (set-up included), the ratio and the largest displacement difference relative
+to the largest displacement; then a DOF-scaling table of faceplan's solver (each size in a
+fresh process: assembly s per tangent, numerical factorisation s, Newton iterations of the
+4-step pull, peak resident memory). The last line is
+`speedup=<x> max_rel_diff=<y> faceplan_s=<t> felupe_s=<t>`.
+
+Usage: python bench/solver_peer.py [--no-scaling] [--sizes 15,24,33,40]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+N, L, PULL, STEPS = 20, 20.0, 6.0, 4
+C10, C20, C30, K = 2.5, 1.175, 0.0, 2500.0
+
+
+def faceplan_run(n=N, steps=STEPS, collect=False):
+    import solver
+    from solver.examples import block
+
+    t0 = time.perf_counter()
+    nodes, hexes, s = block((L, L, L), (n, n, n))
+    body = solver.SolidBody(solver.HexMesh(nodes, hexes),
+                            solver.Yeoh(C10, C20, C30, K=K, volumetric="quadratic"))
+    bcs = [solver.fix(s["xmin"]), solver.Prescribed(s["xmax"], [PULL, 0.0, 0.0])]
+    res = solver.newton_solve(body, bcs, steps=steps, grow=False)
+    t = time.perf_counter() - t0
+    return nodes, res, t, body
+
+
+def felupe_run(n=N):
+    import felupe as fem
+    import pypardiso
+
+    t0 = time.perf_counter()
+    mesh = fem.Cube(a=(0, 0, 0), b=(L, L, L), n=n + 1)
+    region = fem.RegionHexahedron(mesh)
+    field = fem.FieldsMixed(region, n=3)
+    umat = fem.NearlyIncompressible(fem.Hyperelastic(fem.yeoh, C10=C10, C20=C20, C30=C30), bulk=K)
+    solid = fem.SolidBody(umat, field)
+    bounds = {
+        "fixed": fem.Boundary(field[0], fx=0.0),
+        "yz": fem.Boundary(field[0], fx=L, skip=(1, 0, 0)),
+        "move": fem.Boundary(field[0], fx=L, skip=(0, 1, 1)),
+    }
+    ramp = {bounds["move"]: fem.math.linsteps([0, PULL], num=STEPS)[1:]}
+    step = fem.Step(items=[solid], ramp=ramp, boundaries=bounds)
+    job = fem.Job(steps=[step])
+    job.evaluate(solver=pypardiso.spsolve, verbose=0)
+    t = time.perf_counter() - t0
+    return mesh.points.copy(), field[0].values.copy(), t
+
+
+def _match(pa, pb):
+    """Index array j with pb[j] == pa (same lattice, different numbering)."""
+    key = lambda p: np.round(p / (L / N) * 4).astype(np.int64)
+    ka, kb = key(pa), key(pb)
+    order_b = np.lexsort(kb.T[::-1])
+    order_a = np.lexsort(ka.T[::-1])
+    j = np.empty(len(pa), dtype=np.int64)
+    j[order_a] = order_b
+    assert np.array_equal(ka, kb[j])
+    return j
+
+
+def scaling_point(n):
+    """One row of the scaling table (run in a child process for a clean peak memory)."""
+    import solver
+    from solver.examples import block
+    from solver.linalg import SymmetricSolver
+    from solver.bc import ConstraintSet
+    from solver.newton import _System
+
+    nodes, hexes, s = block((L, L, L), (n, n, n))
+    body = solver.SolidBody(solver.HexMesh(nodes, hexes),
+                            solver.Yeoh(C10, C20, C30, K=K, volumetric="quadratic"))
+    cons = ConstraintSet(len(nodes), [solver.fix(s["xmin"]), solver.fix(s["xmax"])])
+    system = _System(body, cons, [], None)
+    x = nodes.copy()
+    x[:, 0] *= 1.05
+    system.evaluate(x, 1.0)                                   # warm-up (numba cache load)
+    t = time.perf_counter()
+    ev, r, A, _ = system.evaluate(x, 1.0)
+    t_asm = time.perf_counter() - t
+    lin = SymmetricSolver()
+    t = time.perf_counter()
+    lin.solve(A, r)                                           # analysis + factorisation
+    t_first = time.perf_counter() - t
+    t = time.perf_counter()
+    lin.solve(A, r)                                           # factorisation only (reused analysis)
+    t_fact = time.perf_counter() - t
+    bcs = [solver.fix(s["xmin"]), solver.Prescribed(s["xmax"], [PULL, 0.0, 0.0])]
+    t = time.perf_counter()
+    res = solver.newton_solve(body, bcs, steps=STEPS, grow=False)
+    t_solve = time.perf_counter() - t
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return {"n": n, "dofs": 3 * len(nodes), "assembly_s": t_asm, "analysis+factor_s": t_first,
+            "factor_s": t_fact, "newton_iterations": res.iterations, "solve_s": t_solve,
+            "peak_MB": peak, "backend": lin.backend}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--no-scaling", action="store_true")
+    ap.add_argument("--sizes", default="15,24,33,40")
+    ap.add_argument("--scaling-point", type=int, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.scaling_point:
+        print(json.dumps(scaling_point(a.scaling_point)))
+        return 0
+    here = os.path.dirname(os.path.abspath(__file__))
+    sys.path.insert(0, os.path.dirname(here))
+
+    faceplan_run(n=2, steps=1)                                # compile / load numba caches
+    nodes, res, t_fp, body = faceplan_run()
+    print(f"faceplan: {t_fp:.2f} s, {res.iterations} Newton iterations in {len(res.steps)} steps "
+          f"(assembly {res.timings['assembly']:.2f} s, linear solves {res.timings['solve']:.2f} s)")
+    pts, u_fe, t_fe = felupe_run()
+    print(f"FElupe + PARDISO: {t_fe:.2f} s")
+    j = _match(nodes, pts)
+    diff = np.abs(res.u - u_fe[j]).max() / np.abs(u_fe).max()
+    speed = t_fe / t_fp
+    if not a.no_scaling:
+        print("\nDOF scaling of faceplan's solver (Yeoh cube, 4-step 6 mm pull, PARDISO):")
+        print(f"{'elements':>9} {'DOF':>8} {'assembly s':>11} {'analysis+fact s':>16} "
+              f"{'fact s':>7} {'Newton it':>10} {'solve s':>8} {'peak MB':>8}")
+        for n in [int(v) for v in a.sizes.split(",")]:
+            out = subprocess.run([sys.executable, __file__, "--scaling-point", str(n)],
+                                 capture_output=True, text=True)
+            if out.returncode != 0:
+                print(f"{n ** 3:>9} failed: {out.stderr.strip().splitlines()[-1:]}")
+                continue
+            row = json.loads(out.stdout.strip().splitlines()[-1])
+            print(f"{n ** 3:>9} {row['dofs']:>8} {row['assembly_s']:>11.2f} "
+                  f"{row['analysis+factor_s']:>16.2f} {row['factor_s']:>7.2f} "
+                  f"{row['newton_iterations']:>10d} {row['solve_s']:>8.1f} {row['peak_MB']:>8.0f}")
+    print(f"speedup={speed:.2f} max_rel_diff={diff:.2e} faceplan_s={t_fp:.2f} felupe_s={t_fe:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

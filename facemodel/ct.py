@@ -54,6 +54,7 @@ LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])  # its own inverse
 # AIRWAY_DEPTH_MM inside the envelope is airway, shallower is a fold of the face.
 AIRWAY_CLOSING_MM = 10.0
 AIRWAY_DEPTH_MM = 5.0
+SEAL_VOXEL_MM = 2.0   # voxel size of the sealing's distance transforms (finer CTs are pooled)
 
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
 
@@ -403,7 +404,7 @@ def seal_airways(volume: CTVolume, level: float = SKIN_HU, *, closing_mm: float 
     """The volume with the air deep inside the body turned to soft tissue (`fill_hu`).
 
     The outer envelope of the body is its morphological closing by a ball of `closing_mm`
-    (it spans the nostrils, an open mouth, the trachea's cut); air more than `depth_mm`
+    (it spans the nostrils, an open mouth, the trachea's cut), holes filled; air more than `depth_mm`
     inside that envelope -- nasal cavity, sinuses, pharynx, trachea -- is filled, so that the
     skin isosurface stops a few mm inside the nostrils instead of lining the airways. Air in
     the folds of the face (nasolabial, alar, mentolabial) stays: it lies within `depth_mm` of
@@ -412,14 +413,29 @@ def seal_airways(volume: CTVolume, level: float = SKIN_HU, *, closing_mm: float 
     """
     from scipy import ndimage
 
-    spacing = volume.spacing
     body = body_mask(volume, level, margin=0)
-    pad = int(np.ceil((closing_mm + depth_mm) / spacing.min())) + 1
-    body = np.pad(body, pad)
-    dilated = ndimage.distance_transform_edt(~body, sampling=spacing) <= closing_mm
-    depth = ndimage.distance_transform_edt(dilated, sampling=spacing)
-    deep = depth[pad:-pad, pad:-pad, pad:-pad] > closing_mm + depth_mm
-    fill = deep & (volume.hu < fill_hu)
+    # The envelope is a 10 mm-scale shape: the distance transforms run on voxels of about
+    # SEAL_VOXEL_MM (f x f x f blocks, a block is body if any voxel is), and the depth
+    # threshold grows by one coarse voxel so that pooling never makes a fold look deeper.
+    f = np.maximum(1, np.floor(SEAL_VOXEL_MM / volume.spacing)).astype(int)
+    spacing = volume.spacing * f
+    shape = np.array(body.shape)
+    blocks = -(-shape // f)
+    pooled = np.zeros(blocks * f, dtype=bool)
+    pooled[: shape[0], : shape[1], : shape[2]] = body
+    pooled = pooled.reshape(blocks[0], f[0], blocks[1], f[1], blocks[2], f[2]).any(axis=(1, 3, 5))
+    pad = int(np.ceil((closing_mm + depth_mm) / spacing.min())) + 2
+    pooled = np.pad(pooled, pad)
+    dilated = ndimage.distance_transform_edt(~pooled, sampling=spacing) <= closing_mm
+    # Cavities wider than the closing ball (pharynx, sinuses) stay holes of the dilated body
+    # once the openings are spanned: they are inside the envelope too.
+    dilated = ndimage.binary_fill_holes(dilated)
+    depth = ndimage.distance_transform_edt(dilated, sampling=spacing)[pad:-pad, pad:-pad, pad:-pad]
+    deep = depth > closing_mm + depth_mm + (spacing.max() if f.max() > 1 else 0.0)
+    for axis in range(3):
+        deep = np.repeat(deep, f[axis], axis=axis)
+    deep = deep[: shape[0], : shape[1], : shape[2]]
+    fill = deep & (volume.hu < level)
     if not fill.any():
         return volume
     hu = volume.hu.copy()

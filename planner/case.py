@@ -47,7 +47,7 @@ SLICER_UNITS_TO_MM = {"mm": 1.0, "um": 1e-3}
 # Triangle budget of surfaces extracted from a CT: a 0.5 mm CT gives a skin of over a million
 # triangles; 200,000 keeps the skin's detail (edges ~1 mm) at a fraction of the cost downstream.
 CT_MAX_FACES = 200_000
-CT_EXTRACTION_VERSION = "faceplan-ct-2"   # part of the CT cache key: bump when extraction changes
+CT_EXTRACTION_VERSION = "faceplan-ct-3"   # part of the CT cache key: bump when extraction changes
 
 
 @dataclass(frozen=True)

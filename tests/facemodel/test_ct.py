@@ -409,16 +409,19 @@ def test_gantry_tilt_round_trip(phantom, tmp_path):
     np.testing.assert_allclose(np.sort(a.vertices, axis=0), np.sort(b.vertices, axis=0), atol=1e-4)
 
 
-@pytest.fixture(scope="module")
-def airway_phantom():
-    # A head-sized ellipsoid with an "airway": a 12 mm cavity 25 mm deep, open to the front
+@pytest.fixture(scope="module", params=[1.5, 1.0])
+def airway_phantom(request):
+    # A head-sized ellipsoid with an "airway": a 12 mm radius cavity (wider than the 10 mm
+    # closing ball: its centre stays a hole of the dilated body) 25 mm deep, open to the front
     # through a 7 mm wide "nostril" channel; and a 3 mm wide, 4 mm deep fold on its side.
+    # At 1 mm the sealing pools 2 x 2 x 2 voxels (SEAL_VOXEL_MM), at 1.5 mm it does not.
     axes, centre = np.array([55.0, 65.0, 75.0]), np.zeros(3)
     head = ellipsoid(axes, centre)
-    hu, affine = ct_volume_from_surfaces(head, {}, spacing=(1.5, 1.5, 1.5), margin=6, seed=2)
+    hu, affine = ct_volume_from_surfaces(head, {}, spacing=request.param, margin=6, seed=2)
     vol = CTVolume(hu, affine)
     xyz = vol.to_world(np.indices(hu.shape).reshape(3, -1).T).reshape(*hu.shape, 3)
-    depth = -ellipsoid_distance(xyz.reshape(-1, 3), axes, centre).reshape(hu.shape)
+    with np.errstate(divide="ignore"):  # the voxel at the centre has no gradient: not in a fold
+        depth = -ellipsoid_distance(xyz.reshape(-1, 3), axes, centre).reshape(hu.shape)
     cavity = np.linalg.norm(xyz - (0.0, 40.0, 0.0), axis=-1) < 12.0
     channel = (np.hypot(xyz[..., 0], xyz[..., 2]) < 3.5) & (xyz[..., 1] > 40.0)
     fold = (np.abs(xyz[..., 2]) < 1.5) & (xyz[..., 0] > 0) & (depth < 4.0)
@@ -435,13 +438,17 @@ def test_airways_are_sealed_and_folds_kept(airway_phantom):
     depth = -ellipsoid_distance(sealed.vertices, axes, centre)
     assert depth_lined.max() > 30.0   # unsealed, the skin lines the cavity 25 + 12 mm deep
     # Sealed: the surface enters the nostril by about AIRWAY_DEPTH_MM (5 mm) and stops; one
-    # voxel (1.5 mm) and the partial-volume ramp bound the overshoot (observed 6.9 mm).
+    # voxel (1.5 mm) and the partial-volume ramp bound the overshoot (observed 6.9 mm); when
+    # the sealing pools (1 mm voxels), its threshold grows by one pooled voxel (2 mm) and its
+    # mask is that coarse: two pooled voxels more (observed 9.3 mm).
+    pooled = ct.SEAL_VOXEL_MM if vol.spacing.min() <= ct.SEAL_VOXEL_MM / 2 else 0.0
     nostril = np.hypot(sealed.vertices[:, 0], sealed.vertices[:, 2]) < 6.0
-    assert depth[nostril].max() < ct.AIRWAY_DEPTH_MM + 2.5
+    assert depth[nostril].max() < ct.AIRWAY_DEPTH_MM + 2.5 + 2 * pooled, depth[nostril].max()
     assert depth[~nostril & (sealed.vertices[:, 1] > 0)].max() < 4.0 + 1.5
-    # The fold (4 mm deep, inside the 5 mm allowance) is kept to its bottom (observed 4.6 mm).
+    # The fold (4 mm deep, inside the 5 mm allowance) is kept to its bottom (observed 4.6 mm
+    # at both spacings).
     in_fold = (np.abs(sealed.vertices[:, 2]) < 1.0) & (sealed.vertices[:, 0] > 10)
     assert depth[in_fold].max() > 4.0 - 1.5
     # Away from both, sealing changes nothing.
     far = (np.abs(sealed.vertices[:, 2]) > 10) & (np.hypot(*sealed.vertices[:, [0, 2]].T) > 15)
-    assert np.abs(depth[far]).mean() < 0.3   # observed 0.17 mm (partial volume, noise)
+    assert np.abs(depth[far]).mean() < 0.3   # observed 0.13-0.17 mm (partial volume, noise)

@@ -39,6 +39,9 @@ class Similarity:
         return Similarity(self.scale * first.scale, self.rotation @ first.rotation,
                           self.scale * self.rotation @ first.translation + self.translation)
 
+    def inverse(self) -> "Similarity":
+        return Similarity(1.0 / self.scale, self.rotation.T, -self.rotation.T @ self.translation / self.scale)
+
     @property
     def matrix(self) -> np.ndarray:
         m = np.eye(4)

@@ -119,6 +119,33 @@ def initial_alignment(model: MatchInput, skin: TargetSurface, landmarks: dict | 
     return sim, info
 
 
+def _bone_groups(model: MatchInput, bones: dict) -> list[SurfaceGroup]:
+    """One group per attachment set: its segment's surface, or the union of the bones."""
+    bone_tris = None
+    if model.bone_quads is not None and len(model.bone_quads):
+        bq = np.asarray(model.bone_quads)
+        bone_tris = np.concatenate([bq[:, [0, 1, 2]], bq[:, [0, 2, 3]]])
+    union, groups = None, []
+    for seg, ids in model.bone_node_sets.items():
+        ids = np.asarray(ids, dtype=np.int64)
+        if len(ids) == 0 or not bones:
+            continue
+        if seg in bones:
+            target = bones[seg]
+        else:
+            if union is None:
+                vs, fs, off = [], [], 0
+                for b in bones.values():
+                    vs.append(b.vertices)
+                    fs.append(b.faces + off)
+                    off += len(b.vertices)
+                union = TargetSurface(np.vstack(vs), np.vstack(fs), "bones")
+            target = union
+        groups.append(SurfaceGroup(seg, ids, target, weight=1.0 / max(len(model.bone_node_sets), 1),
+                                   tris=bone_tris, facing=-1.0))
+    return groups
+
+
 def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                             landmarks: dict | None = None, options: MatchOptions | None = None,
                             files: dict | None = None):
@@ -148,7 +175,6 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                 raise RegistrationInputError(f"landmark {name} is not a finite point", field=name)
 
     sim, align_info = initial_alignment(model, skin, landmarks, opt)
-    x = sim.apply(model.nodes)
     # bones in the same units as the skin (checked after alignment: bones must sit under the skin)
     skin_box = np.array([skin.vertices.min(0), skin.vertices.max(0)])
     for name, b in bones.items():
@@ -159,11 +185,17 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                 f"the bone surface '{name}' lies outside the skin surface (centre "
                 f"{np.round(c, 1).tolist()} mm): bones and skin must share one frame and unit",
                 file=files.get(name), field="bone")
+    # the elastic stage works in the generic model's frame (the patient data mapped back by the
+    # inverse similarity), so that the FFD lattice is aligned with the face whatever the pose
+    inv = sim.inverse()
+    skin_g = skin.transformed(inv.scale, inv.rotation, inv.translation)
+    bones_g = {k: b.transformed(inv.scale, inv.rotation, inv.translation) for k, b in bones.items()}
+    x = np.array(model.nodes, dtype=float)
     times["align_s"] = time.perf_counter() - t0
 
     # coverage: how much of the face the patient skin covers once aligned
     normals = vertex_normals(x, skin_tris)
-    cl = skin.closest(x[skin_ids])
+    cl = skin_g.closest(x[skin_ids])
     covered = (~cl.on_boundary & (cl.distance < 10.0)
                & (np.einsum("ij,ij->i", normals[skin_ids], cl.normal) > 0.5))
     coverage = float(covered.mean())
@@ -174,36 +206,14 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
             f"with the face itself scanned?", file=files.get("skin"), field="skin")
 
     t1 = time.perf_counter()
-    union = None
-    groups = []
-    bone_tris = None
-    if model.bone_quads is not None and len(model.bone_quads):
-        bq = np.asarray(model.bone_quads)
-        bone_tris = np.concatenate([bq[:, [0, 1, 2]], bq[:, [0, 2, 3]]])
-    for seg, ids in model.bone_node_sets.items():
-        ids = np.asarray(ids, dtype=np.int64)
-        if len(ids) == 0:
-            continue
-        if seg in bones:
-            target = bones[seg]
-        elif bones:
-            if union is None:
-                vs, fs, off = [], [], 0
-                for b in bones.values():
-                    vs.append(b.vertices); fs.append(b.faces + off); off += len(b.vertices)
-                union = TargetSurface(np.vstack(vs), np.vstack(fs), "bones")
-            target = union
-        else:
-            continue
-        groups.append(SurfaceGroup(seg, ids, target, weight=1.0 / max(len(model.bone_node_sets), 1),
-                                   tris=bone_tris, facing=-1.0))
-    skin_group = SurfaceGroup("skin", skin_ids, skin, weight=1.0, tris=skin_tris, facing=1.0)
+    groups = _bone_groups(model, bones_g)
+    skin_group = SurfaceGroup("skin", skin_ids, skin_g, weight=1.0, tris=skin_tris, facing=1.0)
     lm = None
     if landmarks and opt.use_landmarks:
         common = [k for k in model.landmark_nodes if k in landmarks]
         if common:
             lm = (np.array([model.landmark_nodes[k] for k in common]),
-                  np.array([landmarks[k] for k in common], dtype=float))
+                  inv.apply(np.array([landmarks[k] for k in common], dtype=float)))
     x, elog = elastic_register(x, skin_group, skin_tris, groups, lm, opt.schedule, seed=opt.seed)
     times["elastic_s"] = time.perf_counter() - t1
 
@@ -213,12 +223,14 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     times["snap_s"] = time.perf_counter() - t2
 
     t3 = time.perf_counter()
-    constraints = [SurfaceConstraint("skin", snapped["skin"], skin)]
+    constraints = [SurfaceConstraint("skin", snapped["skin"], skin_g)]
     constraints += [SurfaceConstraint(g.name, snapped[g.name], g.target) for g in groups]
     x, rep = repair_mesh(x, hexes, threshold=opt.threshold, constraints=constraints)
     times["repair_s"] = time.perf_counter() - t3
 
     t4 = time.perf_counter()
+    x = sim.apply(x)  # back to the patient frame; measured against the patient's own surfaces
+    groups = _bone_groups(model, bones)
     normals = vertex_normals(x, skin_tris)
     cl = skin.closest(x[skin_ids])
     valid = ~cl.on_boundary & (np.einsum("ij,ij->i", normals[skin_ids], cl.normal) > 0.5)

@@ -364,6 +364,46 @@ def write_skin(pred: Prediction, out: Path) -> dict:
     return {"pre": (x_pre, tris), "post": (x_post, tris), "magnitude": poly.point_data["displacement_magnitude"]}
 
 
+def midline_profile(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Segments (k, 2, 3) where the skin surface crosses the mid-sagittal plane x = 0."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    return np.asarray(trimesh.intersections.mesh_plane(mesh, [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]))
+
+
+def profile_chart(pre, post, path: Path) -> Path | None:
+    """The mid-sagittal skin profile before and after, seen from the patient's right (anterior
+    to the right, superior up), equal axes in mm."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    lines = [midline_profile(*pre), midline_profile(*post)]
+    if any(len(seg) == 0 for seg in lines):
+        return None
+
+    fig, ax = plt.subplots(figsize=(5, 6), dpi=100)
+    for seg, colour, label in zip(lines, ("#777777", "#d95f02"), ("pre-op", "predicted")):
+        ax.add_collection(LineCollection(seg[:, :, 1:], colors=colour, linewidths=2, label=label))
+    allpts = np.concatenate([seg.reshape(-1, 3) for seg in lines])
+    ax.set_xlim(allpts[:, 1].min() - 5, allpts[:, 1].max() + 5)
+    ax.set_ylim(allpts[:, 2].min() - 5, allpts[:, 2].max() + 5)
+    ax.set_aspect("equal")
+    ax.set_xlabel("antero-posterior y (mm)")
+    ax.set_ylabel("vertical z (mm)")
+    ax.set_title("mid-sagittal profile")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower left")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 def write_images(surfaces: dict, images: Path) -> list[tuple[Path, str]]:
     from planner import render
 
@@ -379,6 +419,9 @@ def write_images(surfaces: dict, images: Path) -> list[tuple[Path, str]]:
                                           cmap="viridis", clim=(0.0, top), scalar_bar_title="mm",
                                           title="soft-tissue displacement (mm)").items():
         out.append((path, f"displacement magnitude (mm), {view.replace('_', '-')}"))
+    path = profile_chart(surfaces["pre"], surfaces["post"], images / "profile_midline.png")
+    if path is not None:
+        out.append((path, "mid-sagittal profile: pre-op vs predicted"))
     for view, path in render.render_overlay([surfaces["pre"], surfaces["post"]], images / "overlay",
                                             labels=["pre-op", "predicted"], views=("profile",),
                                             title="profile: pre-op (grey) vs predicted").items():
@@ -540,6 +583,10 @@ DEMO_PLAN = {
         "chin": {"translation": [0.0, 2.0, 1.0]},
     },
     "muscles": {"orbicularis_oris": 0.0, "mentalis": 0.0},
+    # Lip contact is off in the demo for now: on the registered demo head the lip mucosa starts
+    # 1.5-1.9 mm inside the teeth surfaces (initial overclosure), and the contact solve diverges
+    # from the first load step. `faceplan predict` keeps contact on by default.
+    "model": {"contact": False},
 }
 
 
@@ -582,7 +629,8 @@ def run_demo(out_dir: str | Path, *, resolution: str = "coarse", render: bool = 
     import tempfile
 
     with tempfile.TemporaryDirectory(prefix="faceplan-demo-") as tmp:
-        case = write_demo_case(Path(tmp) / "case", dict(DEMO_PLAN, model={"resolution": resolution}))
+        case = write_demo_case(Path(tmp) / "case",
+                               dict(DEMO_PLAN, model=dict(DEMO_PLAN["model"], resolution=resolution)))
 
         def keep_case(folder: Path) -> None:
             shutil.copytree(case, folder / "case", ignore=shutil.ignore_patterns("predict", ".*"))

@@ -39,7 +39,8 @@ def test_outputs_exist(run):
     out = case / "predict"
     for name in ["prediction.vtu", "skin_predicted.stl", "skin_predicted.ply", "skin_predicted.vtp",
                  "report.json", "report.html", "images/preop_frontal.png", "images/predicted_profile.png",
-                 "images/displacement_three_quarter.png", "images/overlay_profile.png"]:
+                 "images/displacement_three_quarter.png", "images/overlay_profile.png",
+                 "images/profile_midline.png"]:
         assert (out / name).is_file(), name
     assert not [p for p in case.iterdir() if p.name.startswith(".predict")]   # no temporary left
 

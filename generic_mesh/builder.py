@@ -94,6 +94,7 @@ ORBICULARIS_B_LOW = -32.0 - _S      # mouth line to the labiomental fold (negati
 BUCCINATOR = (_C + 3.0, 48.0, 7.0)  # |theta| range and |phi - phi_s| half-height
 VESTIBULE = (48.0, _S - 10.5, _S + 10.0)   # free deep surface: |theta| < .., phi in (.., ..)
 FLOOR_OF_MOUTH = -62.0              # below: free deep surface (floor of mouth, neck)
+BSSO_RELEASE = (44.0, 56.0)         # |theta| band released around the sagittal split (deg)
 
 
 def orbicularis_ring(theta, phi):
@@ -313,10 +314,17 @@ def build(resolution: str = "standard") -> FaceModel:
 
 
 def _free_deep(theta, phi):
-    """Deep points facing the teeth / oral cavity or the floor of the mouth (not on bone)."""
+    """Deep points not tied to bone: facing the teeth / oral cavity, the floor of the mouth,
+    and the periosteum released around the sagittal split of the ramus (BSSO: the masseter
+    region between the distal segment and the ramus, and along the ramus's upper border),
+    where the surgeon strips the tissue off the bone and where a tie would shear the tissue
+    across a single element."""
     th = np.abs(theta)
     vest = (th < VESTIBULE[0]) & (phi > VESTIBULE[1]) & (phi < VESTIBULE[2])
-    return vest | (phi < FLOOR_OF_MOUTH)
+    bsso = (th > BSSO_RELEASE[0]) & (th < BSSO_RELEASE[1]) \
+        & (phi < np.where(th >= hg.RAMUS, 2.0, VESTIBULE[2]))
+    ramus_top = (th >= hg.RAMUS) & (phi > -8.0) & (phi < 4.0)
+    return vest | (phi < FLOOR_OF_MOUTH) | bsso | ramus_top
 
 
 def _skin_regions(skin, theta, phi, side):

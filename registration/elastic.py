@@ -9,9 +9,9 @@ level (lattice spacing h) and iteration, correspondences are formed
   * landmarks (optional): landmark nodes -> the patient's landmarks, with a small weight;
 and pairs are rejected when the closest point lies on an open border of the other surface (a
 hole, the edge of a partial scan, the border of the generic face mask), when the normals
-disagree by more than 60 degrees, or when the distance is an outlier (more than four times
-the median by four robust standard deviations, and more than 1 mm). The FFD fitted to the surviving pairs moves
-every node of the volume mesh; composing the per-iteration diffeomorphic FFDs gives the
+disagree by more than 60 degrees, or when the distance is an outlier (beyond the median by
+four robust standard deviations, and more than 1 mm). The FFD fitted to the surviving pairs
+moves every node of the volume mesh; composing the per-iteration diffeomorphic FFDs gives the
 smooth, fold-free volumetric transform of the Mesh-Match step (Couteau et al., "Finite element
 mesh generation by a mesh-matching method", Comput. Methods Programs Biomed. 63, 2000; Bucki,
 Lobos and Payan, "A fast and robust patient specific finite element mesh registration

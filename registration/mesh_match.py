@@ -269,8 +269,9 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         "elastic": elog.levels,
     }
     if lm is not None:
-        err = np.linalg.norm(x[lm[0]] - lm[1], axis=1)
+        # distance from each carried landmark node to the given landmark, in the patient frame
         names = [k for k in model.landmark_nodes if k in landmarks]
+        err = np.linalg.norm(x[lm[0]] - np.array([landmarks[k] for k in names], dtype=float), axis=1)
         report["landmarks"] = {n: {"error_mm": float(e)} for n, e in zip(names, err)}
     times["measure_s"] = time.perf_counter() - t4
     times["total_s"] = time.perf_counter() - t0

@@ -62,6 +62,9 @@ def test_registration_meets_targets_with_landmarks(generic, head_a, registered_a
     _check_targets(generic, patient, report, head_a)
     assert set(report["time"]) >= {"align_s", "elastic_s", "snap_s", "repair_s", "total_s"}
     assert report["quality"]["histogram"]["counts"] and report["cached"] is False
+    for name, node in generic.landmarks.items():  # the report's landmark errors are the real ones
+        want = np.linalg.norm(patient.nodes[node] - head_a.landmarks[name])
+        assert abs(report["landmarks"][name]["error_mm"] - want) < 1e-9
 
 
 def test_registration_meets_targets_from_surfaces_alone(generic, head_b):

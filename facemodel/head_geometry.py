@@ -316,7 +316,7 @@ def genioplasty_line(theta) -> np.ndarray:
     return -36.0 - 14.0 * (np.asarray(theta) / 26.0) ** 2
 
 
-MANDIBLE_BORDER = -54.0      # lower border of the mandible (deg)
+MANDIBLE_BORDER = -62.0      # lower border of the mandible, its underside included (deg)
 RAMUS = 50.0                 # azimuth beyond which the ramus replaces the maxilla (deg)
 
 
@@ -350,9 +350,11 @@ def bone_radius(theta, phi, shape: HeadShape = GENERIC, side=None) -> np.ndarray
     th = np.abs(theta)
     phi = np.asarray(phi, dtype=float)
     r = deep_radius(theta, phi, shape, side)
-    band = smoothstep(PHI_STOMION - 13.0, PHI_STOMION - 10.0, phi) \
-        * (1.0 - smoothstep(PHI_STOMION + 10.0, PHI_STOMION + 13.0, phi)) \
-        * (1.0 - smoothstep(44.0, RAMUS, th))
+    # the band lies inside the vestibule (free deep surface: |theta| < 48, phi_s - 10.5 <
+    # phi < phi_s + 10), so that bone and deep surface coincide wherever tissue is attached
+    band = smoothstep(PHI_STOMION - 10.5, PHI_STOMION - 8.5, phi) \
+        * (1.0 - smoothstep(PHI_STOMION + 8.0, PHI_STOMION + 10.0, phi)) \
+        * (1.0 - smoothstep(42.0, 46.0, th))
     front = _front_radius(theta, phi, side, shape) + _jaw_shift(theta, phi, side, shape)
     return np.minimum(r, (1.0 - band) * r + band * front)
 

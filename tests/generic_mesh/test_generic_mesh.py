@@ -281,3 +281,14 @@ def test_mean_head_is_the_generic_geometry(coarse):
     for k, v in head.landmarks.items():
         if k not in ("Stms", "Stmi"):
             np.testing.assert_allclose(v, coarse.landmark_positions[k], atol=1e-9)
+
+
+def test_attached_nodes_lie_on_their_bone(standard):
+    # every attachment node sits on the closed bone surface of its segment in the mean head
+    # (the deep surface is the bone wherever tissue is tied); 1 mm covers the facetting of the
+    # shells (structured, ~2 mm facets on curved bone)
+    head = generic_mesh.mean_head(size=4.0)
+    for seg in standard.segments:
+        x = standard.nodes[standard.node_sets[ATTACHMENT_SETS[seg]]]
+        _, d, _ = trimesh.proximity.closest_point(head.bones[seg], x)
+        assert d.max() < 1.0, seg

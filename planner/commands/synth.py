@@ -55,7 +55,7 @@ def sample_plan(shape) -> dict:
     """A bimaxillary plan that brings the head's jaws towards the norm: maxillary advancement
     (at least 2 mm) with 1 mm impaction and a 2 deg pitch about A point; the mandible follows
     the maxilla and corrects its own discrepancy; a genioplasty when the chin is off by more
-    than 1.5 mm."""
+    than 1.5 mm (otherwise the chin moves with the mandible)."""
     from facemodel import head_geometry as hg
 
     adv = float(np.clip(2.0 - shape.maxilla_ap, 2.0, 7.0))
@@ -67,8 +67,10 @@ def sample_plan(shape) -> dict:
                                  "center": [round(float(c), 2) for c in a_point]}},
         "mandible": {"translation": [0.0, round(mand, 2), 0.0]},
     }
-    if abs(shape.chin_projection) > 1.5:
-        segs["chin"] = {"translation": [0.0, round(-float(shape.chin_projection), 2), 0.0]}
+    # the chin is a separate bone surface: without a genioplasty it moves with the mandible
+    # (distal segment); with one (chin off by more than 1.5 mm) it is also brought back
+    chin = mand - float(shape.chin_projection) if abs(shape.chin_projection) > 1.5 else mand
+    segs["chin"] = {"translation": [0.0, round(chin, 2), 0.0]}
     return {"faceplan": 1, "frame": "RAS", "segments": segs,
             "muscles": {"orbicularis_oris": 0.0, "mentalis": 0.0},
             "model": {"resolution": "standard"}}
@@ -93,7 +95,7 @@ def write_case(folder: Path, head, *, ct: bool = False, ct_spacing: float = 1.0)
     plan = sample_plan(head.shape)
     (folder / "plan.yaml").write_text(
         "# faceplan synth: sample bimaxillary plan (Le Fort I, BSSO"
-        + (", genioplasty" if "chin" in plan["segments"] else "") + ")\n"
+        + (", genioplasty" if abs(head.shape.chin_projection) > 1.5 else "") + ")\n"
         + yaml.safe_dump(plan, sort_keys=False))
     info = {"id": folder.name, "synthetic": True, "seed": int(head.seed)}
     (folder / "case.yaml").write_text(yaml.safe_dump(info, sort_keys=False))

@@ -110,7 +110,7 @@ def test_synth_command_writes_case_folders(tmp_path):
     assert set(case.bones) == {"skull", "maxilla", "mandible", "chin"}
     assert set(case.landmarks) >= {"Prn", "Sn", "Ls", "Li", "Pog", "Me", "ChL", "ChR"}
     plan = load_plan(out / "synth_0004" / "plan.yaml")
-    assert {"maxilla", "mandible"} <= set(plan.segments)
+    assert {"maxilla", "mandible", "chin"} <= set(plan.segments)
     truth = json.loads(key.read_text())
     assert [c["seed"] for c in truth["cases"]] == [4, 5]
     assert truth["cases"][0]["shape"] == sy.random_shape(4).as_dict()

@@ -29,7 +29,7 @@ from planner.plan import EFFECTS, Plan, check_against_bones, load_plan
 from planner.segments import as_trimesh, assign_segments, with_segments
 
 # Effects `--effect NAME=VALUE` can add to a prediction, and how each maps onto the model.
-# sliding: 0/1 (1: every attachment slides on its bone); muscle_tone: resting activation of the
+# sliding: 0/1 (1: the soft tissue slides on every moved bone segment); muscle_tone: resting activation of the
 # perioral muscles in [0, 1]; stiffness: factor on every tissue's stiffness parameters.
 SUPPORTED_EFFECTS = ("sliding", "muscle_tone", "stiffness")
 # muscle_tone: the resting tone of the lip sphincter and the chin/lower-lip muscles.
@@ -224,8 +224,8 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
             for seg, s in assignment.items():
                 progress.say(f"  {seg}: {s['nodes']} attachment nodes (median {s['median_distance_mm']} mm from bone)")
     sliding = tuple(plan.model.sliding)
-    if effects.get("sliding", 0.0) >= 0.5:
-        sliding = tuple(model.segments)
+    if effects.get("sliding", 0.0) >= 0.5:     # the effect: tissue slides on every moved segment
+        sliding = tuple(n for n, m in plan.motions().items())
     sliding = _sliding_sets(model, sliding)
     activations = dict(plan.muscles)
     tone = effects.get("muscle_tone", 0.0)

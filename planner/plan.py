@@ -89,6 +89,7 @@ class SegmentPlan:
 class ModelOptions:
     resolution: str = "standard"
     sliding: tuple[str, ...] = ()          # segments whose soft tissue slides instead of being tied
+                                           # (`sliding: true` in the plan: every moved segment)
     contact: bool = True
     materials: dict[str, dict[str, float]] = field(default_factory=dict)
     effects: dict[str, float] = field(default_factory=dict)
@@ -373,7 +374,10 @@ def parse_plan(data: Any, file: str = "plan.yaml", plan_dir: Path | None = None,
         r.fail("model.resolution", f"must be one of {', '.join(RESOLUTIONS)}, got {resolution!r}")
     sliding = mt.get("sliding", False)
     if isinstance(sliding, bool):
-        sliding_t = tuple(segments) if sliding else ()
+        # true: the soft tissue slides on every osteotomised (moved) segment, where surgery
+        # detaches it from the bone; it stays tied to the fixed skull.
+        sliding_t = tuple(n for n, sp in plans.items()
+                          if not np.allclose(sp.matrix, np.eye(4))) if sliding else ()
     elif isinstance(sliding, list) and all(isinstance(s, str) for s in sliding):
         for s in sliding:
             if s not in segments:

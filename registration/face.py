@@ -36,8 +36,11 @@ def as_target(surface, name: str) -> TargetSurface:
         return surface
     if isinstance(surface, (tuple, list)) and len(surface) == 2:
         v, f = surface
-    elif hasattr(surface, "vertices") and hasattr(surface, "faces"):
+    elif hasattr(surface, "vertices") and hasattr(surface, "faces"):  # trimesh
         v, f = surface.vertices, surface.faces
+    elif hasattr(surface, "points") and hasattr(surface, "faces"):  # pyvista PolyData
+        tri = surface.triangulate() if hasattr(surface, "triangulate") else surface
+        v, f = tri.points, tri.faces
     else:
         raise RegistrationInputError(f"{name}: expected a triangle surface, got {type(surface).__name__}",
                                      field=name)
@@ -72,16 +75,12 @@ def reorient_fibres(old_nodes, new_nodes, hexes, fibres) -> np.ndarray:
     return out
 
 
-def _segment_of_teeth(model, name: str, segment: str | None) -> str | None:
-    if segment:
-        return segment
-    return {"upper": "maxilla", "lower": "mandible"}.get(name)
-
-
 def move_teeth(model, new_nodes: np.ndarray, similarity) -> dict:
+    """Each set of teeth moved by the similarity fitted (Umeyama) to its segment's attached
+    nodes, generic -> registered; the global similarity when the segment has too few."""
     teeth = {}
     for name, (v, f, seg) in model.teeth.items():
-        seg = _segment_of_teeth(model, name, seg)
+        seg = seg or {"upper": "maxilla", "lower": "mandible"}.get(name)
         ids = np.asarray(model.node_sets.get(f"attach_{seg}", []), dtype=int)
         if len(ids) >= 4:
             tf = umeyama(model.nodes[ids], new_nodes[ids])

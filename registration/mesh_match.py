@@ -253,7 +253,14 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                          uv[:, 0] * uv[:, 1], (1 - uv[:, 0]) * uv[:, 1]], axis=1)
     facet_pts = np.einsum("sc,qcd->qsd", shape_fn, x[quads]).reshape(-1, 3)
     facet_d = skin.closest(facet_pts).distance if len(facet_pts) else np.zeros(0)
+    def describe(t: TargetSurface) -> dict:
+        return {"triangles": int(len(t.faces)), "area_mm2": t.area,
+                "mean_edge_mm": t.mean_edge_length,
+                "open_edges": int(t.face_edge_boundary.sum()),
+                "reoriented_fraction": t.flipped_fraction}
+
     report = {
+        "input_surfaces": {"skin": describe(skin), **{f"bone.{k}": describe(b) for k, b in bones.items()}},
         "alignment": {**align_info, "matrix": sim.matrix.tolist()},
         "coverage": coverage,
         "fit": {

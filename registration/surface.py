@@ -207,6 +207,7 @@ class TargetSurface:
         normals[turn[comp]] *= -1.0
         flip ^= turn[comp]
         self.face_normals = normals
+        # share of the area whose winding was turned on reading (1.0: all normals were flipped)
         self.flipped_fraction = float(self.face_areas[flip].sum() / self.face_areas.sum())
 
     @property

@@ -11,7 +11,11 @@ swelling, eyes, scan noise). A first coarse stage uses the whole face with a wid
 capture the scan from a rough placement; the second stage uses only the unoperated regions.
 A scan in its own camera frame can be brought near first by `global_initialisation`: coarse
 trimmed ICP from the 24 rotations of the cube group about the matched centroids, keeping the
-start with the smallest trimmed residual.
+start with the smallest trimmed residual. `superimpose` runs the ICP from the given frame and,
+when the result looks wrong (few inliers, a residual above 0.75 mm on the unoperated regions,
+or less than 60% of the scan within 2 mm of the face: a local minimum, e.g. a rotated pose
+that fits the rounded forehead and cheeks only), also from the global starts, and keeps the
+pose that brings more of the scan within 2 mm of the face.
 The root-mean-square residual of the final inliers is the noise floor of the comparison.
 """
 from __future__ import annotations
@@ -22,7 +26,7 @@ import numpy as np
 
 from planner.compare.distances import TriangleSurface
 
-__all__ = ["Alignment", "trimmed_icp", "align_to_reference", "global_initialisation",
+__all__ = ["Alignment", "trimmed_icp", "align_to_reference", "global_initialisation", "superimpose",
            "rotation_matrix", "apply"]
 
 
@@ -51,6 +55,8 @@ class Alignment:
     iterations: int
     converged: bool
     history: list[float] = field(default_factory=list)   # trimmed RMS per iteration
+    strategy: str = "local"            # "local": ICP from the given frame; "global": 24 starts
+    face_coverage: float = float("nan")   # scan fraction within 2 mm of the face (pose check)
 
     @property
     def rotation_deg(self) -> float:
@@ -68,6 +74,8 @@ class Alignment:
             "n_points": self.n_points,
             "iterations": self.iterations,
             "converged": self.converged,
+            "strategy": self.strategy,
+            "face_coverage": self.face_coverage,
             "rotation_deg": self.rotation_deg,
             "translation_mm": self.translation_mm,
             "matrix": self.matrix.tolist(),
@@ -208,7 +216,8 @@ def global_initialisation(scan_points: np.ndarray, reference: TriangleSurface,
 
     Each of the 24 cube rotations about the scan centroid, with the centroids matched, starts
     a coarse trimmed ICP (half the points kept, 60 mm gate); the four starts with the smallest
-    trimmed residual after six iterations are run to convergence and the best one wins.
+    trimmed residual after six iterations are run to convergence and the one bringing most of
+    the scan within 2 mm of the reference wins.
     """
     pts = np.asarray(scan_points, float)
     rng = np.random.default_rng(seed)
@@ -231,9 +240,56 @@ def global_initialisation(scan_points: np.ndarray, reference: TriangleSurface,
         a = run(T, 6)
         if a.n_points >= need:
             trials.append((a.residual_rms_mm, a.matrix))
-    best, best_score = np.eye(4), np.inf
+    best, best_score = np.eye(4), -1.0
     for _, T in sorted(trials, key=lambda t: t[0])[:4]:
         a = run(T, 30)
-        if a.n_points >= need and a.residual_rms_mm < best_score:
-            best, best_score = a.matrix, a.residual_rms_mm
+        score = _face_coverage(pts, reference, a.matrix) if a.n_points >= need else -1.0
+        if score > best_score:
+            best, best_score = a.matrix, score
     return best
+
+
+def _face_coverage(pts: np.ndarray, reference: TriangleSurface, T: np.ndarray,
+                   within: float = 2.0) -> float:
+    """Fraction of the scan points lying within `within` mm of the face (not beyond its edge)."""
+    cp = reference.closest(apply(T, pts[:3000]), k=4)
+    return float(np.mean(~cp.beyond_boundary & (cp.distance <= within)))
+
+
+def superimpose(
+    scan_points: np.ndarray,
+    reference: TriangleSurface,
+    unoperated_faces: np.ndarray,
+    keep: float = 0.9,
+    global_init: bool = False,
+    max_points: int = 10000,
+    seed: int = 0,
+    suspicious_residual_mm: float = 0.75,
+    suspicious_coverage: float = 0.6,
+    min_points: int = 50,
+) -> Alignment:
+    """The scan's pose on the reference: local ICP, with a global search when it looks wrong.
+
+    With `global_init` the global starts are used from the outset.
+    """
+    pts = np.asarray(scan_points, float)
+    if len(pts) > max_points:
+        pts = pts[np.random.default_rng(seed).choice(len(pts), max_points, replace=False)]
+
+    def attempt(init, strategy):
+        a = align_to_reference(pts, reference, unoperated_faces, keep=keep, init=init)
+        a.strategy = strategy
+        a.face_coverage = _face_coverage(pts, reference, a.matrix)
+        return a
+
+    if global_init:
+        return attempt(global_initialisation(pts, reference), "global")
+    local = attempt(None, "local")
+    if (local.n_points >= min_points and local.residual_rms_mm <= suspicious_residual_mm
+            and local.face_coverage >= suspicious_coverage):
+        return local
+    wide = attempt(global_initialisation(pts, reference), "global")
+    if wide.n_points >= min_points and (local.n_points < min_points
+                                        or wide.face_coverage > local.face_coverage):
+        return wide
+    return local

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planner.compare.alignment import Alignment, align_to_reference, apply, global_initialisation
+from planner.compare.alignment import Alignment, apply, superimpose
 from planner.compare.distances import TriangleSurface, vertex_areas
 from planner.compare.inputs import Prediction, Surface
 from planner.compare.landmarks import RULES, LandmarkLocator
@@ -160,9 +160,24 @@ def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: 
 
     scan_pts = scan.vertices
     if alignment is None and align:
-        init = global_initialisation(scan_pts, pred_surface) if global_init else None
-        alignment = align_to_reference(scan_pts, pred_surface, unop_faces, keep=keep, init=init)
+        alignment = superimpose(scan_pts, pred_surface, unop_faces, keep=keep,
+                                global_init=global_init)
         min_inliers = 50
+        if alignment.strategy == "global" and not global_init:
+            c = scan_pts.mean(axis=0)
+            shift = float(np.linalg.norm(apply(alignment.matrix, c[None])[0] - c))
+            lo = np.maximum(scan_pts.min(axis=0), pred.vertices.min(axis=0))
+            hi = np.minimum(scan_pts.max(axis=0), pred.vertices.max(axis=0))
+            if np.any(lo > hi):
+                # where it was given, the scan's bounding box misses the face altogether
+                raise InputError(
+                    "the post-op scan does not overlap the predicted face (their bounding boxes "
+                    f"are disjoint; it would fit {shift:.0f} mm away): give it in the patient's "
+                    "frame (RAS, mm), or use --global-init if it is in its scanner's own frame",
+                    file=str(scan.path))
+            warnings.append("the scan did not fit from its own position; its pose was found by a "
+                            f"global search (moved {shift:.1f} mm, rotated "
+                            f"{alignment.rotation_deg:.1f} degrees)")
         if alignment.n_points < min_inliers:
             raise InputError(
                 "the post-op scan does not overlap the predicted face's unoperated regions "

@@ -4,7 +4,12 @@ Problem (issue 2): a 20 x 20 x 20 hexahedral cube of 20 mm, Yeoh C10 = 2.5, C20 
 K = 2500 kPa with U = K/2 (J - 1)^2 (FElupe's `NearlyIncompressible` volumetric function), the
 Q1/P0 mean-dilatation formulation in both codes (FElupe: `FieldsMixed(n=3)` with piecewise
 constant pressure and dilatation + `NearlyIncompressible`), face x = 0 clamped, face x = 20
-pulled 6 mm in x (its y, z held) in 4 equal steps, PARDISO as FElupe's linear solver. Prints
+pulled 6 mm in x (free laterally) in 4 equal steps, PARDISO as FElupe's linear solver (in
+symmetric indefinite mode, mtype -2, like faceplan's: here `pypardiso.spsolve`'s default
+unsymmetric LU returned a singular first update, |dx| ~ 1e11, and FElupe stopped; pass
+`--felupe-pardiso unsymmetric` to try it). (With
+the pulled face also held laterally FElupe's Newton produces NaN in the first step at this
+mesh size: it has no cut-back; faceplan solves that variant too.) Prints
 both wall times (set-up included), the ratio and the largest displacement difference relative
 to the largest displacement; then a DOF-scaling table of faceplan's solver (each size in a
 fresh process: assembly s per tangent, numerical factorisation s, Newton iterations of the
@@ -26,6 +31,7 @@ import time
 import numpy as np
 
 N, L, PULL, STEPS = 20, 20.0, 6.0, 4
+VERBOSE = 0
 C10, C20, C30, K = 2.5, 1.175, 0.0, 2500.0
 
 
@@ -37,15 +43,37 @@ def faceplan_run(n=N, steps=STEPS, collect=False):
     nodes, hexes, s = block((L, L, L), (n, n, n))
     body = solver.SolidBody(solver.HexMesh(nodes, hexes),
                             solver.Yeoh(C10, C20, C30, K=K, volumetric="quadratic"))
-    bcs = [solver.fix(s["xmin"]), solver.Prescribed(s["xmax"], [PULL, 0.0, 0.0])]
+    bcs = [solver.fix(s["xmin"]), solver.Prescribed(s["xmax"], [PULL, 0.0, 0.0], (0,))]
     res = solver.newton_solve(body, bcs, steps=steps, grow=False)
     t = time.perf_counter() - t0
     return nodes, res, t, body
 
 
+def pardiso_for_felupe(mode):
+    """PARDISO as FElupe's linear solver: pypardiso.spsolve (unsymmetric LU, mtype 11), or
+    symmetric indefinite (mtype -2) on the upper triangle of FElupe's symmetric matrix."""
+    import pypardiso
+    import scipy.sparse as sp
+
+    if mode == "unsymmetric":
+        return pypardiso.spsolve
+    ps = pypardiso.PyPardisoSolver(mtype=-2)
+
+    def solve(A, b):
+        U = sp.triu(sp.csr_matrix(A), format="csr")
+        U.sort_indices()
+        ps.set_phase(13)
+        return ps._call_pardiso(U, np.ascontiguousarray(b, dtype=float).reshape(len(b), -1)
+                                if np.ndim(b) > 1 else np.ascontiguousarray(b, dtype=float))
+
+    return solve
+
+
+FELUPE_PARDISO = "symmetric"
+
+
 def felupe_run(n=N):
     import felupe as fem
-    import pypardiso
 
     t0 = time.perf_counter()
     mesh = fem.Cube(a=(0, 0, 0), b=(L, L, L), n=n + 1)
@@ -55,13 +83,12 @@ def felupe_run(n=N):
     solid = fem.SolidBody(umat, field)
     bounds = {
         "fixed": fem.Boundary(field[0], fx=0.0),
-        "yz": fem.Boundary(field[0], fx=L, skip=(1, 0, 0)),
         "move": fem.Boundary(field[0], fx=L, skip=(0, 1, 1)),
     }
     ramp = {bounds["move"]: fem.math.linsteps([0, PULL], num=STEPS)[1:]}
     step = fem.Step(items=[solid], ramp=ramp, boundaries=bounds)
     job = fem.Job(steps=[step])
-    job.evaluate(solver=pypardiso.spsolve, verbose=0)
+    job.evaluate(solver=pardiso_for_felupe(FELUPE_PARDISO), verbose=VERBOSE)
     t = time.perf_counter() - t0
     return mesh.points.copy(), field[0].values.copy(), t
 
@@ -78,7 +105,7 @@ def _match(pa, pb):
     return j
 
 
-def scaling_point(n):
+def scaling_point(n, newton=True):
     """One row of the scaling table (run in a child process for a clean peak memory)."""
     import solver
     from solver.examples import block
@@ -104,13 +131,16 @@ def scaling_point(n):
     t = time.perf_counter()
     lin.solve(A, r)                                           # factorisation only (reused analysis)
     t_fact = time.perf_counter() - t
-    bcs = [solver.fix(s["xmin"]), solver.Prescribed(s["xmax"], [PULL, 0.0, 0.0])]
-    t = time.perf_counter()
-    res = solver.newton_solve(body, bcs, steps=STEPS, grow=False)
-    t_solve = time.perf_counter() - t
+    bcs = [solver.fix(s["xmin"]), solver.Prescribed(s["xmax"], [PULL, 0.0, 0.0], (0,))]
+    iterations, t_solve = -1, float("nan")
+    if newton:
+        t = time.perf_counter()
+        res = solver.newton_solve(body, bcs, steps=STEPS, grow=False)
+        t_solve = time.perf_counter() - t
+        iterations = res.iterations
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return {"n": n, "dofs": 3 * len(nodes), "assembly_s": t_asm, "analysis+factor_s": t_first,
-            "factor_s": t_fact, "newton_iterations": res.iterations, "solve_s": t_solve,
+            "factor_s": t_fact, "newton_iterations": iterations, "solve_s": t_solve,
             "peak_MB": peak, "backend": lin.backend}
 
 
@@ -118,20 +148,27 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--no-scaling", action="store_true")
     ap.add_argument("--sizes", default="15,24,33,40")
+    ap.add_argument("--felupe-pardiso", choices=["symmetric", "unsymmetric"], default="symmetric")
+    ap.add_argument("--newton-max-dofs", type=int, default=60000,
+                    help="run the full Newton solve in the scaling table up to this many DOF")
     ap.add_argument("--scaling-point", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--no-newton", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.scaling_point:
-        print(json.dumps(scaling_point(a.scaling_point)))
+        print(json.dumps(scaling_point(a.scaling_point, newton=not a.no_newton)))
         return 0
+    global FELUPE_PARDISO
+    FELUPE_PARDISO = a.felupe_pardiso
     here = os.path.dirname(os.path.abspath(__file__))
     sys.path.insert(0, os.path.dirname(here))
 
     faceplan_run(n=2, steps=1)                                # compile / load numba caches
     nodes, res, t_fp, body = faceplan_run()
     print(f"faceplan: {t_fp:.2f} s, {res.iterations} Newton iterations in {len(res.steps)} steps "
-          f"(assembly {res.timings['assembly']:.2f} s, linear solves {res.timings['solve']:.2f} s)")
+          f"(assembly {res.timings['assembly']:.2f} s, linear solves {res.timings['solve']:.2f} s)",
+          flush=True)
     pts, u_fe, t_fe = felupe_run()
-    print(f"FElupe + PARDISO: {t_fe:.2f} s")
+    print(f"FElupe + PARDISO: {t_fe:.2f} s", flush=True)
     j = _match(nodes, pts)
     diff = np.abs(res.u - u_fe[j]).max() / np.abs(u_fe).max()
     speed = t_fe / t_fp
@@ -140,15 +177,18 @@ def main():
         print(f"{'elements':>9} {'DOF':>8} {'assembly s':>11} {'analysis+fact s':>16} "
               f"{'fact s':>7} {'Newton it':>10} {'solve s':>8} {'peak MB':>8}")
         for n in [int(v) for v in a.sizes.split(",")]:
-            out = subprocess.run([sys.executable, __file__, "--scaling-point", str(n)],
-                                 capture_output=True, text=True)
+            cmd = [sys.executable, __file__, "--scaling-point", str(n)]
+            if 3 * (n + 1) ** 3 > a.newton_max_dofs:
+                cmd.append("--no-newton")
+            out = subprocess.run(cmd, capture_output=True, text=True)
             if out.returncode != 0:
                 print(f"{n ** 3:>9} failed: {out.stderr.strip().splitlines()[-1:]}")
                 continue
             row = json.loads(out.stdout.strip().splitlines()[-1])
             print(f"{n ** 3:>9} {row['dofs']:>8} {row['assembly_s']:>11.2f} "
                   f"{row['analysis+factor_s']:>16.2f} {row['factor_s']:>7.2f} "
-                  f"{row['newton_iterations']:>10d} {row['solve_s']:>8.1f} {row['peak_MB']:>8.0f}")
+                  f"{row['newton_iterations'] if row['newton_iterations'] >= 0 else '-':>10} "
+                  f"{row['solve_s']:>8.1f} {row['peak_MB']:>8.0f}", flush=True)
     print(f"speedup={speed:.2f} max_rel_diff={diff:.2e} faceplan_s={t_fp:.2f} felupe_s={t_fe:.2f}")
     return 0
 

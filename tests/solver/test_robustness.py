@@ -1,0 +1,118 @@
+"""Robustness and refusal of bad input (issue 2, check 5).
+
+* A stiff Yeoh block (K/C10 = 1e3) compressed to 50% of its height and sheared by half its
+  height, asked for in ONE load step, converges through automatic cut-backs to the same state
+  as a run with many small steps (displacements agree to 1e-6 relative: both are converged to
+  the same residual tolerance on the same mesh).
+* An unreachable load raises SolveFailed naming the step, the load fraction and the worst
+  element, and keeps the last converged state.
+* Inverted / degenerate elements and bad material parameters are refused with clear messages.
+"""
+import numpy as np
+import pytest
+
+import solver
+from solver.examples import block
+
+
+@pytest.fixture(scope="module")
+def cube():
+    return block((1, 1, 1), (3, 3, 3))
+
+
+def _compress_shear(cube, steps):
+    nodes, hexes, s = cube
+    body = solver.SolidBody(solver.HexMesh(nodes, hexes), solver.Yeoh(2.5, 1.175, 0.3, K=2500.0))
+    bcs = [solver.fix(s["zmin"]), solver.Prescribed(s["zmax"], [0.5, 0.0, -0.5])]
+    return solver.newton_solve(body, bcs, steps=steps, max_iterations=15)
+
+
+def test_compression_and_shear_converges_with_cutbacks(cube):
+    one = _compress_shear(cube, 1)
+    assert one.converged and one.load == 1.0
+    assert one.cutbacks >= 1                                 # one step was too much
+    many = _compress_shear(cube, 16)
+    assert many.cutbacks == 0
+    assert np.abs(one.u - many.u).max() < 1e-6 * np.abs(many.u).max()
+
+
+def test_failure_reports_step_load_worst_element_and_keeps_state(cube):
+    nodes, hexes, s = cube
+    body = solver.SolidBody(solver.HexMesh(nodes, hexes), solver.Yeoh(2.5, 1.175, 0.3, K=2500.0))
+    # the top pushed through the bottom: impossible without inversion
+    bcs = [solver.fix(s["zmin"]), solver.Prescribed(s["zmax"], [0.0, 0.0, -1.2])]
+    with pytest.raises(solver.SolveFailed) as info:
+        solver.newton_solve(body, bcs, steps=4, min_step=0.02, max_iterations=10)
+    err = info.value
+    assert "step" in str(err) and "load fraction" in str(err) and "worst element" in str(err)
+    assert 0 < err.last_converged_load < err.load <= 1.0
+    assert err.worst_element is not None and 0 <= err.worst_element < len(hexes)
+    st = err.state
+    assert st.load == err.last_converged_load
+    assert np.all(np.isfinite(st.x))
+    assert body.volume_ratio(st.x).min() > 0                 # the kept state is a valid one
+    top = st.u[s["zmax"], 2]
+    assert np.allclose(top, -1.2 * st.load)
+
+
+def test_inverted_element_refused(cube):
+    nodes, hexes, s = cube
+    bad = hexes.copy()
+    bad[4] = bad[4][[4, 5, 6, 7, 0, 1, 2, 3]]                # upside down: negative Jacobian
+    with pytest.raises(solver.MeshError, match="inverted") as info:
+        solver.HexMesh(nodes, bad)
+    assert info.value.elements == [4]
+    assert "4" in str(info.value)
+
+
+def test_degenerate_and_out_of_range_refused(cube):
+    nodes, hexes, s = cube
+    bad = hexes.copy()
+    bad[2, 1] = bad[2, 0]
+    with pytest.raises(solver.MeshError, match="repeat"):
+        solver.HexMesh(nodes, bad)
+    bad = hexes.copy()
+    bad[0, 0] = len(nodes) + 5
+    with pytest.raises(solver.MeshError, match="outside"):
+        solver.HexMesh(nodes, bad)
+    with pytest.raises(solver.MeshError, match="shape"):
+        solver.HexMesh(nodes[:, :2], hexes)
+
+
+def test_scaled_jacobian(cube):
+    nodes, hexes, s = cube
+    assert np.allclose(solver.scaled_jacobian(nodes, hexes), 1.0)
+    sheared = nodes.copy()
+    sheared[:, 0] += nodes[:, 2]                             # 45 degree shear: sin(45)
+    assert np.allclose(solver.scaled_jacobian(sheared, hexes), np.sqrt(0.5))
+
+
+@pytest.mark.parametrize("kwargs, name", [
+    (dict(C10=-1.0, K=100.0), "C10"),
+    (dict(C10=0.0, K=100.0), "C10"),
+    (dict(C10=1.0, K=0.0), "K"),
+    (dict(C10=1.0, K=float("nan")), "K"),
+    (dict(C10=1.0, C20="abc", K=10.0), "C20"),
+])
+def test_bad_yeoh_parameters_refused(kwargs, name):
+    with pytest.raises(solver.MaterialError, match=name) as info:
+        solver.Yeoh(**kwargs)
+    assert info.value.parameter == name
+
+
+def test_bad_neo_hooke_and_missing_label():
+    with pytest.raises(solver.MaterialError, match="mu"):
+        solver.NeoHooke(mu=-2.0, K=10.0)
+    nodes, hexes, _ = block((1, 1, 1), (2, 1, 1))
+    mesh = solver.HexMesh(nodes, hexes, labels=[0, 3])
+    with pytest.raises(solver.MaterialError, match=r"label\(s\) \[3\]"):
+        solver.SolidBody(mesh, {0: solver.NeoHooke(1.0, 100.0)})
+
+
+def test_bad_boundary_conditions_refused():
+    with pytest.raises(solver.BoundaryConditionError):
+        solver.Prescribed([0, 1], np.zeros((3, 3)))
+    with pytest.raises(solver.BoundaryConditionError):
+        solver.LocalFrame([0], np.ones((3, 3)))              # not orthonormal
+    with pytest.raises(solver.BoundaryConditionError):
+        solver.fix([0], [3])

@@ -127,6 +127,43 @@ def _locate_landmarks(pred: Prediction, pred_surface: TriangleSurface, scan: Tri
     return out
 
 
+def _superimpose_checked(pred: Prediction, scan: Surface, pred_surface: TriangleSurface,
+                         unop_faces: np.ndarray, keep: float, global_init: bool,
+                         max_residual_mm: float, warnings: list[str]) -> Alignment:
+    """The scan's pose on the prediction's unoperated regions; InputError when there is none."""
+    scan_pts = scan.vertices
+    alignment = superimpose(scan_pts, pred_surface, unop_faces, keep=keep, global_init=global_init)
+    if alignment.strategy == "global" and not global_init:
+        c = scan_pts.mean(axis=0)
+        shift = float(np.linalg.norm(apply(alignment.matrix, c[None])[0] - c))
+        lo = np.maximum(scan_pts.min(axis=0), pred.vertices.min(axis=0))
+        hi = np.minimum(scan_pts.max(axis=0), pred.vertices.max(axis=0))
+        if np.any(lo > hi):
+            # where it was given, the scan's bounding box misses the face altogether
+            raise InputError(
+                "the post-op scan does not overlap the predicted face (their bounding boxes "
+                f"are disjoint; it would fit {shift:.0f} mm away): give it in the patient's "
+                "frame (RAS, mm), or use --global-init if it is in its scanner's own frame",
+                file=str(scan.path))
+        warnings.append("the scan did not fit from its own position; its pose was found by a "
+                        f"global search (moved {shift:.1f} mm, rotated "
+                        f"{alignment.rotation_deg:.1f} degrees)")
+    if alignment.n_points < 50:
+        raise InputError(
+            "the post-op scan does not overlap the predicted face's unoperated regions "
+            f"({', '.join(pred.unoperated_regions)}): only {alignment.n_points} scan points "
+            "lie on them; is the scan in the patient's frame (RAS, mm)?", file=str(scan.path))
+    if not alignment.residual_rms_mm <= max_residual_mm:
+        raise InputError(
+            f"the post-op scan cannot be superimposed on the unoperated regions (residual "
+            f"{alignment.residual_rms_mm:.2f} mm > {max_residual_mm} mm): wrong patient, or "
+            "not overlapping the face", file=str(scan.path))
+    if alignment.residual_rms_mm > 1.0:
+        warnings.append(f"alignment residual {alignment.residual_rms_mm:.2f} mm is large: "
+                        "distances below it are within the noise floor")
+    return alignment
+
+
 def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: float = 0.9,
                      align: bool = True, max_residual_mm: float = 3.0,
                      global_init: bool = False, alignment: Alignment | None = None,
@@ -159,40 +196,10 @@ def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: 
     unop_faces = np.all(unop_vertex[pred.faces], axis=1)
 
     scan_pts = scan.vertices
-    if alignment is None and align:
-        alignment = superimpose(scan_pts, pred_surface, unop_faces, keep=keep,
-                                global_init=global_init)
-        min_inliers = 50
-        if alignment.strategy == "global" and not global_init:
-            c = scan_pts.mean(axis=0)
-            shift = float(np.linalg.norm(apply(alignment.matrix, c[None])[0] - c))
-            lo = np.maximum(scan_pts.min(axis=0), pred.vertices.min(axis=0))
-            hi = np.minimum(scan_pts.max(axis=0), pred.vertices.max(axis=0))
-            if np.any(lo > hi):
-                # where it was given, the scan's bounding box misses the face altogether
-                raise InputError(
-                    "the post-op scan does not overlap the predicted face (their bounding boxes "
-                    f"are disjoint; it would fit {shift:.0f} mm away): give it in the patient's "
-                    "frame (RAS, mm), or use --global-init if it is in its scanner's own frame",
-                    file=str(scan.path))
-            warnings.append("the scan did not fit from its own position; its pose was found by a "
-                            f"global search (moved {shift:.1f} mm, rotated "
-                            f"{alignment.rotation_deg:.1f} degrees)")
-        if alignment.n_points < min_inliers:
-            raise InputError(
-                "the post-op scan does not overlap the predicted face's unoperated regions "
-                f"({', '.join(pred.unoperated_regions)}): only {alignment.n_points} scan points "
-                "lie on them; is the scan in the patient's frame (RAS, mm)?", file=str(scan.path))
-        if not alignment.residual_rms_mm <= max_residual_mm:
-            raise InputError(
-                f"the post-op scan cannot be superimposed on the unoperated regions (residual "
-                f"{alignment.residual_rms_mm:.2f} mm > {max_residual_mm} mm): wrong patient, or "
-                "not overlapping the face", file=str(scan.path))
-        if alignment.residual_rms_mm > 1.0:
-            warnings.append(f"alignment residual {alignment.residual_rms_mm:.2f} mm is large: "
-                            "distances below it are within the noise floor")
-    elif alignment is None:
-        alignment = Alignment(np.eye(4), float("nan"), float("nan"), 0, 0, True)
+    if alignment is None:
+        alignment = (_superimpose_checked(pred, scan, pred_surface, unop_faces, keep, global_init,
+                                          max_residual_mm, warnings)
+                     if align else Alignment(np.eye(4), float("nan"), float("nan"), 0, 0, True))
     aligned = apply(alignment.matrix, scan_pts)
     fwd = pred_surface.closest(aligned)
     valid = ~fwd.beyond_boundary & (fwd.distance <= gate)

@@ -75,7 +75,7 @@ def write_comparison(result: Comparison, out: Path, header: dict, render_images:
                                               scalars=result.reverse_signed, cmap="RdBu_r",
                                               clim=clim, scalar_bar_title="mm",
                                               title="post-op minus predicted, on the prediction (mm)",
-                                              views=("frontal", "profile")).items():
+                                              views=("three_quarter",)).items():
             images.append((path, f"signed distance on the prediction, {view.replace('_', '-')}"))
         finite = result.signed[np.isfinite(result.signed)]
         lim = max(CLIM_MM, float(np.percentile(np.abs(finite), 99.5)) if finite.size else CLIM_MM)

@@ -163,9 +163,10 @@ class TriangleSurface:
     @cached_property
     def vertex_normals(self) -> np.ndarray:
         """Unit vertex normals, area-weighted average of the incident face normals."""
-        vn = np.zeros_like(self.vertices)
-        for k in range(3):
-            np.add.at(vn, self.faces[:, k], self.face_normals)
+        n = len(self.vertices)
+        idx = self.faces.ravel()
+        fn = np.repeat(self.face_normals, 3, axis=0)
+        vn = np.column_stack([np.bincount(idx, weights=fn[:, c], minlength=n) for c in range(3)])
         norm = np.linalg.norm(vn, axis=1, keepdims=True)
         return vn / np.where(norm > 0, norm, 1.0)
 
@@ -238,7 +239,4 @@ def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     v = np.asarray(vertices, float)
     f = np.asarray(faces, np.int64)
     a = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    out = np.zeros(len(v))
-    for k in range(3):
-        np.add.at(out, f[:, k], a / 3.0)
-    return out
+    return np.bincount(f.ravel(), weights=np.repeat(a / 3.0, 3), minlength=len(v))

@@ -123,7 +123,12 @@ def _validated(vertices, faces, path: Path, what: str, merge: bool = True) -> Su
                   & (faces[:, 0] != faces[:, 2])]
     if len(faces) == 0:
         raise InputError(f"the {what} has only degenerate triangles", file=str(path))
-    extent = float(np.linalg.norm(np.ptp(vertices[np.unique(faces)], axis=0)))
+    used = np.unique(faces)
+    if merge and len(used) < len(vertices):  # stray points without triangles carry no surface
+        remap = np.full(len(vertices), -1, np.int64)
+        remap[used] = np.arange(len(used))
+        vertices, faces = vertices[used], remap[faces]
+    extent = float(np.linalg.norm(np.ptp(vertices[used] if not merge else vertices, axis=0)))
     if extent < 30.0:
         unit = "metres" if extent < 1.0 else "centimetres"
         raise InputError(

@@ -402,28 +402,29 @@ def teeth_arch(arch: str, shape: HeadShape = GENERIC, n_along: int = 24, n_heigh
     frac = np.abs(np.linspace(-1.0, 1.0, len(pts)))[iu]
     depth = 7.0 + 3.0 * frac**2
     xy = pts[iu] - normal[iu] * (TEETH_GAP + depth[:, None] * params[:, 2:3])
-    z0 = mouth_line_z()
+    # crowns 9.7 mm high from the occlusal surface: the mouth-line cone (phi = PHI_STOMION
+    # +- 0.3 deg seen from C, the surface the lips part along) at the front teeth, so that no
+    # lip node starts inside a tooth, blending into the flat occlusal plane at the back
+    rh = np.hypot(xy[:, 0] - CENTRE[0], xy[:, 1] - CENTRE[1])
+    az = np.degrees(np.abs(np.arctan2(xy[:, 0] - CENTRE[0], xy[:, 1] - CENTRE[1])))
+    w_cone = 1.0 - smoothstep(16.0, 26.0, az)
+    sgn = 1.0 if upper else -1.0
+    cone = CENTRE[2] + rh * np.tan(np.radians(PHI_STOMION + sgn * 0.3))
+    plane = mouth_line_z() + sgn * 0.3
+    z = w_cone * cone + (1.0 - w_cone) * plane + sgn * 9.7 * params[:, 1]
     if upper:
         xy[:, 1] += shape.maxilla_ap
-        z = z0 + 0.3 + 9.7 * params[:, 1]
     else:
         xy[:, 1] += shape.mandible_ap - OVERJET
-        z = z0 - 0.3 - 9.7 * params[:, 1]
-    # keep the crowns behind the lips where the anterior alveolar profile recedes (crown tips
-    # towards the vestibule): pull the front teeth back horizontally to the labial radius
-    # (the innermost layer 2 mm further in, so that no crown flattens)
+    # keep the front crowns behind the lips where the anterior alveolar profile recedes
+    # (crown tips towards the vestibule): pull them back along their rays to the labial
+    # radius (the innermost layer 2 mm further in, so that no crown flattens)
     q = np.column_stack([xy, z])
-    side = np.full(len(q), 1.0 if upper else -1.0)
-    for _ in range(3):
-        th, ph, rho = from_cartesian(q)
-        lim = teeth_labial_radius(th, ph, shape, side=side) - 2.0 * params[:, 2]
-        front = np.abs(th) < 22.0
-        cos = np.cos(np.radians(ph))
-        rh = np.hypot(q[:, 0] - CENTRE[0], q[:, 1] - CENTRE[1])
-        new_rh = np.where(front, np.minimum(rh, lim * cos), rh)
-        scale = new_rh / np.maximum(rh, 1e-12)
-        q[:, 0] = CENTRE[0] + (q[:, 0] - CENTRE[0]) * scale
-        q[:, 1] = CENTRE[1] + (q[:, 1] - CENTRE[1]) * scale
+    th, ph, rho = from_cartesian(q)
+    side = np.full_like(th, 1.0 if upper else -1.0)
+    lim = teeth_labial_radius(th, ph, shape, side=side) - 2.0 * params[:, 2]
+    rho = np.where(np.abs(th) < 22.0, np.minimum(rho, lim), rho)
+    q = CENTRE + direction(th, ph) * rho[:, None]
     verts = warp(q, shape)
     return verts, orient_outward(verts, tri)
 

@@ -249,7 +249,18 @@ def test_teeth(model):
     upper, lower = model.teeth_mesh("upper"), model.teeth_mesh("lower")
     for t in (upper, lower):
         assert t.is_watertight and t.volume > 0
-    assert upper.vertices[:, 2].min() > lower.vertices[:, 2].max() - 1e-9
+    # the front teeth part along the mouth-line cone (phi = PHI_STOMION seen from C), like
+    # the lips; the back teeth meet on the flat occlusal plane
+    tu, pu, _ = hg.from_cartesian(upper.vertices)
+    tl, pl, _ = hg.from_cartesian(lower.vertices)
+    assert pu[np.abs(tu) < 14.0].min() > hg.PHI_STOMION
+    assert pl[np.abs(tl) < 14.0].max() < hg.PHI_STOMION
+    assert upper.vertices[:, 2].min() > lower.vertices[:, 2].max() - 10.0
+    # no node of the face starts inside a tooth (contact starts without penetration)
+    for t in (upper, lower):
+        lo, hi = t.bounds
+        near = np.all((model.nodes > lo - 1.0) & (model.nodes < hi + 1.0), axis=1)
+        assert trimesh.proximity.signed_distance(t, model.nodes[near]).max() < 0.0
     # the teeth stay behind the soft tissue: on every ray, inside the deep surface
     for arch in ("upper", "lower"):
         v = model.teeth[arch][0]

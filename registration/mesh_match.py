@@ -270,6 +270,10 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
             "skin_patient_to_mesh": _fit_stats(back.distance[~back.on_boundary]),
             "bone": _fit_stats(np.concatenate(bone_all) if bone_all else np.zeros(0)),
             "bone_segments": bone_fit,
+            # the smooth transform alone (last elastic iteration, generic frame), before the
+            # projection of the surface nodes: how much the snap had to correct
+            "before_snap": {k: v for k, v in (elog.levels[-1] if elog.levels else {}).items()
+                            if k.endswith("_mean_mm")},
         },
         "quality": quality_summary(x, hexes, opt.threshold),
         "repair": rep,

@@ -45,6 +45,11 @@ def _check_targets(generic, patient, report, head, landmark_tol=1.5):
     assert fit["bone"]["mean_mm"] < 0.5, fit["bone"]
     q = min_scaled_jacobian(patient.nodes, patient.hexes)
     assert q.min() >= 0.2 and report["quality"]["n_inverted"] == 0
+    # independently of the report: most attached nodes sit on their own segment's surface
+    for seg in generic.segments:
+        bone = TargetSurface(np.asarray(head.bones[seg].vertices), np.asarray(head.bones[seg].faces))
+        d = bone.closest(patient.nodes[generic.node_sets[f"attach_{seg}"]]).distance
+        assert np.median(d) < 0.5, (seg, np.median(d))
     skin = TargetSurface(head.skin.vertices, head.skin.faces)
     for name, node in generic.landmarks.items():
         truth = np.asarray(head.landmarks[name])

@@ -15,7 +15,9 @@ tributary area, so that eps * g is a pressure) and multiplier lambda_i (mN) the 
 the contact force on the node p_i n with p_i = <lambda_i - eps_i g> (Macaulay bracket for
 contact), the tangent eps_i n (x) n - p_i d2g/dx2 (Wriggers 2006, ch. 5-6; Laursen 2002). After a
 converged step `end_step` applies the Uzawa update lambda_i <- p_i (Simo & Laursen 1992) until
-the largest penetration (contact) or gap (sliding) is below `tolerance`.
+the largest penetration (contact) or gap (sliding) is below `tolerance`. After `freeze_after`
+evaluations at one load the active set is frozen (status freezing), and `end_step` asks for
+another solve when the converged state has a different status.
 Frictionless; optional `stick=True` adds a tangential penalty that ties a node to the surface
 point where it first touched (sticking, the infinite-friction limit).
 """
@@ -59,7 +61,8 @@ class RigidSurfaceContact:
                  slave_areas=None, motion=None, penalty: float = 100.0,
                  bilateral: bool = False, augmented: bool = True, tolerance: float = 0.05,
                  max_augmentations: int = 20, search_radius: float = 5.0,
-                 max_depth: float = np.inf, stick: bool = False):
+                 max_depth: float = np.inf, stick: bool = False,
+                 freeze_after: int | None = 4):
         nodes = np.asarray(nodes, dtype=float)
         self.n_nodes = len(nodes)
         if slave_facets is not None:
@@ -93,6 +96,9 @@ class RigidSurfaceContact:
         self._augmented_load = None
         self.anchor = np.full((len(self.slaves), 3), np.nan)     # stick points, surface frame
         self.last = None
+        self.freeze_after = freeze_after
+        self._evals_load, self._evals = None, 0
+        self._active = None
 
     # ------------------------------------------------------------------ geometry
     def transform(self, load: float) -> np.ndarray:
@@ -139,18 +145,37 @@ class RigidSurfaceContact:
         return g, n0 @ R.T, reg, y
 
     # ------------------------------------------------------------------ Term protocol
-    def _pressure(self, g):
+    def _pressure(self, g, frozen=False):
+        """Contact forces p_i = <lambda_i - eps_i g_i> and the active set.
+
+        With `frozen`, the active set of the last unfrozen evaluation is kept (status
+        freezing: the bracket is dropped on it, a frozen-active node may pull) so that Newton
+        converges on a smooth problem; `end_step` then checks the status.
+        """
         p = self.multipliers - self.eps * np.nan_to_num(g, nan=np.inf)
-        if not self.bilateral:
-            p = np.maximum(p, 0.0)
-            p[~(g > -self.max_depth)] = 0.0
-        p[np.isnan(g)] = 0.0
-        return p
+        if self.bilateral:
+            active = ~np.isnan(g)
+        elif frozen and self._active is not None:
+            active = self._active & ~np.isnan(g)
+        else:
+            active = (p > 0.0) & (g > -self.max_depth)
+            self._active = active.copy()
+        p = np.where(active, p, 0.0)
+        return p, active
+
+    def _frozen(self, load) -> bool:
+        if load != self._evals_load:
+            self._evals_load, self._evals = load, 0
+        self._evals += 1
+        return self.freeze_after is not None and self._evals > self.freeze_after
+
+    def _is_frozen(self, load) -> bool:
+        return (self.freeze_after is not None and load == self._evals_load
+                and self._evals > self.freeze_after)
 
     def assemble(self, x, load):
         g, n, reg, y = self.gaps(x, load)
-        p = self._pressure(g)
-        active = p > 0.0 if not self.bilateral else ~np.isnan(g)
+        p, active = self._pressure(g, self._frozen(load))
         f = np.zeros(3 * self.n_nodes)
         nodes = self.slaves[active]
         na, pa, ga, ea = n[active], p[active], g[active], self.eps[active]
@@ -196,7 +221,7 @@ class RigidSurfaceContact:
 
     def energy(self, x, load) -> float:
         g, n, _, y = self.gaps(x, load)
-        p = self._pressure(g)
+        p, _ = self._pressure(g, self._is_frozen(load))
         lam = self.multipliers
         e = float(np.sum((p * p - lam * lam) / (2.0 * self.eps)))
         if self.stick:
@@ -208,8 +233,14 @@ class RigidSurfaceContact:
         return e
 
     def end_step(self, x, load) -> bool:
+        frozen_active = self._active.copy() if self._active is not None else None
+        was_frozen = self._is_frozen(load)
+        self._evals_load, self._evals = None, 0
         g, _, _, _ = self.gaps(x, load)
-        p = self._pressure(g)
+        p, active = self._pressure(g)
+        # a frozen solve whose contact status is wrong at convergence is solved again
+        changed = bool(was_frozen and not self.bilateral and frozen_active is not None
+                       and np.any(frozen_active != active))
         if self.bilateral:
             err = np.nanmax(np.abs(g), initial=0.0)
         else:
@@ -218,8 +249,13 @@ class RigidSurfaceContact:
         if load != self._augmented_load:            # a new step: restart the Uzawa count
             self._augmented_load = load
             self.n_augmentations = 0
-        if not self.augmented or err <= self.tolerance \
-                or self.n_augmentations >= self.max_augmentations:
+        if self.n_augmentations >= self.max_augmentations:
+            self.n_augmentations = 0
+            return False
+        if not self.augmented or err <= self.tolerance:
+            if changed:
+                self.n_augmentations += 1
+                return True
             self.n_augmentations = 0
             return False
         self.multipliers = p
@@ -230,9 +266,9 @@ class RigidSurfaceContact:
     def contact_forces(self, x, load) -> np.ndarray:
         """Force (s, 3) that the rigid surface exerts on each slave node (mN)."""
         g, n, _, _ = self.gaps(x, load)
-        return self._pressure(g)[:, None] * n
+        return self._pressure(g)[0][:, None] * n
 
     def contact_pressure(self, x, load) -> np.ndarray:
         """Contact pressure (kPa) at each slave node: force / tributary area."""
         g, _, _, _ = self.gaps(x, load)
-        return self._pressure(g) / self.areas
+        return self._pressure(g)[0] / self.areas

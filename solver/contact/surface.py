@@ -10,8 +10,10 @@ distance to the triangle's plane (`plane_gap`, exact gradient and Hessian in the
 coordinates). The potential, force and tangent are those of `rigid`:
 E = (<lambda - eps A_s g>^2 - lambda^2) / (2 eps A_s), f = -p dg/dx,
 K = eps A_s dg (x) dg - p d2g/dx2 with p = <lambda - eps A_s g>, so the linearisation is
-consistent for a fixed pairing; the pairing (the contact status) is frozen within one
-evaluation and re-searched at the next. `end_step` updates the multipliers (Uzawa) until the
+consistent for a fixed pairing. The pairing and the active set are re-searched at every
+evaluation until `freeze_after` evaluations at one load; then they are frozen (status
+freezing) so that Newton converges on a smooth problem, and `end_step` asks for another solve
+if a fresh search at the converged state disagrees. `end_step` updates the multipliers (Uzawa) until the
 deepest penetration is below `tolerance`.
 """
 from __future__ import annotations
@@ -37,6 +39,7 @@ class _Pass:
         self.master = triangulate(master_facets)
         self.multipliers = np.zeros(len(self.slaves))
         self.previous = np.full(len(self.slaves), -1)       # paired triangle, last evaluation
+        self.active = np.zeros(len(self.slaves), dtype=bool)  # in contact, last evaluation
         # slave -> its own triangles, to compute the slave node normals
         self.slave_pos = np.full(n, -1)
         self.slave_pos[self.slaves] = np.arange(len(self.slaves))
@@ -156,7 +159,13 @@ class SurfaceContact:
                                                self.max_depth, hessian)
             eps = self.penalty * ps.areas[s]
             lam = ps.multipliers[s]
-            p = np.maximum(lam - eps * g, 0.0)
+            if frozen:
+                # status freezing: the active set of the last search is kept as it is
+                p = np.where(ps.active[s], lam - eps * g, 0.0)
+            else:
+                p = np.maximum(lam - eps * g, 0.0)
+                ps.active[:] = False
+                ps.active[s] = p > 0
             out.append((ps, s, g, grad, hess, dofs, eps, lam, p))
         return out
 
@@ -211,6 +220,7 @@ class SurfaceContact:
 
     def end_step(self, x, load) -> bool:
         before = [ps.previous.copy() for ps in self.passes]
+        before_active = [ps.active.copy() for ps in self.passes]
         was_frozen = self._evals_load == load and self.freeze_after is not None \
             and self._evals > self.freeze_after
         self._evals_load, self._evals = None, 0
@@ -219,9 +229,11 @@ class SurfaceContact:
         if was_frozen:
             # pairs (of nodes in contact) that the frozen solve kept but a fresh search
             # assigns elsewhere: solve the step again with the new pairing
-            for (ps, s, g, grad, hess, dofs, eps, lam, p), old in zip(ev, before):
+            for (ps, s, g, grad, hess, dofs, eps, lam, p), old, olda in zip(ev, before,
+                                                                             before_active):
                 act = s[p > 0]
                 moved |= bool(np.any(old[act] != ps.previous[act]))
+                moved |= bool(np.any(olda != ps.active))
         err = 0.0
         for ps, s, g, grad, hess, dofs, eps, lam, p in ev:
             if np.any(p > 0):

@@ -1,0 +1,354 @@
+"""Face simulation: a `FaceModel`, bone movements and muscle activations -> FE solve.
+
+Turns the anatomical model into a problem of the generic solver, following Payan et al.'s
+orthognathic-surgery face model (Chabanas, Luboz & Payan 2003; Nazari et al. 2010 for the
+muscle and lip-contact set-up): every attachment node set "attach_<segment>" moves with its
+bone segment's rigid motion (the skull stays fixed), ramped with the load fraction; the teeth
+move with their segment and the lip mucosa cannot enter them (rigid contact); the upper and
+lower lips cannot enter each other (two-pass deformable contact); each muscle label gets the
+active transversely isotropic `solver.constitution.muscle.Muscle` law at its activation
+(fibres from the model); segments named in `sliding` let their deep nodes slide on the moving
+bone surface (bilateral frictionless contact with the segment's "deep_bone" facets) instead of
+being tied. The static equilibrium is solved by `solver.newton.newton_solve`
+(Q1/P0 hexahedra, Newton with line search, load stepping, augmented Lagrangian contact).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from solver.bc import Prescribed
+from solver.constitution import Yeoh
+from solver.constitution.muscle import Muscle
+from solver.contact import RigidSurfaceContact, SurfaceContact, TriangleSurface, ramped_rigid_motion
+from solver.contact._geometry import triangulate
+from solver.mechanics import SolidBody
+from solver.mesh import HexMesh
+from solver.newton import newton_solve
+
+__all__ = ["simulate", "SimulationResult", "MUSCLES", "default_face_materials",
+           "lip_penetrations", "rigid_motion_ok"]
+
+log = logging.getLogger("facemodel.simulation")
+
+MUSCLES = ("orbicularis_oris", "zygomaticus_major", "levator_labii_superioris", "risorius",
+           "buccinator", "depressor_anguli_oris", "depressor_labii_inferioris", "mentalis")
+
+# Fallback soft-tissue values when facemodel.materials offers no table (kPa): Yeoh constants
+# of face tissue used by Payan's group (Barbarino et al. 2009; Nazari et al. 2010: muscle
+# C10 = 2.5 kPa, C20 = 1.175 kPa at rest), near incompressibility K = 1000 C10 (nu ~ 0.4998);
+# muscle active stress T_max = 100 kPa as in published face models (Nazari 2010; Flynn 2013).
+_FALLBACK = {
+    "dermis": dict(C10=10.0, C20=5.0), "hypodermis": dict(C10=1.5, C20=0.7),
+    "mucosa": dict(C10=2.5, C20=1.175), "nose": dict(C10=10.0, C20=5.0),
+}
+_MUSCLE_FALLBACK = dict(C10=2.5, C20=1.175, C30=0.0, k1=2.0, k2=5.0, T_max=100.0, lam_opt=1.0,
+                        width=0.5, G_T=0.5, G_T_active=10.0)
+
+
+def default_face_materials(model) -> dict:
+    """Materials per label name: `facemodel.materials`' table when available, else fallback."""
+    try:
+        from facemodel import materials as fm
+    except ImportError:
+        fm = None
+    if fm is not None:
+        for name in ("default_materials", "materials_table", "default_table"):
+            fn = getattr(fm, name, None)
+            if callable(fn):
+                try:
+                    return dict(fn(model))
+                except TypeError:
+                    return dict(fn())
+        for name in ("DEFAULT_MATERIALS", "MATERIALS", "TABLE"):
+            if isinstance(getattr(fm, name, None), dict):
+                return dict(getattr(fm, name))
+    out = {}
+    for name in model.label_names:
+        if name in MUSCLES:
+            p = dict(_MUSCLE_FALLBACK)
+            out[name] = Muscle(K=1000.0 * p["C10"], **p)
+        else:
+            p = _FALLBACK.get(name, dict(C10=2.5, C20=1.175))
+            out[name] = Yeoh(K=1000.0 * p["C10"], **p)
+    return out
+
+
+def rigid_motion_ok(T, tol: float = 1e-6) -> bool:
+    """True if T is a finite 4x4 proper rigid motion."""
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return (np.abs(R.T @ R - np.eye(3)).max() < tol and abs(np.linalg.det(R) - 1) < tol
+            and np.allclose(T[3], [0, 0, 0, 1], atol=tol))
+
+
+@dataclass
+class SimulationResult:
+    """Solved face: nodal fields, stresses, contact state and solver statistics."""
+
+    x: np.ndarray                   # (n, 3) deformed nodal coordinates, mm
+    displacement: np.ndarray        # (n, 3) mm
+    cauchy: np.ndarray              # (m, 3, 3) element-averaged Cauchy stress, kPa
+    von_mises: np.ndarray           # (m,) kPa
+    volume_ratio: np.ndarray        # (m,) element v/V
+    converged: bool
+    load: float
+    iterations: int
+    steps: int
+    time_s: float
+    info: dict = field(default_factory=dict)
+    newton: object = None           # solver.newton.NewtonResult
+    terms: dict = field(default_factory=dict)
+
+
+def _attachment_sets(model, motions):
+    """Node ids per segment with a single owner each (later segments take precedence)."""
+    owner = {}
+    for seg in model.segments:
+        nodes = np.asarray(model.node_sets.get("attach_" + seg, ()), dtype=np.int64)
+        for i in nodes.tolist():
+            owner[i] = seg
+    out = {}
+    for seg in model.segments:
+        ids = np.array(sorted(i for i, s in owner.items() if s == seg), dtype=np.int64)
+        if len(ids):
+            out[seg] = ids
+    return out
+
+
+def _segment_motion(motions, seg):
+    T = motions.get(seg)
+    return np.eye(4) if T is None else np.asarray(T, dtype=float)
+
+
+def _bone_facets(model, seg, nodes):
+    """Deep-bone facets whose nodes all belong to the node set `nodes`."""
+    f = np.asarray(model.facet_sets.get("deep_bone", np.zeros((0, 4))), dtype=np.int64)
+    if not len(f):
+        return f
+    inside = np.zeros(len(model.nodes), dtype=bool)
+    inside[nodes] = True
+    return f[np.all(inside[f], axis=1)]
+
+
+def _typical_size(X, facets):
+    if not len(facets):
+        return 1.0
+    p = X[facets]
+    e = np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2)
+    return float(np.median(e))
+
+
+def _local_shear_modulus(model, by_label, facets) -> float:
+    """Median initial shear modulus of the elements touching the given facets' nodes."""
+    facets = np.asarray(facets, dtype=np.int64)
+    touch = np.zeros(len(model.nodes), dtype=bool)
+    touch[facets.ravel()] = True
+    hexes = np.asarray(model.hexes)
+    near = np.nonzero(touch[hexes].any(axis=1))[0]
+    mus = np.array([_shear_modulus(by_label[int(l)]) for l in np.asarray(model.labels)[near]])
+    return float(np.median(mus)) if len(mus) else 5.0
+
+
+def _shear_modulus(mat) -> float:
+    mu = getattr(mat, "shear_modulus", None)
+    if mu is not None:
+        return float(mu)
+    p = getattr(mat, "parameters", {})
+    for k in ("C10",):
+        if k in p:
+            return 2.0 * float(p[k][0] if isinstance(p[k], tuple) else p[k])
+    return 5.0
+
+
+def simulate(model, motions: dict | None = None, activations: dict | None = None, *,
+             contact: bool = True, sliding=(), materials: dict | None = None,
+             n_steps: int = 4, log=None, penalty_factor: float = 10.0,
+             contact_tolerance: float = 0.05, max_iterations: int = 25) -> SimulationResult:
+    """Solve the face for bone `motions` {segment: 4x4} and muscle `activations` {muscle: a}.
+
+    contact: lip-lip and lip-teeth contact on/off. sliding: segments whose deep nodes slide
+    on their bone surface instead of being tied. materials: {label name: Material} replacing
+    the defaults (muscle labels may give any material; a `Muscle` gets its activation).
+    n_steps: initial number of load steps. log: optional callable receiving one text line per
+    Newton iteration. penalty_factor: contact penalty eps = factor * 3 mu / h (mu the
+    median shear modulus of the tissue at the contact surface, h its median facet edge). contact_tolerance:
+    largest lip/teeth penetration accepted (mm). Raises ValueError for bad motions or
+    activations and `solver.errors.SolveFailed` if Newton fails.
+    """
+    motions = dict(motions or {})
+    activations = dict(activations or {})
+    segments = tuple(model.segments)
+    for seg, T in motions.items():
+        if seg not in segments:
+            raise ValueError(f"unknown bone segment {seg!r} (segments: {', '.join(segments)})")
+        if not rigid_motion_ok(T):
+            raise ValueError(f"the motion of segment {seg!r} is not a 4x4 rigid transform")
+    names = tuple(model.label_names)
+    for m, a in activations.items():
+        if m not in names:
+            raise ValueError(f"unknown muscle {m!r} (labels: {', '.join(names)})")
+        if not (np.isfinite(a) and 0.0 <= a <= 1.0):
+            raise ValueError(f"activation of {m!r} must be in [0, 1], got {a}")
+    sliding = tuple(sliding or ())
+    for seg in sliding:
+        if seg not in segments:
+            raise ValueError(f"cannot slide on unknown segment {seg!r}")
+
+    X = np.asarray(model.nodes, dtype=float)
+    labels = np.asarray(model.labels, dtype=np.int64)
+    table = default_face_materials(model) if materials is None else dict(materials)
+    by_label = {}
+    for li, name in enumerate(names):
+        if not np.any(labels == li):
+            continue
+        if name not in table:
+            raise ValueError(f"no material for tissue label {name!r}")
+        mat = table[name]
+        a = float(activations.get(name, 0.0))
+        if isinstance(mat, Muscle):
+            mat = mat.with_activation(a)
+        elif a > 0:
+            raise ValueError(f"label {name!r} has activation {a} but no active material")
+        by_label[li] = mat
+    fibres = getattr(model, "fibres", None)
+    body = SolidBody(HexMesh(X, model.hexes, labels), by_label,
+                     fibres=None if fibres is None else np.asarray(fibres, dtype=float))
+
+    # --- essential conditions: attachments tied to their bone (sliding ones excepted)
+    attach = _attachment_sets(model, motions)
+    constraints, terms = [], {}
+    for seg, ids in attach.items():
+        T = _segment_motion(motions, seg)
+        tied = ids
+        if seg in sliding:
+            bone = _bone_facets(model, seg, ids)
+            if len(bone):
+                on_bone = np.unique(bone)
+                tied = np.setdiff1d(ids, on_bone)
+                h = _typical_size(X, bone)
+                mu = _local_shear_modulus(model, by_label, bone)
+                terms[f"sliding_{seg}"] = RigidSurfaceContact(
+                    X, X, triangulate(bone), slave_nodes=on_bone,
+                    slave_areas=_areas(X, bone, on_bone), motion=T,
+                    penalty=penalty_factor * 3.0 * mu / h, bilateral=True,
+                    tolerance=contact_tolerance, search_radius=max(5.0, 2 * h))
+        if len(tied):
+            constraints.append(Prescribed(tied, _rigid_displacement(X[tied], T)))
+
+    # --- contact: lips against each other, lip mucosa against the teeth
+    if contact:
+        fs = model.facet_sets
+        up = np.asarray(fs.get("lip_upper_contact", np.zeros((0, 4))), dtype=np.int64)
+        lo = np.asarray(fs.get("lip_lower_contact", np.zeros((0, 4))), dtype=np.int64)
+        if len(up) and len(lo):
+            h = _typical_size(X, np.vstack([up, lo]))
+            mu = _local_shear_modulus(model, by_label, np.vstack([up, lo]))
+            terms["lip_contact"] = SurfaceContact(
+                X, up, lo, penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
+                search_radius=max(1.0, h), max_depth=max(2.0, h))
+        mucosa = [np.asarray(fs[k], dtype=np.int64) for k in ("lip_upper_teeth", "lip_lower_teeth")
+                  if k in fs and len(fs[k])]
+        if mucosa:
+            mucosa = np.vstack(mucosa)
+            h = _typical_size(X, mucosa)
+            mu = _local_shear_modulus(model, by_label, mucosa)
+            for name, (V, F, seg) in dict(getattr(model, "teeth", {}) or {}).items():
+                terms[f"teeth_{name}"] = RigidSurfaceContact(
+                    X, np.asarray(V, float), np.asarray(F, np.int64), slave_facets=mucosa,
+                    motion=_segment_motion(motions, seg),
+                    penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
+                    search_radius=max(2.0, h), max_depth=max(3.0, 1.5 * h))
+
+    def callback(rec):
+        if log is not None:
+            log(f"step {rec['step']} load {rec['load']:.3f} it {rec['iteration']} "
+                f"|R| {rec['residual_norm']:.3e} (rel {rec['relative_residual']:.2e}) "
+                f"|du| {rec['displacement_norm']:.3e} ls {rec['line_search']:.2g}")
+
+    t0 = time.perf_counter()
+    res = newton_solve(body, constraints, list(terms.values()), steps=n_steps,
+                       max_iterations=max_iterations, max_retries=20, callback=callback)
+    elapsed = time.perf_counter() - t0
+    x = res.x
+    sig = body.cauchy_stress(x, 1.0)
+    dev = sig - np.trace(sig, axis1=1, axis2=2)[:, None, None] / 3.0 * np.eye(3)
+    vm = np.sqrt(1.5 * np.einsum("mij,mij->m", dev, dev))
+    info = {"n_nodes": len(X), "n_elements": len(labels), "n_constrained_nodes":
+            int(sum(len(c.nodes) for c in constraints)), "terms": list(terms),
+            "activations": activations, "sliding": list(sliding),
+            "cutbacks": res.cutbacks, "timings": res.timings}
+    if contact:
+        info["penetration_mm"] = {k: float(_term_penetration(t, x)) for k, t in terms.items()
+                                  if not k.startswith("sliding")}
+    log_ = logging.getLogger("facemodel.simulation")
+    log_.info("face solved in %.1f s, %d iterations", elapsed, res.iterations)
+    return SimulationResult(x=x, displacement=x - X, cauchy=sig, von_mises=vm,
+                            volume_ratio=body.volume_ratio(x), converged=bool(res.converged),
+                            load=float(res.load), iterations=int(res.iterations),
+                            steps=len(res.steps), time_s=elapsed, info=info, newton=res,
+                            terms=terms)
+
+
+def _areas(X, facets, nodes):
+    from solver.contact import nodal_areas
+    return np.maximum(nodal_areas(X, facets)[nodes], 1e-12)
+
+
+def _rigid_displacement(Xs, T):
+    """Callable load -> (k, 3) displacement of points Xs under the ramped rigid motion."""
+    T = np.asarray(T, dtype=float)
+
+    def disp(load):
+        Tl = ramped_rigid_motion(T, load)
+        return Xs @ Tl[:3, :3].T + Tl[:3, 3] - Xs
+    return disp
+
+
+def _term_penetration(term, x):
+    if isinstance(term, SurfaceContact):
+        return term.penetration(x)
+    g, *_ = term.gaps(x, 1.0)
+    g = g[np.isfinite(g) & (g > -term.max_depth)]
+    return float(max(0.0, -g.min())) if len(g) else 0.0
+
+
+def lip_penetrations(model, x, load: float = 1.0, motions: dict | None = None,
+                     band: float = 3.0) -> dict:
+    """Independent check of a solved face: deepest penetration (mm, >= 0) of
+    the lower-lip nodes into the upper lip and vice versa (closest point with pseudo-normal
+    sign on the current lip surfaces), and of the lip mucosa nodes into each moved teeth
+    surface; nodes deeper than `band` (other side of a thin surface) are not counted."""
+    x = np.asarray(x, dtype=float)
+    out = {}
+    fs = model.facet_sets
+    pairs = [("lower_in_upper", "lip_lower_contact", "lip_upper_contact"),
+             ("upper_in_lower", "lip_upper_contact", "lip_lower_contact")]
+    for key, slave, master in pairs:
+        if slave in fs and master in fs and len(fs[slave]) and len(fs[master]):
+            surf = TriangleSurface(x, triangulate(fs[master]))
+            nodes = np.setdiff1d(np.unique(fs[slave]), np.unique(fs[master]))
+            out[key] = _depth(surf, x[nodes], band)
+    mucosa = [np.asarray(fs[k]) for k in ("lip_upper_teeth", "lip_lower_teeth") if k in fs]
+    if mucosa:
+        nodes = np.unique(np.vstack(mucosa))
+        for name, (V, F, seg) in dict(getattr(model, "teeth", {}) or {}).items():
+            T = ramped_rigid_motion(_segment_motion(motions or {}, seg), load)
+            Vm = np.asarray(V, float) @ T[:3, :3].T + T[:3, 3]
+            out[f"in_teeth_{name}"] = _depth(TriangleSurface(Vm, F), x[nodes], band)
+    return out
+
+
+def _depth(surf, pts, band):
+    idx, c, face, region, dist = surf.closest(pts, band)
+    if not len(idx):
+        return 0.0
+    pn = surf.pseudo_normal(face, region)
+    s = np.einsum("ij,ij->i", pts[idx] - c, pn)
+    inside = (s < 0) & (dist < band)
+    return float(dist[inside].max()) if np.any(inside) else 0.0

@@ -162,14 +162,18 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
                  atol: float = 1e-10, etol: float = 1e-10, line_search: bool = False,
                  line_search_tol: float = 1.0, line_search_growth: float = 100.0, max_retries: int = 5, grow: bool = True,
                  x0=None, linear_solver: str = "auto", callback=None,
-                 step_callback=None) -> NewtonResult:
+                 step_callback=None, mixed: bool = True) -> NewtonResult:
     """Solve the static equilibrium of `body` from load fraction 0 to 1.
 
     body: `solver.mechanics.SolidBody`; constraints: `Prescribed` / `LocalFrame` list;
     terms: objects following `solver.terms.Term`; external: optional dead nodal force vector
     (3n,) at load 1; steps: initial number of equal load steps (also the largest step size);
     callback(record: dict) receives every iteration's log record; step_callback(result) each
-    converged step. Raises `SolveFailed` (with the last converged state) if the load cannot
+    converged step. mixed: for mean-dilatation bodies that support it, iterate on the
+    three-field (u, p, theta) system with element-wise condensation (the pressure and dilatation
+    are updated from the linearised constraint rather than recomputed from u), which converges
+    in markedly fewer iterations on nearly incompressible problems; the converged solution is
+    the same. Raises `SolveFailed` (with the last converged state) if the load cannot
     be reached.
     """
     mesh = body.mesh
@@ -186,6 +190,11 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     lin = SymmetricSolver(linear_solver)
     x = X.copy() if x0 is None else np.array(x0, dtype=float)
     free = cons.free
+    mixed = bool(mixed and getattr(body, "supports_mixed", False))
+    if mixed:
+        body.begin_mixed(x)
+    elif getattr(body, "supports_mixed", False):
+        body.mixed = None
     result = NewtonResult(x=x, u=x - X, load=0.0, converged=False)
     t_start = time.perf_counter()
     dt_max = 1.0 / max(int(steps), 1)
@@ -203,6 +212,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
         if 1.0 - target < 0.25 * dt:
             target = 1.0
         x_conv = x.copy()
+        mixed_conv = None if not mixed else (body.mixed[0].copy(), body.mixed[1].copy())
         retries = 0
         while True:
             ok, x_new, info = _solve_step(system, lin, x_conv, target, uhat, free, cons,
@@ -232,6 +242,8 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
             cut += 1
             result.cutbacks = cut
             x = x_conv
+            if mixed:
+                body.mixed = (mixed_conv[0].copy(), mixed_conv[1].copy())
             dt = 0.5 * (target - load)
             log.warning("step %d failed at load %.4g (%s); cutting back to step %.4g",
                         step_no, target, info["reason"], dt)
@@ -281,6 +293,7 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
             info.update(reason="linear solve gave NaN", worst_element=ev.worst_element, min_J=ev.min_J)
             return False, x, info
         du = cons.to_global(du_hat).reshape(-1, 3)
+        snap = system.body.mixed_snapshot() if getattr(system.body, "mixed", None) is not None else None
         # directional derivative of the potential along du (the coupling to the constrained
         # increments included), its magnitude is FEBio's "energy norm" of the iteration
         g0 = -float(du_hat[free] @ rhs[free])
@@ -289,6 +302,8 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
         # line search: halve on invalid states, then secant on g(s) = du . r(x + s du)
         s = 1.0
         for _ in range(12):
+            if snap is not None:
+                system.body.mixed_update(snap, s * du)
             ev1, r1, A1, c1 = system.evaluate(x + s * du, target, targets=targets)
             if ev1.valid:
                 break
@@ -310,6 +325,8 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
                 for _ in range(4):
                     sn = sb - gb * (sb - sa) / (gb - ga) if gb != ga else 0.5 * sb
                     sn = float(np.clip(sn, 0.1 * sb, 0.9 * sb if gb > 0 else 2.0))
+                    if snap is not None:
+                        system.body.mixed_update(snap, sn * du)
                     ev2, r2, _, _ = system.evaluate(x + sn * du, target, tangent=False)
                     if not ev2.valid:
                         break
@@ -319,11 +336,15 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
                     if abs(g2) <= ls_tol * abs(g0):
                         break
                     sa, ga, sb, gb = sb, gb, sn, g2
-                if best[1] != 1.0:
-                    s = best[1]
+                s = best[1]
+                if snap is not None:
+                    system.body.mixed_update(snap, s * du)
+                if True:
                     ev1, r1, A1, c1 = system.evaluate(x + s * du, target, targets=targets)
                     if not ev1.valid:
                         s = 1.0
+                        if snap is not None:
+                            system.body.mixed_update(snap, du)
                         ev1, r1, A1, c1 = system.evaluate(x + du, target, targets=targets)
         x = x + s * du
         ev, r, A, cpl = ev1, r1, A1, c1

@@ -32,7 +32,7 @@ def _vol(kind, K, J):
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
 def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dilatation,
-                          tangent, Ke, fe, We, minJ):
+                          tangent, Ke, fe, We, minJ, theta_in, p_in, use_state, v_out, dv_out):
     """Element matrices Ke (m,24,24), residuals fe (m,24), energies We (m,), min J (m,).
 
     params (m, 4) = C10, C20, C30, K per element; volkind (m,) 0 = Simo-Taylor, 1 = quadratic.
@@ -72,6 +72,7 @@ def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dila
         kind = volkind[e]
         Wsum = 0.0
         pe = 0.0
+        pres = 0.0
         kee = 0.0
         if mean_dilatation:
             v = 0.0
@@ -81,7 +82,18 @@ def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dila
             U, dU, d2U = _vol(kind, Kb, theta)
             Wsum += U * volume[e]
             pe = dU
+            pres = dU
             kee = d2U / volume[e]
+            v_out[e] = v
+            if use_state:
+                # three-field (u, p, theta) Newton with element-wise condensation: residual
+                # pressure linearised about the stored dilatation, geometric stiffness with
+                # the stored pressure (Simo, Taylor & Pister 1985)
+                th = theta_in[e]
+                Ut, dUt, d2Ut = _vol(kind, Kb, th)
+                pres = dUt + d2Ut * (theta - th)
+                pe = p_in[e]
+                kee = d2Ut / volume[e]
         K = np.zeros((24, 24))
         f = np.zeros(24)
         dvv = np.zeros(24)
@@ -141,6 +153,7 @@ def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dila
             else:
                 pq = pe
                 kq = 0.0
+            pr = pres if mean_dilatation else pq
             for a in range(8):
                 for i in range(3):
                     s = 0.0
@@ -161,7 +174,7 @@ def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dila
                     s = 0.0
                     for J in range(3):
                         s += P[i, J] * dNdX[e, q, a, J]
-                    f[3 * a + i] += w * s + pw * g[a, i]
+                    f[3 * a + i] += w * s + pr * wJ * g[a, i]
                     dvv[3 * a + i] += wJ * g[a, i]
             if not tangent:
                 continue
@@ -218,6 +231,9 @@ def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dila
                                 tt += s
                             K[3 * a + i, 3 * b + k] += tt
         We[e] = Wsum
+        if mean_dilatation:
+            for r in range(24):
+                dv_out[e, r] = dvv[r]
         for r in range(24):
             fe[e, r] = f[r]
         if not tangent:

@@ -105,6 +105,12 @@ class SolidBody:
                 self._volkind[idx] = 0 if mat.volumetric_kind == "simo_taylor" else 1
             self._We = np.empty(m)
             self._minJ = np.empty(m)
+            self._v = np.empty(m)
+            self._dv = np.zeros((m, 24))
+        # three-field (u, p, theta) Newton state of the mean-dilatation elements (fused path):
+        # None means theta = v/V and p = U'(theta) are recomputed from u (the purely
+        # displacement-based linearisation); set by `begin_mixed` (newton_solve does)
+        self.mixed = None
 
     # ------------------------------------------------------------------ kinematics
     @property
@@ -193,11 +199,46 @@ class SolidBody:
         valid = bool(np.isfinite(energy) and np.all(np.isfinite(f)))
         return Evaluation(f, data, energy, valid, worst, float(minJ_e[worst]))
 
+    # ------------------------------------------------------------------ three-field state
+    @property
+    def supports_mixed(self) -> bool:
+        return self.fused and self.formulation == "mean_dilatation"
+
+    def begin_mixed(self, x):
+        """Start three-field Newton from x: theta = v/V, p = U'(theta) per element."""
+        if not self.supports_mixed:
+            return
+        theta = self.volume_ratio(x)
+        self.mixed = (theta, self._volumetric(theta)[1])
+
+    def mixed_snapshot(self):
+        """(theta, p, v, dv) of the last tangent evaluation, to update after a solve."""
+        if self.mixed is None:
+            return None
+        return (self.mixed[0].copy(), self.mixed[1].copy(), self._v.copy(), self._dv.copy())
+
+    def mixed_update(self, snapshot, du):
+        """Condensed update theta <- (v + dv.du)/V, p <- U'(theta0) + U''(theta0) dtheta."""
+        if snapshot is None:
+            return
+        theta0, p0, v, dv = snapshot
+        dve = np.einsum("mr,mr->m", dv, du.reshape(-1)[self.pattern.dofs])
+        theta = (v + dve) / self.volume
+        _, dU, d2U = self._volumetric(theta0)
+        self.mixed = (theta, dU + d2U * (theta - theta0))
+
+    def mixed_restore(self, snapshot):
+        if snapshot is not None:
+            self.mixed = (snapshot[0].copy(), snapshot[1].copy())
+
     def _evaluate_fused(self, x, tangent):
         x = np.ascontiguousarray(x, dtype=float)
+        use = self.mixed is not None and self.formulation == "mean_dilatation"
+        th, pp = self.mixed if use else (self._v, self._v)
         yeoh_element_matrices(x, self.mesh.hexes, self.dNdX, self.dV, self.volume, self._params,
                               self._volkind, self.formulation == "mean_dilatation", tangent,
-                              self._Ke, self._fe, self._We, self._minJ)
+                              self._Ke, self._fe, self._We, self._minJ, th, pp, use,
+                              self._v, self._dv)
         worst = int(np.argmin(self._minJ))
         minJ = float(self._minJ[worst])
         if not minJ > 0.0 or not np.all(np.isfinite(self._minJ)):

@@ -24,7 +24,7 @@ def _compress_shear(cube, steps):
     nodes, hexes, s = cube
     body = solver.SolidBody(solver.HexMesh(nodes, hexes), solver.Yeoh(2.5, 1.175, 0.3, K=2500.0))
     bcs = [solver.fix(s["zmin"]), solver.Prescribed(s["zmax"], [0.5, 0.0, -0.5])]
-    return solver.newton_solve(body, bcs, steps=steps, max_iterations=15)
+    return solver.newton_solve(body, bcs, steps=steps, max_iterations=15, rtol=1e-10)
 
 
 def test_compression_and_shear_converges_with_cutbacks(cube):

@@ -5,32 +5,47 @@ bimaxillary plan (Le Fort I advancement, mandibular setback, genioplasty) with a
 is timed after a first registration has filled the registration cache. Prints the time of
 every stage and the peak resident memory; the last line is
 `solve_s=<t> total_s=<t> peak_mb=<m>` (targets: solve < 30 s, total < 60 s on 2 cores).
+`--no-contact` and `--resolution` change the set-up; a failed solve prints why and exits 3.
 """
 from __future__ import annotations
 
+import argparse
 import resource
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from planner.case import load_case
-from planner.pipeline import DEMO_PLAN, Progress, predict_case, register_case, write_demo_case
+# `python bench/pipeline.py` puts bench/ first on sys.path, where bench/registration.py would
+# shadow the registration package: drop it.
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
-PLAN = dict(DEMO_PLAN, muscles={"orbicularis_oris": 0.05, "mentalis": 0.05},
-            model={"resolution": "standard", "contact": True})
-
+from planner.case import load_case  # noqa: E402
+from planner.errors import SolveError  # noqa: E402
+from planner.pipeline import DEMO_PLAN, Progress, predict_case, register_case, write_demo_case  # noqa: E402
 
 def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--resolution", default="standard", choices=("coarse", "standard", "fine"))
+    parser.add_argument("--no-contact", action="store_true", help="solve without lip contact")
+    args = parser.parse_args()
+    plan = dict(DEMO_PLAN, muscles={"orbicularis_oris": 0.05, "mentalis": 0.05},
+                model={"resolution": args.resolution, "contact": not args.no_contact})
+    print(f"resolution {args.resolution}, contact {'off' if args.no_contact else 'on'}, muscle tone 0.05")
     with tempfile.TemporaryDirectory(prefix="faceplan-bench-") as tmp:
         tmp = Path(tmp)
-        case = write_demo_case(tmp / "case", PLAN)
+        case = write_demo_case(tmp / "case", plan)
         t0 = time.perf_counter()
-        register_case(load_case(case), "standard", Progress(echo=False))
+        register_case(load_case(case), args.resolution, Progress(echo=False))
         print(f"registration (fills the cache): {time.perf_counter() - t0:.1f} s")
         lines: list[str] = []
         t0 = time.perf_counter()
-        predict_case(case, tmp / "predict", render=True, echo=lines.append)
+        try:
+            predict_case(case, tmp / "predict", render=True, echo=lines.append)
+        except SolveError as exc:
+            print("\n".join(ln for ln in lines if " it " not in ln))
+            print(f"the prediction failed after {time.perf_counter() - t0:.1f} s: {exc}")
+            return 3
         total = time.perf_counter() - t0
         import json
 

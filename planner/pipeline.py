@@ -272,6 +272,10 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
     bad = rep.inverted_elements(np.asarray(model.nodes, float) + u, model.hexes)
     if bad.size:
         raise SolveError(_inverted_message(model, bad))
+    folded = rep.folded_corners(np.asarray(model.nodes, float) + u, model.hexes)
+    if folded.size:
+        progress.say(f"  warning: {folded.size} element(s) have a folded corner (corner Jacobian <= 0) "
+                     "but are valid at their Gauss points")
     stats["sliding"] = list(sliding)
     stats["activations"] = activations
     return Prediction(model, plan, u, stress, stats, bone_vertices, assignment, effects)
@@ -285,7 +289,7 @@ def _inverted_message(model, bad: np.ndarray) -> str:
         segs = [s for s in model.segments if np.isin(hx, model.node_sets.get("attach_" + s, ())).any()]
         where.append(f"element {int(e)} ({model.label_names[model.labels[e]]}, at "
                      f"{np.round(x[hx].mean(axis=0), 1).tolist()} mm, attached to {'+'.join(segs) or 'no bone'})")
-    return (f"{bad.size} element(s) of the predicted face are inverted (a corner Jacobian <= 0): "
+    return (f"{bad.size} element(s) of the predicted face are inverted (Jacobian <= 0 at a Gauss point): "
             + "; ".join(where) + ". The relative movement of neighbouring bone segments shears the "
             "soft tissue between them more than this mesh resolution can follow: use a finer "
             "--resolution, --effect sliding=1, or a smaller relative movement")
@@ -433,6 +437,8 @@ def build_report(pred: Prediction, progress: Progress, inputs: dict, registratio
     model, u = pred.model, pred.displacement
     jac = rep.corner_jacobians(pred.predicted_nodes, model.hexes)
     ref = rep.corner_jacobians(model.nodes, model.hexes)
+    gjac = rep.gauss_jacobians(pred.predicted_nodes, model.hexes)
+    gref = rep.gauss_jacobians(model.nodes, model.hexes)
     return {
         "faceplan": 1,
         "inputs": inputs,
@@ -446,7 +452,9 @@ def build_report(pred: Prediction, progress: Progress, inputs: dict, registratio
         "label_names": list(model.label_names),
         "soft_tissue": {"max_displacement_mm": round(float(np.linalg.norm(u, axis=1).max()), 4),
                         "n_nodes": int(len(u)), "n_elements": int(len(model.hexes))},
-        "mesh_quality": {"inverted_elements": int((jac <= 0).any(axis=1).sum()),
+        "mesh_quality": {"inverted_elements": int((gjac <= 0).any(axis=1).sum()),
+                         "min_gauss_jacobian_ratio": round(float((gjac / gref).min()), 4),
+                         "folded_corner_elements": int((jac <= 0).any(axis=1).sum()),
                          "min_corner_jacobian_ratio": round(float((jac / ref).min()), 4)},
         "registration": registration or {},
         "solver": pred.solver,

@@ -115,3 +115,35 @@ def test_skin_surface_regions_and_ratio():
     lm = landmark_movements(model, u, plan, {"maxilla": np.array([[1, -10, 1.0], [9, 9, 9]])})
     assert lm["Ls"]["soft_to_hard_ratio_ap"] == pytest.approx(0.7, abs=1e-12)
     assert lm["Ls"]["bone_segment"] == "maxilla"
+
+
+def _trilinear(x8, xi):
+    ref = np.array([[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
+                    [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], float)
+    n = np.prod(1.0 + ref * xi, axis=1) / 8.0
+    return n @ x8
+
+
+def test_gauss_jacobians_against_finite_differences():
+    from planner.report import folded_corners, gauss_jacobians
+
+    hexes = np.arange(8)[None]
+    # unit cube: dx/dxi = I/2 everywhere, det 1/8
+    assert np.allclose(gauss_jacobians(CUBE, hexes), 0.125, atol=1e-14)
+    rng = np.random.default_rng(3)
+    x8 = CUBE + 0.15 * rng.standard_normal((8, 3))
+    g = gauss_jacobians(x8, hexes)[0]
+    # central differences of the trilinear map at each Gauss point (the map is polynomial of
+    # degree <= 1 in each variable, so central differences are exact up to round-off: 1e-9)
+    h = 1e-5
+    for k, xi in enumerate(np.array([[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
+                                     [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]]) / np.sqrt(3)):
+        jac = np.column_stack([(_trilinear(x8, xi + h * e) - _trilinear(x8, xi - h * e)) / (2 * h)
+                               for e in np.eye(3)])
+        assert g[k] == pytest.approx(np.linalg.det(jac), abs=1e-9)
+    # a corner pulled towards the centre folds that corner but the element stays valid at the
+    # Gauss points
+    bent = CUBE.copy()
+    bent[6] = [0.6, 0.6, 0.6]           # corner Jacobian -0.2, smallest Gauss-point one +0.03
+    assert folded_corners(bent, hexes).tolist() == [0]
+    assert inverted_elements(bent, hexes).size == 0

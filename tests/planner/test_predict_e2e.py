@@ -87,14 +87,19 @@ def test_surfaces_in_the_input_frame(run):
     assert "von_mises" in vol.cell_data and "label" in vol.cell_data
 
 
-def test_rerun_reuses_the_registration(run, tmp_path):
-    case, _ = run
-    out = tmp_path / "again"
-    assert main(["predict", str(case), "--out", str(out), "--resolution", "coarse", "--quiet", "--no-images"]) == 0
+def test_demo_bimaxillary_reuses_the_registration(run, tmp_path):
+    """`faceplan demo`: the same embedded head with the bimaxillary plan; the registration of
+    the first run (same skin, bones and landmarks) is reused from the cache."""
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--quiet", "--no-images"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["registration"]["cached"] is True
-    first = json.loads((case / "predict" / "report.json").read_text())
-    # The same inputs give the same prediction (deterministic registration and solve).
-    a = np.array(list(first["landmarks_predicted"].values()))
-    b = np.array(list(report["landmarks_predicted"].values()))
-    assert np.abs(a - b).max() < 1e-6
+    assert set(report["plan"]["segments"]) == {"maxilla", "mandible", "chin"}
+    assert report["mesh_quality"]["inverted_elements"] == 0
+    lm = report["landmarks"]
+    # Directions a surgeon expects: the upper lip comes forward with the maxilla, the lower lip
+    # goes back with the mandibular setback, the chin comes forward with the genioplasty.
+    assert lm["Ls"]["displacement_mm"][1] > 1.0
+    assert lm["Li"]["displacement_mm"][1] < -1.0
+    assert lm["Pog"]["displacement_mm"][1] > 1.0
+    assert (out / "case" / "plan.yaml").is_file() and (out / "case" / "preop" / "skin.stl").is_file()

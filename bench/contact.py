@@ -4,7 +4,10 @@ Solves a mandibular set-back/closure (the mandible moved up and back, lips press
 and onto the teeth) on the generic face with `facemodel.simulation.simulate`, once with lip-lip
 and lip-teeth contact and once without, and reports the wall-clock times, Newton iterations,
 time spent in the contact terms (search + assembly) and the relative overhead.
-Usage: python bench/contact.py [--resolution standard|coarse|fine]
+With --images DIR it also renders the two face checks: orbicularis oris activation
+(lips pursed and protruded) and the mandible closed 8 mm upward (lips against each other and
+the teeth), as profile views of the skin with the displacement magnitude.
+Usage: python bench/contact.py [--resolution standard|coarse|fine] [--images DIR]
 Last line: contact_overhead_pct=<x>
 """
 from __future__ import annotations
@@ -21,9 +24,50 @@ def _motion(dy=-3.0, dz=4.0):
     return T
 
 
+def _images(model, folder):
+    """Profile and frontal renders of the two face checks (off-screen pyvista)."""
+    from pathlib import Path
+
+    import pyvista as pv
+
+    from facemodel.simulation import lip_penetrations, simulate
+    pv.OFF_SCREEN = True
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    T = _motion(0.0, 8.0)
+    cases = {"orbicularis_oris": ({}, {"orbicularis_oris": 0.1}),
+             "mandible_closed_8mm": ({"mandible": T, "chin": T}, {})}
+    quads = np.asarray(model.facet_sets["skin"])
+    faces = np.hstack([np.full((len(quads), 1), 4), quads]).ravel()
+    for name, (motions, acts) in cases.items():
+        res = simulate(model, motions, acts)
+        pen = lip_penetrations(model, res.x, motions=motions)
+        for view in ("yz", "xz"):
+            pl = pv.Plotter(off_screen=True, window_size=(900, 900))
+            ref = pv.PolyData(model.nodes, faces)
+            pl.add_mesh(ref, style="wireframe", color="grey", opacity=0.25)
+            cur = pv.PolyData(res.x, faces)
+            cur["displacement (mm)"] = np.linalg.norm(res.displacement, axis=1)
+            pl.add_mesh(cur, scalars="displacement (mm)", cmap="viridis")
+            lips = np.unique(np.vstack([model.facet_sets["lip_upper_contact"],
+                                        model.facet_sets["lip_lower_contact"]]))
+            pl.add_points(res.x[lips], color="red", point_size=6)
+            if view == "yz":
+                pl.view_yz()
+            else:
+                pl.view_xz()
+            pl.add_text(f"{name}: deepest lip/teeth penetration "
+                        f"{max(pen.values()):.3f} mm", font_size=10)
+            path = out / f"{name}_{'profile' if view == 'yz' else 'front'}.png"
+            pl.screenshot(str(path))
+            pl.close()
+            print(f"wrote {path}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--resolution", default="standard")
+    ap.add_argument("--images", default=None, help="folder for the face images (optional)")
     args = ap.parse_args(argv)
     import generic_mesh
     from facemodel.simulation import simulate
@@ -49,6 +93,8 @@ def main(argv=None):
         if contact:
             print(f"  one evaluation of all contact terms: {1e3 * term_time:.1f} ms "
                   f"(x {res.iterations} iterations ~ {term_time * res.iterations:.2f} s)")
+    if args.images:
+        _images(model, args.images)
     pct = 100.0 * (times[True] - times[False]) / times[False]
     print(f"contact_overhead_pct={pct:.1f}")
 

@@ -345,10 +345,25 @@ def lip_penetrations(model, x, load: float = 1.0, motions: dict | None = None,
 
 
 def _depth(surf, pts, band):
+    """Deepest point (mm) behind the surface, not counting points whose closest feature is
+    on the boundary of an open surface (those are beside it, not inside)."""
     idx, c, face, region, dist = surf.closest(pts, band)
     if not len(idx):
         return 0.0
+    F = surf.faces
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    uniq, inv, counts = np.unique(e, axis=0, return_inverse=True, return_counts=True)
+    edge_open = (counts == 1)[inv.ravel()].reshape(3, len(F)).T          # (q, 3): ab, bc, ca
+    vert_open = np.zeros(len(surf.vertices), dtype=bool)
+    vert_open[uniq[counts == 1].ravel()] = True
+    on_border = np.zeros(len(idx), dtype=bool)
+    for r, k in ((1, 0), (2, 1), (3, 2)):                                # vertices a, b, c
+        m = region == r
+        on_border[m] = vert_open[F[face[m], k]]
+    for r, k in ((4, 0), (5, 1), (6, 2)):                                # edges ab, bc, ca
+        m = region == r
+        on_border[m] = edge_open[face[m], k]
     pn = surf.pseudo_normal(face, region)
     s = np.einsum("ij,ij->i", pts[idx] - c, pn)
-    inside = (s < 0) & (dist < band)
+    inside = (s < 0) & (dist < band) & ~on_border
     return float(dist[inside].max()) if np.any(inside) else 0.0

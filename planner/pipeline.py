@@ -236,6 +236,20 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
     materials = face_materials(model, plan.model.materials, effects.get("stiffness", 1.0))
     from solver import errors as solver_errors
 
+    teeth_shift = {}
+    if plan.model.contact and getattr(model, "teeth", None):
+        # Contact must start without penetration: after registration some lip nodes can lie
+        # inside the rigid arches; each arch is moved back by the measured depth
+        # (`facemodel.teeth.clear_teeth`), reported.
+        from facemodel.teeth import clear_teeth
+
+        try:
+            model, teeth_shift = clear_teeth(model)
+        except ValueError as exc:
+            raise SolveError(f"lip/teeth contact cannot start: {exc}") from exc
+        moved = {k: round(v, 3) for k, v in teeth_shift.items() if v > 0}
+        if moved:
+            progress.say(f"  teeth moved back to start contact clear of the lips (mm): {moved}")
     motions = plan.motions(include_identity=True)
     moving = {k: m for k, m in motions.items() if not np.allclose(m, np.eye(4), atol=1e-12)}
     if not moving and not any(a > 0 for a in activations.values()):
@@ -278,6 +292,7 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
                      "but are valid at their Gauss points")
     stats["sliding"] = list(sliding)
     stats["activations"] = activations
+    stats["teeth_clearance_shift_mm"] = {k: round(float(v), 4) for k, v in teeth_shift.items()}
     return Prediction(model, plan, u, stress, stats, bone_vertices, assignment, effects)
 
 
@@ -591,10 +606,7 @@ DEMO_PLAN = {
         "chin": {"translation": [0.0, 2.0, 1.0]},
     },
     "muscles": {"orbicularis_oris": 0.0, "mentalis": 0.0},
-    # Lip contact is off in the demo for now: on the registered demo head the lip mucosa starts
-    # 1.5-1.9 mm inside the teeth surfaces (initial overclosure), and the contact solve diverges
-    # from the first load step. `faceplan predict` keeps contact on by default.
-    "model": {"contact": False},
+    "model": {"contact": True},
 }
 
 

@@ -60,7 +60,7 @@ class RigidSurfaceContact:
     def __init__(self, nodes, vertices, faces, *, slave_facets=None, slave_nodes=None,
                  slave_areas=None, motion=None, penalty: float = 100.0,
                  bilateral: bool = False, augmented: bool = True, tolerance: float = 0.05,
-                 max_augmentations: int = 20, search_radius: float = 5.0,
+                 max_augmentations: int = 10, search_radius: float = 5.0,
                  max_depth: float = np.inf, stick: bool = False,
                  freeze_after: int | None = 4):
         nodes = np.asarray(nodes, dtype=float)
@@ -134,13 +134,14 @@ class RigidSurfaceContact:
         along = np.abs(np.einsum("ij,ij->i", d, fn)) >= (1.0 - 1e-9) * dist
         region = np.where(along, FACE, region)
         pn = self.surface.pseudo_normal(face, region)
+        # Off the face interiors (closest feature an edge or a vertex) the gap is the signed
+        # distance s |y - c| with the unit gradient s (y - c)/|y - c|, continuous across the
+        # Voronoi regions of the features (the pseudo-normal only gives the sign).
         inside_face = region == FACE
-        gi = np.where(inside_face, np.einsum("ij,ij->i", d, pn), 0.0)
-        # off the face interiors the gradient is the unit vector to the closest point, signed
-        s = np.where(np.einsum("ij,ij->i", d, pn) >= 0.0, 1.0, -1.0)
+        sgn = np.where(np.einsum("ij,ij->i", d, pn) >= 0.0, 1.0, -1.0)
         safe = np.maximum(dist, 1e-300)[:, None]
-        ni = np.where(inside_face[:, None], pn, s[:, None] * d / safe)
-        gi = np.where(inside_face, gi, s * dist)
+        ni = np.where(inside_face[:, None], pn, sgn[:, None] * d / safe)
+        gi = np.where(inside_face, np.einsum("ij,ij->i", d, pn), sgn * dist)
         g[idx], n0[idx], reg[idx] = gi, ni, region
         return g, n0 @ R.T, reg, y
 
@@ -184,12 +185,13 @@ class RigidSurfaceContact:
         Kb = ea[:, None, None] * na[:, :, None] * na[:, None, :]
         off = reg[active] != FACE
         if np.any(off):
-            # curvature of the distance to an edge or vertex: (I - n n)/g, bounded by eps so
-            # that a node passing very close to an edge keeps a well-conditioned tangent
+            # curvature of the distance to an edge or a vertex, d2g/dx2 = (I - n n)/g, in the
+            # tangent -p d2g/dx2; |g| is kept above 1e-4 mm so that a node resting exactly on
+            # an edge has a finite (if very stiff) tangential stiffness
             P = np.eye(3) - na[off, :, None] * na[off, None, :]
-            coef = np.minimum(np.abs(pa[off] / np.where(ga[off] == 0, 1e-300, ga[off])), ea[off])
-            coef = coef * np.sign(-pa[off] * np.where(ga[off] == 0, -1.0, ga[off]))
-            Kb[off] += coef[:, None, None] * P
+            go = ga[off]
+            greg = np.where(go >= 0, 1.0, -1.0) * np.maximum(np.abs(go), 1e-4)
+            Kb[off] += (-pa[off] / greg)[:, None, None] * P
         if self.stick:
             fs, Ks = self._stick_terms(x, load, active, y)
             f += fs
@@ -239,8 +241,12 @@ class RigidSurfaceContact:
         g, _, _, _ = self.gaps(x, load)
         p, active = self._pressure(g)
         # a frozen solve whose contact status is wrong at convergence is solved again
-        changed = bool(was_frozen and not self.bilateral and frozen_active is not None
-                       and np.any(frozen_active != active))
+        # (changes of nodes that sit within the tolerance of the switch, in gap
+        # units (lambda - eps g) / eps, do not count: grazing nodes would cycle for ever)
+        q = (self.multipliers - self.eps * np.nan_to_num(g, nan=np.inf)) / self.eps
+        flip = (frozen_active != active) & (np.abs(q) > self.tolerance) \
+            if frozen_active is not None else np.zeros(len(q), dtype=bool)
+        changed = bool(was_frozen and not self.bilateral and np.any(flip))
         if self.bilateral:
             err = np.nanmax(np.abs(g), initial=0.0)
         else:
@@ -252,13 +258,12 @@ class RigidSurfaceContact:
         if self.n_augmentations >= self.max_augmentations:
             self.n_augmentations = 0
             return False
-        if not self.augmented or err <= self.tolerance:
-            if changed:
-                self.n_augmentations += 1
-                return True
+        if not changed and (not self.augmented or err <= self.tolerance):
             self.n_augmentations = 0
             return False
-        self.multipliers = p
+        # Uzawa update (also when only the frozen status was wrong: it settles the status)
+        if self.augmented:
+            self.multipliers = p
         self.n_augmentations += 1
         return True
 

@@ -128,7 +128,7 @@ class SurfaceContact:
 
     def __init__(self, nodes, surface_a, surface_b, *, two_pass: bool = True,
                  penalty: float = 100.0, augmented: bool = True, tolerance: float = 0.05,
-                 max_augmentations: int = 20, search_radius: float = 2.0,
+                 max_augmentations: int = 10, search_radius: float = 2.0,
                  max_depth: float = 2.0, freeze_after: int | None = 4):
         nodes = np.asarray(nodes, dtype=float)
         if not penalty > 0:
@@ -233,7 +233,11 @@ class SurfaceContact:
                                                                              before_active):
                 act = s[p > 0]
                 moved |= bool(np.any(old[act] != ps.previous[act]))
-                moved |= bool(np.any(olda != ps.active))
+                # status flips of grazing nodes (within the tolerance of the switch, in gap
+                # units) do not count, or they would cycle for ever
+                q = np.full(len(ps.slaves), np.inf)
+                q[s] = (lam - eps * g) / eps
+                moved |= bool(np.any((olda != ps.active) & (np.abs(q) > self.tolerance)))
         err = 0.0
         for ps, s, g, grad, hess, dofs, eps, lam, p in ev:
             if np.any(p > 0):
@@ -245,12 +249,12 @@ class SurfaceContact:
         if self.n_augmentations >= self.max_augmentations:
             self.n_augmentations = 0
             return False
-        if moved and (not self.augmented or err <= self.tolerance):
-            self.n_augmentations += 1
-            return True
-        if not self.augmented or err <= self.tolerance:
+        if not moved and (not self.augmented or err <= self.tolerance):
             self.n_augmentations = 0
             return False
+        if not self.augmented:
+            self.n_augmentations += 1
+            return True
         for ps, s, g, grad, hess, dofs, eps, lam, p in ev:
             new = np.zeros_like(ps.multipliers)
             new[s] = p

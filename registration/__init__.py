@@ -2,7 +2,7 @@
 
 Public API: `mesh_match_and_repair(model, skin, bones, landmarks=None, ...) -> (patient, report)`
 for a FaceModel; the array-level stages (`align_surfaces`, `umeyama`, `elastic_register`,
-`repair_mesh`) and hexahedron quality (`scaled_jacobians`, `min_scaled_jacobian`).
+`repair_mesh`, `place_teeth`, `clear_teeth`) and hexahedron quality (`scaled_jacobians`, `min_scaled_jacobian`).
 """
 from registration.alignment import Similarity, align_surfaces, trimmed_icp, umeyama
 from registration.elastic import ElasticSchedule, elastic_register
@@ -12,8 +12,10 @@ from registration.mesh_match import MatchInput, MatchOptions, match_and_repair_a
 from registration.quality import min_scaled_jacobian, quality_summary, scaled_jacobians
 from registration.repair import SurfaceConstraint, repair_mesh
 from registration.surface import TargetSurface
+from registration.teeth import Arch, clear_teeth, place_teeth
 
 __all__ = [
+    "Arch", "clear_teeth", "place_teeth",
     "ElasticSchedule", "MatchInput", "MatchOptions", "RegistrationFailure",
     "RegistrationInputError", "Similarity", "SurfaceConstraint", "TargetSurface",
     "align_surfaces", "elastic_register", "match_and_repair_arrays", "mesh_match_and_repair",

@@ -5,8 +5,9 @@ facet set and the bone attachment node sets (attach_<segment>) drive the registr
 result keeps the model's connectivity, labels, node and facet sets, regions and landmarks
 (node ids), re-orients the fibres with the deformation gradient of each element
 (f' = F f / |F f|, F = J' J^-1 from the isoparametric Jacobians at the element centre) and
-moves each set of teeth with the similarity that best maps its bone segment's attachment
-nodes (Umeyama). Results are cached on disk under a key hashing every input (model arrays,
+carries the teeth: the patient's own arches when given (`teeth=`), else each generic arch
+moved with the similarity that best maps its bone segment's attachment nodes (Umeyama), with
+the lips cleared of them (`registration.teeth`). Results are cached on disk under a key hashing every input (model arrays,
 patient surfaces, landmarks, options and the registration code itself), so that re-running a
 prediction on the same case reuses the registration.
 """
@@ -21,13 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from registration.alignment import umeyama
 from registration.errors import RegistrationInputError
 from registration.mesh_match import MatchInput, MatchOptions, match_and_repair_arrays
 from registration.quality import EDGE_OPERATOR
 from registration.surface import TargetSurface
+from registration.teeth import ARCH_SEGMENT, teeth_arrays
 
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2
 
 
 def as_target(surface, name: str) -> TargetSurface:
@@ -75,21 +76,6 @@ def reorient_fibres(old_nodes, new_nodes, hexes, fibres) -> np.ndarray:
     return out
 
 
-def move_teeth(model, new_nodes: np.ndarray, similarity) -> dict:
-    """Each set of teeth moved by the similarity fitted (Umeyama) to its segment's attached
-    nodes, generic -> registered; the global similarity when the segment has too few."""
-    teeth = {}
-    for name, (v, f, seg) in model.teeth.items():
-        seg = seg or {"upper": "maxilla", "lower": "mandible"}.get(name)
-        ids = np.asarray(model.node_sets.get(f"attach_{seg}", []), dtype=int)
-        if len(ids) >= 4:
-            tf = umeyama(model.nodes[ids], new_nodes[ids])
-        else:
-            tf = similarity
-        teeth[name] = (tf.apply(np.asarray(v, float)), np.asarray(f), seg)
-    return teeth
-
-
 def _hash_arrays(h, *arrays):
     for a in arrays:
         a = np.ascontiguousarray(a)
@@ -97,7 +83,8 @@ def _hash_arrays(h, *arrays):
         h.update(a.tobytes())
 
 
-def cache_key(model, skin: TargetSurface, bones: dict, landmarks, options: MatchOptions) -> str:
+def cache_key(model, skin: TargetSurface, bones: dict, landmarks, options: MatchOptions,
+              teeth: dict | None = None) -> str:
     h = hashlib.sha256()
     h.update(f"faceplan-registration-{CACHE_FORMAT}".encode())
     src = Path(__file__).parent
@@ -111,6 +98,12 @@ def cache_key(model, skin: TargetSurface, bones: dict, landmarks, options: Match
         h.update(k.encode()); _hash_arrays(h, bones[k].vertices, bones[k].faces)
     for k in sorted(landmarks or {}):
         h.update(k.encode()); _hash_arrays(h, np.asarray(landmarks[k], float))
+    for k in sorted(model.teeth):
+        h.update(f"generic-teeth-{k}-{model.teeth[k][2]}".encode())
+        _hash_arrays(h, np.asarray(model.teeth[k][0], float), np.asarray(model.teeth[k][1]))
+    for k in sorted(teeth or {}):
+        v, f, seg = teeth[k]
+        h.update(f"patient-teeth-{k}-{seg}".encode()); _hash_arrays(h, v, f)
     h.update(json.dumps(asdict(options), sort_keys=True, default=str).encode())
     return h.hexdigest()[:24]
 
@@ -126,9 +119,9 @@ def _cache_load(path: Path, model):
     try:
         with np.load(path / "result.npz") as z:
             nodes, fibres = z["nodes"], z["fibres"]
-            teeth = {k: (z[f"teeth_{k}"], np.asarray(model.teeth[k][1]), model.teeth[k][2])
-                     for k in model.teeth}
-        report = json.loads((path / "report.json").read_text())
+            report = json.loads((path / "report.json").read_text())
+            teeth = {k: (z[f"teeth_{k}"], z[f"teeth_faces_{k}"], report["teeth"][k]["segment"])
+                     for k in report["teeth"]}
     except (OSError, KeyError, ValueError):
         return None
     if nodes.shape != model.nodes.shape:
@@ -141,7 +134,8 @@ def _cache_store(path: Path, patient, report: dict) -> None:
     try:
         tmp.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(tmp / "result.npz", nodes=patient.nodes, fibres=patient.fibres,
-                            **{f"teeth_{k}": np.asarray(v[0]) for k, v in patient.teeth.items()})
+                            **{f"teeth_{k}": np.asarray(v[0]) for k, v in patient.teeth.items()},
+                            **{f"teeth_faces_{k}": np.asarray(v[1]) for k, v in patient.teeth.items()})
         (tmp / "report.json").write_text(json.dumps(report))
         os.replace(tmp, path)
     except OSError:
@@ -151,12 +145,14 @@ def _cache_store(path: Path, patient, report: dict) -> None:
 def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dict | None = None, *,
                           options: MatchOptions | None = None, threshold: float | None = None,
                           cache: bool = True, cache_dir: str | os.PathLike | None = None,
-                          files: dict | None = None):
+                          files: dict | None = None, teeth: dict | None = None):
     """Register the generic `model` onto the patient: returns (patient_model, report).
 
     skin: the patient skin (trimesh, (vertices, faces) or TargetSurface); bones: segment name ->
     bone surface (a segment missing from `bones` is fitted to the union of the others);
-    landmarks: optional name -> (3,) mm RAS. Raises RegistrationInputError for data that cannot
+    landmarks: optional name -> (3,) mm RAS; teeth: optional arch name ("upper", "lower") ->
+    the patient's own teeth surface in the same frame (trimesh, (vertices, faces[, segment]) or
+    TargetSurface; e.g. `Case.teeth`), used instead of the generic arches. Raises RegistrationInputError for data that cannot
     be registered and RegistrationFailure if the result would not be valid."""
     t0 = time.perf_counter()
     opt = options or MatchOptions()
@@ -165,7 +161,15 @@ def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dic
     skin_t = as_target(skin, "skin")
     bone_t = {k: as_target(v, f"bone.{k}") for k, v in (bones or {}).items()}
     lms = {k: np.asarray(v, dtype=float).reshape(3) for k, v in (landmarks or {}).items()}
-    key = cache_key(model, skin_t, bone_t, lms, opt)
+    known = set(model.teeth) | set(ARCH_SEGMENT)
+    unknown = sorted(set(teeth or {}) - known)
+    if unknown:
+        raise RegistrationInputError(f"teeth: unknown arch name(s) {', '.join(map(str, unknown))}; "
+                                     f"expected {', '.join(sorted(known))}", field="teeth")
+    own_teeth = {k: teeth_arrays(v, k) for k, v in (teeth or {}).items()}
+    own_teeth = {k: (v, f, seg or (model.teeth[k][2] if k in model.teeth else ARCH_SEGMENT[k]))
+                 for k, (v, f, seg) in own_teeth.items()}
+    key = cache_key(model, skin_t, bone_t, lms, opt, own_teeth)
     cdir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     if cache:
         hit = _cache_load(cdir / key, model) if (cdir / key).is_dir() else None
@@ -180,12 +184,13 @@ def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dic
         bone_node_sets={s: np.asarray(model.node_sets[f"attach_{s}"]) for s in segs},
         landmark_nodes=dict(model.landmarks),
         bone_quads=np.asarray(model.facet_sets["deep_bone"]) if "deep_bone" in model.facet_sets else None,
+        teeth=dict(model.teeth),
     )
-    x, sim, report = match_and_repair_arrays(arrays, skin_t, bone_t, lms or None, opt, files)
+    x, sim, report, placed = match_and_repair_arrays(arrays, skin_t, bone_t, lms or None, opt, files,
+                                                     teeth=own_teeth or None)
     t1 = time.perf_counter()
     fibres = reorient_fibres(model.nodes, x, np.asarray(model.hexes), model.fibres)
-    teeth = move_teeth(model, x, sim)
-    patient = replace(model, nodes=x, fibres=fibres, teeth=teeth)
+    patient = replace(model, nodes=x, fibres=fibres, teeth=placed)
     report["time"]["carry_s"] = time.perf_counter() - t1
     report["time"]["total_s"] = time.perf_counter() - t0
     report["elements_repaired"] = report["repair"]["elements_needing_repair"]

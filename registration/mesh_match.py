@@ -5,8 +5,9 @@ landmarks (Umeyama) or from the surfaces (principal axes + trimmed ICP), (2) the
 registration of skin and bone-attachment nodes by a composed multilevel B-spline FFD
 (`registration.elastic`), (3) a snap of the surface nodes onto the patient surfaces with a
 harmonic spread into the volume, (4) the repair of every element whose minimum scaled Jacobian
-is below the threshold (`registration.repair`), then fit errors (mean / 95th percentile / max
-of the distances from the registered skin -- its nodes and points inside its facets -- to the
+is below the threshold (`registration.repair`), (5) the teeth placed with their bone segments
+(or the patient's own) and the soft tissue cleared of them (`registration.teeth`), then fit
+errors (mean / 95th percentile / max of the distances from the registered skin -- its nodes and points inside its facets -- to the
 patient skin where the patient surface covers the model, the reverse distances, and the
 bone-attachment node distances) and quality figures.
 Inputs that cannot give a trustworthy mesh (wrong units, a surface that covers too little of
@@ -28,6 +29,7 @@ from registration.errors import RegistrationFailure, RegistrationInputError
 from registration.quality import min_scaled_jacobian, quality_summary
 from registration.repair import SurfaceConstraint, repair_mesh
 from registration.surface import TargetSurface
+from registration.teeth import Arch, clear_teeth, place_teeth
 
 
 @dataclass
@@ -39,6 +41,7 @@ class MatchOptions:
     coverage_min: float = 0.25  # fraction of generic skin nodes the patient skin must cover
     landmark_rms_max_mm: float = 8.0  # Umeyama residual above which landmarks are refused
     skin_mean_gate_mm: float = 1.0  # refuse to return a mesh fitting worse than this
+    teeth_clearance_mm: float = 0.2  # soft-tissue nodes end at least this far outside the teeth
     seed: int = 0
 
 
@@ -52,6 +55,7 @@ class MatchInput:
     bone_node_sets: dict  # segment name -> node ids attached to it
     landmark_nodes: dict = field(default_factory=dict)  # landmark name -> node id
     bone_quads: np.ndarray | None = None  # (k, 4) deep facets on bone, outward from the tissue
+    teeth: dict = field(default_factory=dict)  # arch -> (vertices, faces, segment), generic frame
 
 
 def _fit_stats(d: np.ndarray) -> dict:
@@ -148,11 +152,15 @@ def _bone_groups(model: MatchInput, bones: dict) -> list[SurfaceGroup]:
 
 def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                             landmarks: dict | None = None, options: MatchOptions | None = None,
-                            files: dict | None = None):
-    """Register the generic mesh onto the patient surfaces. Returns (nodes, similarity, report).
+                            files: dict | None = None, teeth: dict | None = None):
+    """Register the generic mesh onto the patient surfaces.
 
-    `bones` maps segment names to TargetSurface; a segment of the model without a patient bone
-    surface is fitted to the union of the given bones."""
+    Returns (nodes, similarity, report, teeth): `teeth` maps each arch to (vertices, faces,
+    segment) in the patient frame -- the patient's own surface where `teeth` gives one (arch
+    name -> surface), else the generic arch moved with its bone segment -- and no node that
+    is neither on the skin nor attached to a bone lies closer than the clearance to them
+    (`registration.teeth`). `bones` maps segment names to TargetSurface; a segment of the
+    model without a patient bone surface is fitted to the union of the given bones."""
     opt = options or MatchOptions()
     files = files or {}
     times: dict[str, float] = {}
@@ -228,8 +236,22 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     x, rep = repair_mesh(x, hexes, threshold=opt.threshold, constraints=constraints)
     times["repair_s"] = time.perf_counter() - t3
 
-    t4 = time.perf_counter()
     x = sim.apply(x)  # back to the patient frame; measured against the patient's own surfaces
+
+    # teeth with their segments (or the patient's own), then the lips cleared of them; skin
+    # and attached nodes stay where they are, so the fits below are those of the repair
+    t5 = time.perf_counter()
+    placed, teeth_info = place_teeth(model.teeth, model.bone_node_sets, np.asarray(model.nodes, float),
+                                     x, sim, teeth)
+    clearance_report = None
+    if placed:
+        arches = [Arch(k, v, f, seg) for k, (v, f, seg) in placed.items()]
+        keep = np.concatenate([skin_ids] + [np.asarray(i, np.int64) for i in model.bone_node_sets.values()])
+        x, clearance_report = clear_teeth(x, hexes, arches, keep, clearance=opt.teeth_clearance_mm,
+                                          threshold=opt.threshold)
+    times["teeth_clearance_s"] = time.perf_counter() - t5
+
+    t4 = time.perf_counter()
     groups = _bone_groups(model, bones)
     normals = vertex_normals(x, skin_tris)
     cl = skin.closest(x[skin_ids])
@@ -277,6 +299,8 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         },
         "quality": quality_summary(x, hexes, opt.threshold),
         "repair": rep,
+        "teeth": teeth_info,
+        "teeth_clearance": clearance_report,
         "elastic": elog.levels,
     }
     if lm is not None:
@@ -297,4 +321,4 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     if skin_mean is None or skin_mean > opt.skin_mean_gate_mm:
         raise RegistrationFailure(f"the registered skin misses the patient skin by {skin_mean} mm "
                                   f"on average (gate {opt.skin_mean_gate_mm} mm)", report)
-    return x, sim, report
+    return x, sim, report, placed

@@ -1,0 +1,131 @@
+"""Lips clear of the teeth after Mesh-Match-and-Repair (coarse generic mesh, synthetic heads).
+
+Seed 7 (class II: its registered lower lip started up to 2.2 mm inside the transported lower
+arch) with the arches moved with their segments, and a strong class III (seed 13, mandible
+9 mm ahead of the maxilla) with the patient's own teeth (`teeth=`), whose lower incisors
+start inside the registered lower lip. Checked independently of
+the report with trimesh's signed distance: no node off the skin / bones inside an arch, the
+scaled-Jacobian gate, and the skin fit equal to the fit before the clearance stage.
+"""
+import numpy as np
+import pytest
+
+from registration import mesh_match_and_repair
+from registration.quality import min_scaled_jacobian
+
+generic_mesh = pytest.importorskip("generic_mesh")
+synthetic = pytest.importorskip("facemodel.synthetic")
+trimesh = pytest.importorskip("trimesh")
+
+
+@pytest.fixture(scope="module")
+def generic():
+    return generic_mesh.load("coarse")
+
+
+@pytest.fixture(scope="module", params=[(7, False), (13, True)], ids=["seed7-segment-teeth", "seed13-own-teeth"])
+def registered(request, generic):
+    seed, own = request.param
+    head = synthetic.synthetic_head(seed)
+    patient, report = mesh_match_and_repair(generic, head.skin, head.bones, head.landmarks, cache=False,
+                                            teeth=head.teeth if own else None)
+    return head, own, patient, report
+
+
+def test_no_node_inside_the_teeth(generic, registered):
+    head, own, patient, report = registered
+    fixed = np.unique(np.concatenate([generic.node_sets["skin"]] + [generic.node_sets[f"attach_{s}"]
+                                                                     for s in generic.segments]))
+    free = np.setdiff1d(np.arange(len(patient.nodes)), fixed)
+    lips = np.unique(np.concatenate([generic.facet_sets[k].ravel() for k in
+                                     ("lip_upper_teeth", "lip_lower_teeth", "lip_upper_contact",
+                                      "lip_lower_contact")]))
+    for name, (v, f, seg) in patient.teeth.items():
+        if own:  # the patient's own arches are used as given
+            assert np.array_equal(v, np.asarray(head.teeth[name][0], float))
+        sd = -trimesh.proximity.signed_distance(trimesh.Trimesh(v, f, process=False), patient.nodes)
+        # 0.01 mm: the clearance (0.2 mm) is reached to the stage's 1e-3 mm tolerance; trimesh's
+        # closest point is exact to round-off
+        assert sd[free].min() >= -0.01, (name, sd[free].min())
+        assert sd[lips].min() >= 0.2 - 0.01, (name, sd[lips].min())
+    tc = report["teeth_clearance"]
+    assert tc["min_signed_distance_after_mm"] >= 0.2 - 2e-3 and tc["nodes_inside_after"] == 0
+    # both heads had the defect: lip nodes inside an arch before the clearance stage
+    assert tc["nodes_inside_before"] > 0 and tc["max_depth_before_mm"] > 0.2
+
+
+def test_quality_and_skin_fit_kept(generic, registered):
+    head, own, patient, report = registered
+    q = min_scaled_jacobian(patient.nodes, patient.hexes)
+    assert q.min() >= 0.2 and report["quality"]["n_inverted"] == 0
+    # skin and attached nodes are fixed in the clearance stage: the skin fit is that of the
+    # repair, and the patient skin is within the registration targets (0.05 mm slack on 0.3)
+    assert report["fit"]["skin"]["mean_mm"] < 0.3 + 0.05
+    skin_ids = generic.node_sets["skin"]
+    from registration.surface import TargetSurface
+
+    d = TargetSurface(np.asarray(head.skin.vertices), np.asarray(head.skin.faces)).closest(patient.nodes[skin_ids]).distance
+    assert np.median(d) < 0.05
+
+
+def test_arches_follow_their_segment(generic, registered):
+    head, own, patient, report = registered
+    if own:
+        assert all(report["teeth"][k]["source"] == "patient" for k in patient.teeth)
+        return
+    for name, (v, f, seg) in patient.teeth.items():
+        info = report["teeth"][name]
+        assert info["source"] == "segment" and info["segment"] == seg
+        ids = generic.node_sets[f"attach_{seg}"]
+        m = np.asarray(info["matrix"])
+        # the placement is the similarity fitted to the segment's attachment nodes
+        moved = generic.nodes[ids] @ m[:3, :3].T + m[:3, 3]
+        rms = np.sqrt(np.mean(np.sum((moved - patient.nodes[ids]) ** 2, axis=1)))
+        assert abs(rms - info["fit_rms_mm"]) < 1e-9
+        assert np.allclose(np.asarray(generic.teeth[name][0]) @ m[:3, :3].T + m[:3, 3], v, atol=1e-9)
+
+
+def test_signed_distance_matches_trimesh(generic):
+    from registration.teeth import Arch
+
+    rng = np.random.default_rng(3)
+    for name, (v, f, seg) in generic.teeth.items():
+        arch = Arch(name, np.asarray(v, float), np.asarray(f), seg)
+        lo, hi = arch.bounds
+        p = lo - 1.0 + rng.random((3000, 3)) * (hi - lo + 2.0)
+        sd, q, d = arch.signed_distance(p)
+        ref = -trimesh.proximity.signed_distance(trimesh.Trimesh(v, f, process=False), p)
+        # the same exact closest point; the pseudonormal sign against ray containment: equal
+        # to round-off everywhere (no sign flip)
+        assert np.allclose(sd, ref, atol=1e-9)
+        # the direction is the unit outward direction from the closest point
+        assert np.allclose(q + d * sd[:, None], p, atol=1e-9)
+
+
+def _box(lo, hi):
+    b = trimesh.creation.box(extents=np.subtract(hi, lo))
+    b.apply_translation(np.add(lo, hi) / 2.0)
+    return np.asarray(b.vertices), np.asarray(b.faces)
+
+
+def test_point_caught_between_arches_in_occlusion_leaves_outward():
+    from registration.teeth import Arch, _union_distance, escape_outward
+
+    # two "crowns" 0.1 mm apart (a gap thinner than twice the clearance): a point inside the
+    # lower one, whose normal push would land it within 0.1 mm of the upper one
+    up = Arch("upper", *_box([-10, 70, 0.05], [10, 80, 8]), "maxilla")
+    low = Arch("lower", *_box([-10, 70, -8], [10, 80, -0.05]), "mandible")
+    p = np.array([[0.0, 78.0, -0.5]])
+    q = escape_outward([up, low], p, 0.2, centre=np.array([0.0, 60.0, 0.0]))
+    sd = _union_distance([up, low], q, 3.0)[0]
+    # the ray search is bisected to 0.25 mm / 2^10: clear to within 1e-3 mm
+    assert sd[0] >= 0.2 - 1e-3
+    assert q[0, 1] > 80.0 and np.linalg.norm(q - p) < 2.2 + 0.2 + 0.01  # out through the front face
+
+
+def test_unknown_arch_name_is_refused(generic):
+    from registration.errors import RegistrationInputError
+
+    head_v, head_f = _box([-10, 70, -8], [10, 80, 8])
+    with pytest.raises(RegistrationInputError, match="unknown arch"):
+        mesh_match_and_repair(generic, (head_v, head_f), {}, cache=False, teeth={"molars": (head_v, head_f)})

@@ -34,8 +34,11 @@ def upper_pairs(n: int = 24):
 
 
 @nb.njit(cache=True, parallel=True, fastmath=False)
-def element_matrices(F, S, CC, dNdX, dV, Jq, Finv, pq, kq, ke, Ke, fe):
-    """Fill Ke (m, 24, 24) and fe (m, 24) for all elements (see module docstring)."""
+def element_matrices(F, S, CC, dNdX, dV, Jq, Finv, pq, kq, ke, Ke, fe, prq, dv_out):
+    """Fill Ke (m, 24, 24), fe (m, 24) and dv_out (m, 24) for all elements.
+
+    pq is the pressure of the geometric (d^2 v) stiffness, prq the pressure of the residual;
+    they differ only in the three-field Newton iterations (see `solver.mechanics`)."""
     m, nq = dV.shape
     for e in nb.prange(m):
         K = np.zeros((24, 24))
@@ -95,13 +98,14 @@ def element_matrices(F, S, CC, dNdX, dV, Jq, Finv, pq, kq, ke, Ke, fe):
                     g[a, i] = s
             wJ = w * Jq[e, q]
             pw = pq[e, q] * wJ
+            prw = prq[e, q] * wJ
             kw = kq[e, q] * wJ
             for a in range(8):
                 for i in range(3):
                     s = 0.0
                     for J in range(3):
                         s += P[i, J] * dN[a, J]
-                    f[3 * a + i] += w * s + pw * g[a, i]
+                    f[3 * a + i] += w * s + prw * g[a, i]
                     dv[3 * a + i] += wJ * g[a, i]
             for a in range(8):
                 for b in range(a, 8):
@@ -137,6 +141,7 @@ def element_matrices(F, S, CC, dNdX, dV, Jq, Finv, pq, kq, ke, Ke, fe):
                     K[c, r] = K[r, c]
         for r in range(24):
             fe[e, r] = f[r]
+            dv_out[e, r] = dv[r]
             for c in range(24):
                 Ke[e, r, c] = K[r, c]
 

@@ -92,6 +92,8 @@ class SolidBody:
         self.volume = self.dV.sum(axis=1)                            # V_e
         self.pattern = UpperPattern.build(mesh.hexes, mesh.n_nodes)
         m, nq = self.dV.shape
+        self._v = np.empty(m)
+        self._dv = np.zeros((m, 24))
         self._Ke = np.empty((m, 24, 24))
         self._fe = np.empty((m, 24))
         # isotropic Yeoh / neo-Hookean everywhere: fused numba kernel (material inlined)
@@ -105,8 +107,6 @@ class SolidBody:
                 self._volkind[idx] = 0 if mat.volumetric_kind == "simo_taylor" else 1
             self._We = np.empty(m)
             self._minJ = np.empty(m)
-            self._v = np.empty(m)
-            self._dv = np.zeros((m, 24))
         # three-field (u, p, theta) Newton state of the mean-dilatation elements (fused path):
         # None means theta = v/V and p = U'(theta) are recomputed from u (the purely
         # displacement-based linearisation); set by `begin_mixed` (newton_solve does)
@@ -172,27 +172,39 @@ class SolidBody:
         S, CC, W = self._material(C, tangent, load)
         energy = float(np.sum(W * self.dV))
         if self.formulation == "mean_dilatation":
-            theta = np.einsum("mq,mq->m", Jq, self.dV) / self.volume
+            v = np.einsum("mq,mq->m", Jq, self.dV)
+            self._v[:] = v
+            theta = v / self.volume
             U, dU, d2U = self._volumetric(theta)
             energy += float(np.sum(U * self.volume))
+            pres = dU
+            if self.mixed is not None:
+                # three-field Newton: residual pressure linearised about the stored dilatation,
+                # geometric stiffness with the stored pressure
+                th, p_state = self.mixed
+                _, dUt, d2Ut = self._volumetric(th)
+                pres = dUt + d2Ut * (theta - th)
+                dU, d2U = p_state, d2Ut
             pq = np.ascontiguousarray(np.broadcast_to(dU[:, None], (m, nq)))
+            prq = np.ascontiguousarray(np.broadcast_to(pres[:, None], (m, nq)))
             kq = np.zeros((m, nq))
             ke = d2U / self.volume
         else:
             U, dU, d2U = self._volumetric(Jq)
             energy += float(np.sum(U * self.dV))
             pq = np.ascontiguousarray(dU)
+            prq = pq
             kq = np.ascontiguousarray(Jq * d2U)
             ke = np.zeros(m)
         f = np.empty(self.n_dofs)
         if tangent:
             element_matrices(F, S, np.ascontiguousarray(CC), self.dNdX, self.dV, Jq, Finv,
-                             pq, kq, ke, self._Ke, self._fe)
+                             pq, kq, ke, self._Ke, self._fe, prq, self._dv)
             data = np.empty(self.pattern.nnz)
             scatter_upper(self._Ke, self.pattern.slots, self.pattern.local_rows,
                           self.pattern.local_cols, data)
         else:
-            element_residuals(F, np.ascontiguousarray(S), self.dNdX, self.dV, Jq, Finv, pq,
+            element_residuals(F, np.ascontiguousarray(S), self.dNdX, self.dV, Jq, Finv, prq,
                               self._fe)
             data = None
         scatter_vector(self._fe, self.pattern.dofs, f)
@@ -202,7 +214,7 @@ class SolidBody:
     # ------------------------------------------------------------------ three-field state
     @property
     def supports_mixed(self) -> bool:
-        return self.fused and self.formulation == "mean_dilatation"
+        return self.formulation == "mean_dilatation"
 
     def begin_mixed(self, x):
         """Start three-field Newton from x: theta = v/V, p = U'(theta) per element."""

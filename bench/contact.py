@@ -39,8 +39,13 @@ def _images(model, folder):
              "mandible_closed_8mm": ({"mandible": T, "chin": T}, {})}
     quads = np.asarray(model.facet_sets["skin"])
     faces = np.hstack([np.full((len(quads), 1), 4), quads]).ravel()
+    from solver.errors import SolveFailed
     for name, (motions, acts) in cases.items():
-        res = simulate(model, motions, acts)
+        try:
+            res = simulate(model, motions, acts)
+        except SolveFailed as exc:
+            print(f"{name}: not solved ({exc})")
+            continue
         pen = lip_penetrations(model, res.x, motions=motions)
         for view in ("yz", "xz"):
             pl = pv.Plotter(off_screen=True, window_size=(900, 900))
@@ -68,11 +73,16 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--resolution", default="standard")
     ap.add_argument("--images", default=None, help="folder for the face images (optional)")
+    ap.add_argument("--images-only", action="store_true", help="only render the face checks")
     args = ap.parse_args(argv)
     import generic_mesh
     from facemodel.simulation import simulate
 
     model = generic_mesh.load(resolution=args.resolution)
+    if args.images:
+        _images(model, args.images)
+        if args.images_only:
+            return
     motions, activations = {}, {"orbicularis_oris": 0.1}
     print(f"face '{args.resolution}': {len(model.nodes)} nodes, {len(model.hexes)} hexes")
     simulate(model, {"mandible": _motion(0.0, 0.5)}, contact=False, n_steps=1)   # JIT warm-up
@@ -93,8 +103,6 @@ def main(argv=None):
         if contact:
             print(f"  one evaluation of all contact terms: {1e3 * term_time:.1f} ms "
                   f"(x {res.iterations} iterations ~ {term_time * res.iterations:.2f} s)")
-    if args.images:
-        _images(model, args.images)
     pct = 100.0 * (times[True] - times[False]) / times[False]
     print(f"contact_overhead_pct={pct:.1f}")
 

@@ -111,3 +111,53 @@ def test_unavailable_effect_in_the_plan(tmp_path, case_template, capsys):
     err = capsys.readouterr().err
     assert "model.effects.gravity" in err and "plan.yaml" in err
     assert not (tmp_path / "out").exists()
+
+
+class _ReachedRegistration(Exception):
+    pass
+
+
+def test_malformed_plans_through_the_cli(tmp_path_factory, case_template, monkeypatch):
+    """Property-based, through `faceplan predict`: whatever the plan file holds, the command
+    either refuses it with exit 2 and a one-line message naming plan.yaml, or accepts it and
+    goes on to registration (stopped here); never a traceback, never an output folder."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    import planner.pipeline as pipeline
+
+    scalars = (st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.floats()
+               | st.text(max_size=6) | st.sampled_from(["maxilla", "chin", "RAS", "LPS", "translation"]))
+    trees = st.recursive(scalars, lambda kids: st.lists(kids, max_size=4)
+                         | st.dictionaries(st.text(max_size=6) | st.sampled_from(["maxilla", "matrix"]),
+                                           kids, max_size=4), max_leaves=20)
+
+    def stop(*args, **kwargs):
+        raise _ReachedRegistration
+
+    monkeypatch.setattr(pipeline, "register_case", stop)
+    root = tmp_path_factory.mktemp("fuzzcli")
+    case = root / "case"
+    shutil.copytree(case_template, case)
+    keys = ["faceplan", "frame", "segments", "muscles", "model", "limits"]
+
+    @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+    @given(st.sampled_from(keys), trees)
+    def check(key, value):
+        data = {"faceplan": 1, "segments": {"maxilla": {"translation": [0, 3, 0]}},
+                "model": {"resolution": "coarse"}}
+        data[key] = value
+        try:
+            text = yaml.safe_dump(data)
+        except yaml.YAMLError:
+            return
+        (case / "plan.yaml").write_text(text)
+        out = root / "out"
+        try:
+            code = main(["predict", str(case), "--out", str(out), "--quiet"])
+        except _ReachedRegistration:
+            return
+        assert code == 2
+        assert not out.exists()
+
+    check()

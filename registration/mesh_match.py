@@ -41,7 +41,9 @@ class MatchOptions:
     coverage_min: float = 0.25  # fraction of generic skin nodes the patient skin must cover
     landmark_rms_max_mm: float = 8.0  # Umeyama residual above which landmarks are refused
     skin_mean_gate_mm: float = 1.0  # refuse to return a mesh fitting worse than this
-    teeth_clearance_mm: float = 0.2  # soft-tissue nodes end at least this far outside the teeth
+    # soft-tissue nodes end at least this far outside the teeth (the clearance that
+    # facemodel.teeth.clear_teeth asks of a contact start, so that it has nothing to move)
+    teeth_clearance_mm: float = 0.25
     seed: int = 0
 
 

@@ -230,7 +230,7 @@ def escape_outward(arches: list[Arch], points: np.ndarray, clearance: float, cen
 
 def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.ndarray, *,
                 clearance: float = 0.2, threshold: float = 0.2, max_rounds: int = 8,
-                tol: float = 1e-3):
+                tol: float = 0.01):
     """Move movable nodes to at least `clearance` mm outside every arch (module docstring).
 
     `fixed`: nodes that never move (skin, attached). Returns (new nodes, report)."""
@@ -255,12 +255,14 @@ def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.
     for rounds in range(1, max_rounds + 1):
         ids = np.flatnonzero(movable)
         sd = measure(ids)
-        bad = sd < clearance - tol
+        bad = sd < clearance
         if not bad.any():
             rounds -= 1
             break
         push_ids = ids[bad]
-        target = escape_outward(arches, x[push_ids], clearance, centre)
+        # a margin `tol` beyond the clearance, so that the small moves of the repair that
+        # follows do not bring a node back below it
+        target = escape_outward(arches, x[push_ids], clearance + tol, centre)
         held[push_ids] = True
         # held nodes keep their place (zero displacement) unless pushed again in this round
         dirichlet = np.flatnonzero(held | ~movable)

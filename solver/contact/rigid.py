@@ -27,7 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
-from solver.contact._geometry import FACE, TriangleSurface, nodal_areas
+from solver.contact._geometry import FACE, TriangleSurface, closest_point_on_triangles, nodal_areas
 
 __all__ = ["RigidSurfaceContact", "ramped_rigid_motion"]
 
@@ -99,6 +99,7 @@ class RigidSurfaceContact:
         self.freeze_after = freeze_after
         self._evals_load, self._evals = None, 0
         self._active = None
+        self._face = None
 
     # ------------------------------------------------------------------ geometry
     def transform(self, load: float) -> np.ndarray:
@@ -113,16 +114,28 @@ class RigidSurfaceContact:
         T = self.transform(load)
         return self.surface.vertices @ T[:3, :3].T + T[:3, 3]
 
-    def gaps(self, x, load):
+    def gaps(self, x, load, frozen: bool = False):
         """Signed gaps of all slave nodes (nan where farther than the search radius).
 
+        With `frozen`, each node keeps the face found at the last unfrozen evaluation (its
+        closest point is taken on that face), so that a node deep in a thin body does not
+        flip between the faces of both sides within a Newton solve.
         Returns (g (s,), normal (s, 3) current, region (s,), y (s, 3) pulled-back positions).
         """
         T = self.transform(load)
         R, t = T[:3, :3], T[:3, 3]
         y = (np.asarray(x)[self.slaves] - t) @ R
         radius = self.search_radius + float(np.max(self.multipliers / self.eps, initial=0.0))
-        idx, c, face, region, dist = self.surface.closest(y, radius)
+        if frozen and self._face is not None:
+            idx = np.nonzero(self._face >= 0)[0]
+            face = self._face[idx]
+            tri = self.surface.vertices[self.surface.faces[face]]
+            c, region = closest_point_on_triangles(y[idx], tri[:, 0], tri[:, 1], tri[:, 2])
+            dist = np.linalg.norm(y[idx] - c, axis=1)
+        else:
+            idx, c, face, region, dist = self.surface.closest(y, radius)
+            self._face = np.full(len(self.slaves), -1)
+            self._face[idx] = face
         g = np.full(len(self.slaves), np.nan)
         n0 = np.zeros((len(self.slaves), 3))
         reg = np.full(len(self.slaves), -1)
@@ -175,8 +188,9 @@ class RigidSurfaceContact:
                 and self._evals > self.freeze_after)
 
     def assemble(self, x, load):
-        g, n, reg, y = self.gaps(x, load)
-        p, active = self._pressure(g, self._frozen(load))
+        frozen = self._frozen(load)
+        g, n, reg, y = self.gaps(x, load, frozen)
+        p, active = self._pressure(g, frozen)
         f = np.zeros(3 * self.n_nodes)
         nodes = self.slaves[active]
         na, pa, ga, ea = n[active], p[active], g[active], self.eps[active]
@@ -193,7 +207,7 @@ class RigidSurfaceContact:
             greg = np.where(go >= 0, 1.0, -1.0) * np.maximum(np.abs(go), 1e-4)
             Kb[off] += (-pa[off] / greg)[:, None, None] * P
         if self.stick:
-            fs, Ks = self._stick_terms(x, load, active, y)
+            fs, Ks = self._stick_terms(load, active, y, n)
             f += fs
             Kb += Ks
         rows = np.repeat(dofs, 3, axis=1).ravel()
@@ -202,7 +216,7 @@ class RigidSurfaceContact:
         self.last = dict(gap=g, pressure=p, normal=n, active=active)
         return f, K
 
-    def _stick_terms(self, x, load, active, y):
+    def _stick_terms(self, load, active, y, n):
         """Tangential tie of active nodes to their first contact point (penalty eps_i)."""
         T = self.transform(load)
         R = T[:3, :3]
@@ -211,7 +225,6 @@ class RigidSurfaceContact:
         fs = np.zeros(3 * self.n_nodes)
         Ks = np.zeros((int(active.sum()), 3, 3))
         ia = np.nonzero(active)[0]
-        _, n, _, _ = self.gaps(x, load)
         na = n[ia]
         Pt = np.eye(3) - na[:, :, None] * na[:, None, :]
         d = (y[ia] - self.anchor[ia]) @ R.T
@@ -222,8 +235,9 @@ class RigidSurfaceContact:
         return fs, Ks
 
     def energy(self, x, load) -> float:
-        g, n, _, y = self.gaps(x, load)
-        p, _ = self._pressure(g, self._is_frozen(load))
+        frozen = self._is_frozen(load)
+        g, n, _, y = self.gaps(x, load, frozen)
+        p, _ = self._pressure(g, frozen)
         lam = self.multipliers
         e = float(np.sum((p * p - lam * lam) / (2.0 * self.eps)))
         if self.stick:

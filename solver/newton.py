@@ -30,7 +30,7 @@ import scipy.sparse as sp
 
 from solver.bc import ConstraintSet
 from solver.errors import SolveFailed
-from solver.linalg import SymmetricSolver
+from solver.linalg import LaggedFactorSolver, SymmetricSolver
 
 __all__ = ["newton_solve", "NewtonResult", "StepRecord"]
 
@@ -59,6 +59,9 @@ class NewtonResult:
     cutbacks: int = 0
     log: list = field(default_factory=list)     # one dict per iteration
     timings: dict = field(default_factory=dict)
+    factorizations: int = 0          # numerical factorisations of the tangent
+    krylov_iterations: int = 0       # preconditioned CG iterations (lagged-factor strategy)
+    linear_strategy: str = "exact"
     # forces the constraints exert on the body (residual at the constrained dofs), (n, 3), in
     # each node's local frame where a LocalFrame is given, zero at unconstrained components
     reactions: np.ndarray | None = None
@@ -162,7 +165,9 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
                  atol: float = 1e-10, etol: float = 1e-10, line_search: bool = False,
                  line_search_tol: float = 1.0, line_search_growth: float = 100.0, max_retries: int = 5, grow: bool = True,
                  x0=None, linear_solver: str = "auto", callback=None,
-                 step_callback=None, mixed: bool = True) -> NewtonResult:
+                 step_callback=None, mixed: bool = True, linear_strategy: str = "exact",
+                 krylov_rtol: float = 1e-8, krylov_maxiter: int = 8, krylov_forcing: float = 1e-2,
+                 lagged_min_dofs: int = 20000) -> NewtonResult:
     """Solve the static equilibrium of `body` from load fraction 0 to 1.
 
     body: `solver.mechanics.SolidBody`; constraints: `Prescribed` / `LocalFrame` list;
@@ -175,6 +180,16 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     in markedly fewer iterations on nearly incompressible problems; the converged solution is
     the same. Raises `SolveFailed` (with the last converged state) if the load cannot
     be reached.
+
+    linear_strategy: "exact" factorises every tangent (Newton's method with direct solves);
+    "lagged" keeps the factor of an earlier tangent and solves each Newton system with the
+    fresh tangent by conjugate gradients preconditioned with it, to the relative residual
+    `krylov_rtol` (looser, up to `krylov_forcing`, while the Newton residual is large: the
+    relative residual of the previous iteration is the forcing term), refactorising when CG needs more than `krylov_maxiter` iterations
+    (`solver.linalg.LaggedFactorSolver`): the same Newton iterates to about `krylov_rtol`
+    and the same converged solution, with far fewer factorisations; "auto" takes "lagged"
+    from `lagged_min_dofs` unknowns on (where a factorisation costs seconds) and "exact"
+    below. Each log record holds `krylov_iterations` and `factorized`.
     """
     mesh = body.mesh
     X = mesh.nodes
@@ -187,7 +202,15 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
         if external.shape != (3 * n,):
             raise ValueError(f"external must have shape ({3 * n},), got {external.shape}")
     system = _System(body, cons, terms, external)
-    lin = SymmetricSolver(linear_solver)
+    if linear_strategy not in ("auto", "exact", "lagged"):
+        raise ValueError(f"linear_strategy must be 'auto', 'exact' or 'lagged', got {linear_strategy!r}")
+    if linear_strategy == "auto":
+        linear_strategy = "lagged" if 3 * n >= lagged_min_dofs else "exact"
+    if linear_strategy == "lagged":
+        lin = LaggedFactorSolver(linear_solver, rtol=krylov_rtol, maxiter=krylov_maxiter,
+                                 forcing_max=krylov_forcing)
+    else:
+        lin = SymmetricSolver(linear_solver)
     x = X.copy() if x0 is None else np.array(x0, dtype=float)
     free = cons.free
     mixed = bool(mixed and getattr(body, "supports_mixed", False))
@@ -195,7 +218,8 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
         body.begin_mixed(x)
     elif getattr(body, "supports_mixed", False):
         body.mixed = None
-    result = NewtonResult(x=x, u=x - X, load=0.0, converged=False)
+    result = NewtonResult(x=x, u=x - X, load=0.0, converged=False,
+                          linear_strategy=linear_strategy)
     t_start = time.perf_counter()
     dt_max = 1.0 / max(int(steps), 1)
     dt = dt_max
@@ -244,11 +268,14 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
             x = x_conv
             if mixed:
                 body.mixed = (mixed_conv[0].copy(), mixed_conv[1].copy())
+            if isinstance(lin, LaggedFactorSolver):
+                lin.reset()
             dt = 0.5 * (target - load)
             log.warning("step %d failed at load %.4g (%s); cutting back to step %.4g",
                         step_no, target, info["reason"], dt)
             if dt < min_step:
                 result.timings = dict(system.timing, total=time.perf_counter() - t_start)
+                result.factorizations = lin.factorizations
                 raise SolveFailed(
                     f"Newton's method failed in step {step_no} at load fraction {target:.4g} "
                     f"(last converged {load:.4g}): {info['reason']}; worst element "
@@ -261,6 +288,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     reac[cons.dofs] = rhat[cons.dofs]
     result.reactions = reac.reshape(n, 3)
     result.converged = True
+    result.factorizations = lin.factorizations
     result.timings = dict(system.timing, total=time.perf_counter() - t_start)
     return result
 
@@ -277,18 +305,26 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
         return False, x, info
     e0 = None
     rnorm_hist = []
+    rel_prev = 0.0          # relative residual of the previous iteration (0: predictor, tight)
     for it in range(1, max_it + 1):
         gap = targets - uhat(x)[cons.dofs]
         rhs = -r if cpl is None else -r - cpl
         rhs[cons.dofs] = gap
         t0 = time.perf_counter()
         try:
-            du_hat = lin.solve(A, rhs)
+            if isinstance(lin, LaggedFactorSolver):
+                # forcing term (Eisenstat & Walker 1996): loose while far from the solution,
+                # down to krylov_rtol as the residual falls, so convergence stays quadratic
+                du_hat = lin.solve(A, rhs, rtol=max(lin.rtol, min(lin.forcing_max, rel_prev)))
+            else:
+                du_hat = lin.solve(A, rhs)
         except Exception as exc:        # a singular or failed factorisation cuts the step back
             info.update(reason=f"linear solver failed ({exc})", worst_element=ev.worst_element,
                         min_J=ev.min_J)
             return False, x, info
         system.timing["solve"] += time.perf_counter() - t0
+        stats = getattr(lin, "last", None) or {"krylov_iterations": 0, "refactorized": True}
+        result.krylov_iterations += stats["krylov_iterations"]
         if not np.all(np.isfinite(du_hat)):
             info.update(reason="linear solve gave NaN", worst_element=ev.worst_element, min_J=ev.min_J)
             return False, x, info
@@ -358,12 +394,16 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
         rec = {"step": step_no, "load": target, "iteration": it, "residual_norm": rn,
                "relative_residual": rn / scale, "energy_norm": en_norm0,
                "energy_ratio": en_norm0 / e0, "displacement_norm": dn, "line_search": s,
-               "constraint_gap": gap_after, "min_J": ev.min_J}
+               "constraint_gap": gap_after, "min_J": ev.min_J,
+               "krylov_iterations": stats["krylov_iterations"],
+               "factorized": bool(stats["refactorized"])}
         result.log.append(rec)
         result.iterations += 1
         rnorm_hist.append(rn)
-        log.info("step %3d load %.4f it %2d |R| %.3e (rel %.2e) E %.3e |du| %.3e s %.3g",
-                 step_no, target, it, rn, rn / scale, en_norm0, dn, s)
+        rel_prev = rn / scale
+        log.info("step %3d load %.4f it %2d |R| %.3e (rel %.2e) E %.3e |du| %.3e s %.3g "
+                 "cg %d%s", step_no, target, it, rn, rn / scale, en_norm0, dn, s,
+                 stats["krylov_iterations"], " fact" if stats["refactorized"] else "")
         if callback is not None:
             callback(rec)
         info["iterations"] = it

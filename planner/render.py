@@ -36,11 +36,15 @@ VIEWS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] 
 }
 
 
-def _pyvista():
+def offscreen_pyvista():
+    """pyvista set up for off-screen rendering (the EGL window is chosen in `planner/__init__`)."""
     import pyvista as pv
 
     pv.OFF_SCREEN = True
     return pv
+
+
+_pyvista = offscreen_pyvista
 
 
 def to_polydata(mesh):

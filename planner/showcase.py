@@ -62,9 +62,9 @@ def yeoh_block_case(n: int = 6, log=True):
 
 
 def _render(mesh, u, path, title, view="iso"):
-    import pyvista as pv
+    from planner.render import offscreen_pyvista
 
-    pv.OFF_SCREEN = True
+    pv = offscreen_pyvista()
     cells = np.hstack([np.full((len(mesh.hexes), 1), 8), mesh.hexes]).ravel()
     grid = pv.UnstructuredGrid(cells, np.full(len(mesh.hexes), pv.CellType.HEXAHEDRON),
                                mesh.nodes + u)

@@ -19,11 +19,13 @@ fresh process: assembly s per tangent, numerical factorisation s, Newton iterati
 Both codes run in the same process with the same MKL threading (`--threads`, default 1: on the
 shared, loaded 2-core machine PARDISO factorises the 28k-DOF tangent in ~1.6 s on one thread
 against 2.4-2.7 s on two, and substitutes in 0.05 s against 0.17 s; `--threads 0` leaves MKL's
-default). `--strategy lagged` runs faceplan's lagged-factor inexact Newton (CG on each fresh
-tangent preconditioned with an earlier factor) instead of exact Newton.
+default). `--strategy` picks faceplan's Newton linear strategy: "auto" (`newton_solve`'s
+default: lagged from 20k unknowns on, so lagged here), "exact" (a factorisation per Newton
+iteration) or "lagged" (CG on each fresh tangent preconditioned with an earlier factor,
+refactorising when CG stalls; the same converged solution with fewer factorisations).
 
 Usage: python bench/solver_peer.py [--no-scaling] [--sizes 15,24,33,40] [--threads 1]
-       [--strategy exact|lagged]
+       [--strategy auto|exact|lagged]
 """
 from __future__ import annotations
 
@@ -45,7 +47,7 @@ VERBOSE = 0
 RTOL = 1e-6
 ETOL = 1e-8
 C10, C20, C30, K = 2.5, 1.175, 0.0, 2500.0
-STRATEGY = "exact"
+STRATEGY = "auto"
 
 
 def faceplan_run(n=N, steps=STEPS, collect=False):
@@ -119,7 +121,7 @@ def _match(pa, pb):
     return j
 
 
-def scaling_point(n, newton=True, strategy="exact"):
+def scaling_point(n, newton=True, strategy="auto"):
     """One row of the scaling table (run in a child process for a clean peak memory)."""
     import solver
     from solver.examples import block
@@ -169,7 +171,7 @@ def main():
                     help="run the full Newton solve in the scaling table up to this many DOF")
     ap.add_argument("--threads", type=int, default=1,
                     help="MKL threads for PARDISO in both codes (0: MKL's default)")
-    ap.add_argument("--strategy", choices=["exact", "lagged"], default="exact",
+    ap.add_argument("--strategy", choices=["auto", "exact", "lagged"], default="auto",
                     help="faceplan's Newton linear strategy")
     ap.add_argument("--scaling-point", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--no-newton", action="store_true", help=argparse.SUPPRESS)
@@ -190,7 +192,7 @@ def main():
 
     faceplan_run(n=2, steps=1)                                # compile / load numba caches
     nodes, res, t_fp, body = faceplan_run()
-    print(f"faceplan: {t_fp:.2f} s, {res.iterations} Newton iterations in {len(res.steps)} steps, "
+    print(f"faceplan ({res.linear_strategy} Newton): {t_fp:.2f} s, {res.iterations} Newton iterations in {len(res.steps)} steps, "
           f"{res.factorizations} factorisations, {res.krylov_iterations} CG iterations "
           f"(assembly {res.timings['assembly']:.2f} s, linear solves {res.timings['solve']:.2f} s)",
           flush=True)

@@ -165,7 +165,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
                  atol: float = 1e-10, etol: float = 1e-10, line_search: bool = False,
                  line_search_tol: float = 1.0, line_search_growth: float = 100.0, max_retries: int = 5, grow: bool = True,
                  x0=None, linear_solver: str = "auto", callback=None,
-                 step_callback=None, mixed: bool = True, linear_strategy: str = "exact",
+                 step_callback=None, mixed: bool = True, linear_strategy: str = "auto",
                  krylov_rtol: float = 1e-8, krylov_maxiter: int = 8, krylov_forcing: float = 1e-2,
                  lagged_min_dofs: int = 20000) -> NewtonResult:
     """Solve the static equilibrium of `body` from load fraction 0 to 1.

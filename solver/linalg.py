@@ -10,7 +10,11 @@ picks PARDISO when available: on the 28k-DOF Yeoh-cube tangent here PARDISO (mty
 reused) refactorises in 2.7-5.7 s, CHOLMOD (scikit-sparse 0.4.16 built against Debian 12's
 SuiteSparse 5.12, supernodal, reference BLAS) in 29-30 s, SciPy SuperLU in 34-38 s, all on the
 shared, heavily loaded 2-core machine (solver/README.md). CHOLMOD is an LL^T factorisation and
-fails on indefinite tangents; PARDISO's Bunch-Kaufman LDL^T does not.
+fails on indefinite tangents; PARDISO's Bunch-Kaufman LDL^T does not. Under that load PARDISO
+is faster on one MKL thread (MKL_NUM_THREADS=1: 1.4-1.7 s per factorisation) than on two.
+`LaggedFactorSolver` solves a sequence of Newton systems by conjugate gradients preconditioned
+with the factor of an earlier tangent, refactorising only when CG stalls (fewer factorisations
+for the same converged Newton solution).
 """
 from __future__ import annotations
 

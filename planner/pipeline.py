@@ -538,7 +538,8 @@ def register_case(case, resolution: str, progress: Progress):
     generic = generic_mesh.load(resolution)
     try:
         patient, reg_report = registration.mesh_match_and_repair(
-            generic, case.skin, case.bones, landmarks=case.landmarks or None)
+            generic, case.skin, case.bones, landmarks=case.landmarks or None,
+            teeth=case.teeth or None)
     except (InputError, SolveError):
         raise
     except reg_errors.RegistrationInputError as exc:

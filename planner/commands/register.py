@@ -81,7 +81,7 @@ def register(case_dir, *, resolution: str = "standard", threshold: float = 0.2,
     try:
         patient, report = registration.mesh_match_and_repair(
             generic, case.skin, case.bones, (case.landmarks or None) if use_landmarks else None,
-            threshold=threshold, cache=cache, files=files)
+            threshold=threshold, cache=cache, files=files, teeth=case.teeth or None)
     except RegistrationInputError as exc:
         raise InputError(str(exc), file=exc.file or str(case.root), field=exc.field or "registration") from exc
     except RegistrationFailure as exc:

@@ -14,6 +14,9 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from solver.assembly._kernels import (add_point_stiffness, finish_element_matrix,
+                                      material_stiffness_gradients)
+
 __all__ = ["yeoh_element_matrices"]
 
 
@@ -190,46 +193,8 @@ def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dila
                                                        + I1 / 9.0 * Ci[I, J] * Ci[Kk, L]
                                                        + I1 / 6.0 * (Ci[I, Kk] * Ci[J, L]
                                                                      + Ci[I, L] * Ci[J, Kk])))
-            for i in range(3):
-                for J in range(3):
-                    for Kk in range(3):
-                        for L in range(3):
-                            s = 0.0
-                            for I in range(3):
-                                s += F[i, I] * CC[I, J, Kk, L]
-                            T1[i, J, Kk, L] = s
-            for i in range(3):
-                for J in range(3):
-                    for k in range(3):
-                        for L in range(3):
-                            s = 0.0
-                            for Kk in range(3):
-                                s += T1[i, J, Kk, L] * F[k, Kk]
-                            A[i, J, k, L] = s * w
-            for a in range(8):
-                for i in range(3):
-                    for k in range(3):
-                        for L in range(3):
-                            s = 0.0
-                            for J in range(3):
-                                s += dNdX[e, q, a, J] * A[i, J, k, L]
-                            B[a, i, k, L] = s
-            for a in range(8):
-                for b in range(a, 8):
-                    s = 0.0
-                    for I in range(3):
-                        for J in range(3):
-                            s += dNdX[e, q, a, I] * S[I, J] * dNdX[e, q, b, J]
-                    s *= w
-                    for i in range(3):
-                        for k in range(3):
-                            tt = 0.0
-                            for L in range(3):
-                                tt += B[a, i, k, L] * dNdX[e, q, b, L]
-                            tt += pw * (g[a, i] * g[b, k] - g[a, k] * g[b, i]) + kw * g[a, i] * g[b, k]
-                            if i == k:
-                                tt += s
-                            K[3 * a + i, 3 * b + k] += tt
+            material_stiffness_gradients(F, CC, dNdX[e, q], w, T1, A, B)
+            add_point_stiffness(K, B, dNdX[e, q], S, g, w, pw, kw)
         We[e] = Wsum
         if mean_dilatation:
             for r in range(24):
@@ -238,18 +203,7 @@ def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dila
             fe[e, r] = f[r]
         if not tangent:
             continue
-        if kee != 0.0:
-            for r in range(24):
-                for c in range(24):
-                    K[r, c] += kee * dvv[r] * dvv[c]
-        for r in range(24):
-            for c in range(r + 1, 24):
-                if (r // 3) == (c // 3):
-                    vv = 0.5 * (K[r, c] + K[c, r])
-                    K[r, c] = vv
-                    K[c, r] = vv
-                else:
-                    K[c, r] = K[r, c]
+        finish_element_matrix(K, dvv, kee)
         for r in range(24):
             for c in range(24):
                 Ke[e, r, c] = K[r, c]

@@ -33,6 +33,77 @@ def upper_pairs(n: int = 24):
     return r.astype(np.int64), c.astype(np.int64)
 
 
+@nb.njit(cache=True, inline="always")
+def material_stiffness_gradients(Fq, Cq, dN, w, T1, A, B):
+    """B_aikL = w dN_aJ F_iI CC_IJKL F_kK: the material-tangent part of the element stiffness
+    (contracted with dN_bL it gives the material stiffness block K_aibk). T1, A are work arrays."""
+    for i in range(3):
+        for J in range(3):
+            for Kk in range(3):
+                for L in range(3):
+                    s = 0.0
+                    for I in range(3):
+                        s += Fq[i, I] * Cq[I, J, Kk, L]
+                    T1[i, J, Kk, L] = s
+    for i in range(3):
+        for J in range(3):
+            for k in range(3):
+                for L in range(3):
+                    s = 0.0
+                    for Kk in range(3):
+                        s += T1[i, J, Kk, L] * Fq[k, Kk]
+                    A[i, J, k, L] = s * w
+    for a in range(8):
+        for i in range(3):
+            for k in range(3):
+                for L in range(3):
+                    s = 0.0
+                    for J in range(3):
+                        s += dN[a, J] * A[i, J, k, L]
+                    B[a, i, k, L] = s
+
+
+@nb.njit(cache=True, inline="always")
+def add_point_stiffness(K, B, dN, Sq, g, w, pw, kw):
+    """Upper node blocks (a <= b) of one Gauss point's stiffness: material part (B dN_b),
+    geometric stress part delta_ik dN_a S dN_b, and the pressure terms
+    pw (g_ai g_bk - g_ak g_bi) + kw g_ai g_bk."""
+    for a in range(8):
+        for b in range(a, 8):
+            s = 0.0
+            for I in range(3):
+                for J in range(3):
+                    s += dN[a, I] * Sq[I, J] * dN[b, J]
+            s *= w
+            for i in range(3):
+                for k in range(3):
+                    t = 0.0
+                    for L in range(3):
+                        t += B[a, i, k, L] * dN[b, L]
+                    t += pw * (g[a, i] * g[b, k] - g[a, k] * g[b, i]) + kw * g[a, i] * g[b, k]
+                    if i == k:
+                        t += s
+                    K[3 * a + i, 3 * b + k] += t
+
+
+@nb.njit(cache=True, inline="always")
+def finish_element_matrix(K, dv, kee):
+    """Add the condensed mean-dilatation term kee dv dv^T and symmetrise from the upper node
+    blocks (within a diagonal node block both triangles were computed: average them)."""
+    if kee != 0.0:
+        for r in range(24):
+            for c in range(24):
+                K[r, c] += kee * dv[r] * dv[c]
+    for r in range(24):
+        for c in range(r + 1, 24):
+            if (r // 3) == (c // 3):
+                v = 0.5 * (K[r, c] + K[c, r])
+                K[r, c] = v
+                K[c, r] = v
+            else:
+                K[c, r] = K[r, c]
+
+
 @nb.njit(cache=True, parallel=True, fastmath=False)
 def element_matrices(F, S, CC, dNdX, dV, Jq, Finv, pq, kq, ke, Ke, fe, prq, dv_out):
     """Fill Ke (m, 24, 24), fe (m, 24) and dv_out (m, 24) for all elements.
@@ -62,32 +133,7 @@ def element_matrices(F, S, CC, dNdX, dV, Jq, Finv, pq, kq, ke, Ke, fe, prq, dv_o
                     for I in range(3):
                         s += Fq[i, I] * Sq[I, J]
                     P[i, J] = s
-            # T1_iJKL = F_iI CC_IJKL ; A_iJkL = T1_iJKL F_kK
-            for i in range(3):
-                for J in range(3):
-                    for Kk in range(3):
-                        for L in range(3):
-                            s = 0.0
-                            for I in range(3):
-                                s += Fq[i, I] * Cq[I, J, Kk, L]
-                            T1[i, J, Kk, L] = s
-            for i in range(3):
-                for J in range(3):
-                    for k in range(3):
-                        for L in range(3):
-                            s = 0.0
-                            for Kk in range(3):
-                                s += T1[i, J, Kk, L] * Fq[k, Kk]
-                            A[i, J, k, L] = s * w
-            # B_a,i,k,L = dN_aJ A_iJkL
-            for a in range(8):
-                for i in range(3):
-                    for k in range(3):
-                        for L in range(3):
-                            s = 0.0
-                            for J in range(3):
-                                s += dN[a, J] * A[i, J, k, L]
-                            B[a, i, k, L] = s
+            material_stiffness_gradients(Fq, Cq, dN, w, T1, A, B)
             # spatial gradients g_ai = dN_aJ Finv_Ji
             Fi = Finv[e, q]
             for a in range(8):
@@ -107,38 +153,8 @@ def element_matrices(F, S, CC, dNdX, dV, Jq, Finv, pq, kq, ke, Ke, fe, prq, dv_o
                         s += P[i, J] * dN[a, J]
                     f[3 * a + i] += w * s + prw * g[a, i]
                     dv[3 * a + i] += wJ * g[a, i]
-            for a in range(8):
-                for b in range(a, 8):
-                    # geometric stress term dN_a S dN_b
-                    s = 0.0
-                    for I in range(3):
-                        for J in range(3):
-                            s += dN[a, I] * Sq[I, J] * dN[b, J]
-                    s *= w
-                    for i in range(3):
-                        for k in range(3):
-                            t = 0.0
-                            for L in range(3):
-                                t += B[a, i, k, L] * dN[b, L]
-                            t += pw * (g[a, i] * g[b, k] - g[a, k] * g[b, i]) + kw * g[a, i] * g[b, k]
-                            if i == k:
-                                t += s
-                            K[3 * a + i, 3 * b + k] += t
-        kee = ke[e]
-        if kee != 0.0:
-            for r in range(24):
-                for c in range(24):
-                    K[r, c] += kee * dv[r] * dv[c]
-        # symmetrise from the upper blocks
-        for r in range(24):
-            for c in range(r + 1, 24):
-                if (r // 3) == (c // 3):
-                    # within a diagonal node block both triangles were computed: average
-                    v = 0.5 * (K[r, c] + K[c, r])
-                    K[r, c] = v
-                    K[c, r] = v
-                else:
-                    K[c, r] = K[r, c]
+            add_point_stiffness(K, B, dN, Sq, g, w, pw, kw)
+        finish_element_matrix(K, dv, ke[e])
         for r in range(24):
             fe[e, r] = f[r]
             dv_out[e, r] = dv[r]

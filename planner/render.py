@@ -242,12 +242,7 @@ def histogram_chart(
     if title:
         ax.set_title(title)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save_figure(fig, path)
 
 
 def bar_chart(
@@ -284,12 +279,7 @@ def bar_chart(
     if title:
         ax.set_title(title)
     ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save_figure(fig, path)
 
 
 def profile_chart(
@@ -329,6 +319,13 @@ def profile_chart(
     if title:
         ax.set_title(title)
     ax.grid(alpha=0.3)
+    return _save_figure(fig, path)
+
+
+def _save_figure(fig, path) -> Path:
+    """Lay out, write (creating the folder) and close a matplotlib figure."""
+    plt = _pyplot()
+
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -27,6 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
+from solver.contact._uzawa import UzawaLoop
 from solver.contact._geometry import FACE, TriangleSurface, closest_point_on_triangles, nodal_areas
 
 __all__ = ["RigidSurfaceContact", "ramped_rigid_motion"]
@@ -87,13 +88,11 @@ class RigidSurfaceContact:
         self.bilateral = bool(bilateral)
         self.augmented = bool(augmented)
         self.tolerance = float(tolerance)
-        self.max_augmentations = int(max_augmentations)
+        self.uzawa = UzawaLoop(max_augmentations)
         self.search_radius = float(search_radius)
         self.max_depth = float(max_depth)
         self.stick = bool(stick)
         self.multipliers = np.zeros(len(self.slaves))
-        self.n_augmentations = 0
-        self._augmented_load = None
         self.anchor = np.full((len(self.slaves), 3), np.nan)     # stick points, surface frame
         self.last = None
         self.freeze_after = freeze_after
@@ -266,19 +265,11 @@ class RigidSurfaceContact:
         else:
             err = float(np.max(-g[p > 0], initial=0.0))
         self.last_error = err
-        if load != self._augmented_load:            # a new step: restart the Uzawa count
-            self._augmented_load = load
-            self.n_augmentations = 0
-        if self.n_augmentations >= self.max_augmentations:
-            self.n_augmentations = 0
-            return False
-        if not changed and (not self.augmented or err <= self.tolerance):
-            self.n_augmentations = 0
+        if not self.uzawa.another_solve(load, changed, self.augmented, err, self.tolerance):
             return False
         # Uzawa update (also when only the frozen status was wrong: it settles the status)
         if self.augmented:
             self.multipliers = p
-        self.n_augmentations += 1
         return True
 
     # ------------------------------------------------------------------ results

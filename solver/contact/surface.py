@@ -22,6 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from solver.contact._uzawa import UzawaLoop
 from solver.contact._geometry import facet_normals, nodal_areas, plane_gap, triangulate
 
 __all__ = ["SurfaceContact"]
@@ -140,11 +141,9 @@ class SurfaceContact:
         self.penalty = float(penalty)
         self.augmented = bool(augmented)
         self.tolerance = float(tolerance)
-        self.max_augmentations = int(max_augmentations)
+        self.uzawa = UzawaLoop(max_augmentations)
         self.search_radius = float(search_radius)
         self.max_depth = float(max_depth)
-        self.n_augmentations = 0
-        self._augmented_load = None
         self.last_error = 0.0
         self.freeze_after = freeze_after
         self._evals_load, self._evals = None, 0
@@ -243,23 +242,14 @@ class SurfaceContact:
             if np.any(p > 0):
                 err = max(err, float(-g[p > 0].min()))
         self.last_error = err
-        if load != self._augmented_load:            # a new step: restart the Uzawa count
-            self._augmented_load = load
-            self.n_augmentations = 0
-        if self.n_augmentations >= self.max_augmentations:
-            self.n_augmentations = 0
-            return False
-        if not moved and (not self.augmented or err <= self.tolerance):
-            self.n_augmentations = 0
+        if not self.uzawa.another_solve(load, moved, self.augmented, err, self.tolerance):
             return False
         if not self.augmented:
-            self.n_augmentations += 1
             return True
         for ps, s, g, grad, hess, dofs, eps, lam, p in ev:
             new = np.zeros_like(ps.multipliers)
             new[s] = p
             ps.multipliers = new
-        self.n_augmentations += 1
         return True
 
     def contact_pressure(self, x):

@@ -17,11 +17,6 @@ synthetic = pytest.importorskip("facemodel.synthetic")
 
 
 @pytest.fixture(scope="module")
-def generic():
-    return generic_mesh.load("coarse")
-
-
-@pytest.fixture(scope="module")
 def head_a():
     return synthetic.synthetic_head(2)
 

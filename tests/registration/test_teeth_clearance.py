@@ -18,10 +18,6 @@ synthetic = pytest.importorskip("facemodel.synthetic")
 trimesh = pytest.importorskip("trimesh")
 
 
-@pytest.fixture(scope="module")
-def generic():
-    return generic_mesh.load("coarse")
-
 
 @pytest.fixture(scope="module", params=[(7, False), (13, True)], ids=["seed7-segment-teeth", "seed13-own-teeth"])
 def registered(request, generic):

@@ -1,0 +1,30 @@
+"""Bookkeeping of the augmented-Lagrangian (Uzawa) loop shared by the contact terms.
+
+At a converged load step a contact term asks for another solve of the same step when its
+active set changed or, with augmentation, when the penetration still exceeds the tolerance
+(Laursen, *Computational Contact and Impact Mechanics*, 2002, ch. 5: multipliers
+lambda <- lambda + eps g after each converged solve). The count restarts at every new load and
+is bounded, so a step never loops for ever.
+"""
+from __future__ import annotations
+
+
+class UzawaLoop:
+    """Decides whether a converged step needs another augmented solve."""
+
+    def __init__(self, max_augmentations: int):
+        self.max_augmentations = int(max_augmentations)
+        self.count = 0
+        self._load = None
+
+    def another_solve(self, load: float, status_changed: bool, augmented: bool,
+                      error: float, tolerance: float) -> bool:
+        if load != self._load:                      # a new step: restart the count
+            self._load = load
+            self.count = 0
+        if self.count >= self.max_augmentations or \
+                (not status_changed and (not augmented or error <= tolerance)):
+            self.count = 0
+            return False
+        self.count += 1
+        return True

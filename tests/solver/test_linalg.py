@@ -52,3 +52,53 @@ def test_lagged_factor_cg_and_refactorisation():
     x = lin.solve(_upper(K2), b)
     assert lin.last["refactorized"] and lin.factorizations == 2
     assert np.linalg.norm(K2 @ x - b) < 1e-10 * np.linalg.norm(b)
+
+
+def test_preconditioned_cg_matches_direct():
+    # CG with no preconditioner (identity) on the SPD Laplacian: converged to the asked 1e-10
+    # relative residual, hence within cond(K) * 1e-10 (~1e-7) of the direct solution
+    from solver.linalg import preconditioned_cg, sym_matvec
+
+    K = _spd(8)
+    U = _upper(K)
+    b = np.random.default_rng(2).standard_normal(K.shape[0])
+    assert np.allclose(sym_matvec(U, b), K @ b, rtol=0, atol=1e-12 * np.abs(K @ b).max())
+    x, its, status, rel = preconditioned_cg(U, b, lambda r: r.copy(), 1e-10, 500)
+    assert status == "converged" and rel <= 1e-10 and its > 1
+    xd = SymmetricSolver().solve(U, b)
+    assert np.abs(x - xd).max() <= 1e-6 * np.abs(xd).max()
+
+
+def test_single_precision_factor_is_a_preconditioner_not_a_solver():
+    # a single-precision Cholesky factor alone solves to ~1e-4..1e-6 relative (float32 round-off
+    # times the condition number); as a CG preconditioner it reaches 1e-10 in a few iterations
+    from solver.linalg import _Pardiso, preconditioned_cg
+
+    K = _spd(10, shift=0.01)
+    U = _upper(K)
+    b = np.random.default_rng(3).standard_normal(K.shape[0])
+    p = _Pardiso(mtype=2, single=True)
+    p.factorize(U)
+    x1 = p.apply(b, refine=False)
+    r1 = np.linalg.norm(K @ x1 - b) / np.linalg.norm(b)
+    assert 1e-12 < r1 < 1e-3, r1
+    x, its, status, rel = preconditioned_cg(U, b, lambda r: p.apply(r, refine=False), 1e-10, 20)
+    assert status == "converged" and its <= 5 and rel <= 1e-10
+
+
+def test_indefinite_matrix_falls_back_to_direct_solve():
+    # a symmetric indefinite matrix: the Cholesky preconditioner fails, the system is solved
+    # by the LDL^T factorisation (backward stable: 1e-10), and so are the next ones until a
+    # new load step begins
+    K = _spd() - 3.0 * sp.identity(_spd().shape[0])
+    b = np.random.default_rng(4).standard_normal(K.shape[0])
+    lin = LaggedFactorSolver(rtol=1e-9)
+    x = lin.solve(_upper(K), b)
+    assert lin.last["direct"] and np.linalg.norm(K @ x - b) < 1e-10 * np.linalg.norm(b)
+    K0 = _spd()
+    lin.solve(_upper(K0), b)
+    assert lin.last["direct"]
+    lin.begin_step()
+    x = lin.solve(_upper(K0), b)
+    assert not lin.last["direct"] and lin.last["refactorized"]
+    assert np.linalg.norm(K0 @ x - b) <= 1e-9 * np.linalg.norm(b) * 1.0001

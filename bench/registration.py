@@ -9,7 +9,15 @@ the targets; the last line is
 with worst cases over the heads: the longest standard-resolution registration, the largest
 per-head skin mean and 95th percentile, the smallest scaled Jacobian over every run.
 
+Landmark errors are distances from the carried landmark nodes to the true landmarks (skin
+points, `facemodel.synthetic.landmarks`) with the landmarks given to the registration (the
+landmark nodes are then moved onto them: a check of the mechanism, not of the carrying);
+at `--held-out` resolutions also with the lip landmarks, then the others, left out of the
+registration (each measured when not given: what the registration carries), and at
+`--surfaces-alone` resolutions from a registration without any landmark.
+
 Usage: python bench/registration.py [--heads N] [--resolutions coarse,standard]
+                                    [--held-out coarse] [--surfaces-alone none]
 """
 from __future__ import annotations
 
@@ -20,14 +28,17 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# `python bench/registration.py` puts bench/ first on sys.path, where this very file would
+# shadow the `registration` package: drop the script's folder, put the repository root first
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+sys.path.insert(0, str(_HERE.parent))
 
 import generic_mesh  # noqa: E402
 from facemodel import head_geometry as hg  # noqa: E402
 from facemodel import synthetic  # noqa: E402
 from registration import mesh_match_and_repair  # noqa: E402
 from registration.quality import min_scaled_jacobian  # noqa: E402
-from registration.surface import TargetSurface  # noqa: E402
 
 EXTREMES = {
     "class_III": hg.HeadShape(maxilla_ap=-4.0, mandible_ap=7.0, chin_projection=2.0),
@@ -40,35 +51,65 @@ def heads(n: int):
     """Up to three extreme shapes (when n > 7) then random synthetic heads, n in all."""
     n_extreme = min(len(EXTREMES), max(0, n - 7))
     for name, shape in list(EXTREMES.items())[:n_extreme]:
+        skin = synthetic.skin_surface(shape)
         yield name, synthetic.SyntheticHead(
-            seed=-1, shape=shape, skin=synthetic.skin_surface(shape), bones=synthetic.bone_surfaces(shape),
-            teeth={}, landmarks=synthetic.landmarks(shape))
+            seed=-1, shape=shape, skin=skin, bones=synthetic.bone_surfaces(shape),
+            teeth={}, landmarks=synthetic.landmarks(shape, skin))
     for seed in range(n - n_extreme):
         yield f"seed_{seed}", synthetic.synthetic_head(seed)
 
 
-def run_one(generic, head) -> dict:
+def landmark_errors(generic, patient, head) -> dict:
+    """Distance of each carried landmark node to the head's true landmark (a skin point)."""
+    return {name: float(np.linalg.norm(patient.nodes[node] - np.asarray(head.landmarks[name])))
+            for name, node in generic.landmarks.items()}
+
+
+# landmarks held out of the registration in turn, to measure how well the rest carries them
+HELD_OUT = (("Ls", "Stms", "Stmi", "Li", "ChL", "ChR"), ("Prn", "Sn", "Pog", "Me"))
+
+
+def held_out_errors(generic, head) -> dict:
+    """Error of every landmark when its group is not given (registered from the others)."""
+    out = {}
+    for group in HELD_OUT:
+        given = {k: v for k, v in head.landmarks.items() if k not in group}
+        patient, _ = mesh_match_and_repair(generic, head.skin, head.bones, given, cache=False)
+        e = landmark_errors(generic, patient, head)
+        out.update({k: e[k] for k in group})
+    return out
+
+
+def run_one(generic, head, surfaces_alone: bool, held_out: bool) -> dict:
     t = time.perf_counter()
     patient, rep = mesh_match_and_repair(generic, head.skin, head.bones, head.landmarks, cache=False)
     wall = time.perf_counter() - t
-    skin = TargetSurface(np.asarray(head.skin.vertices), np.asarray(head.skin.faces))
-    lm_err, lm_beyond = {}, {}
-    for name, node in generic.landmarks.items():
-        truth = np.asarray(head.landmarks[name])
-        err = float(np.linalg.norm(patient.nodes[node] - truth))
-        off = float(skin.closest(truth[None]).distance[0])  # the truth's own distance to the skin
-        lm_err[name], lm_beyond[name] = err, max(err - off, 0.0)
+    lm_err = landmark_errors(generic, patient, head)
     q = min_scaled_jacobian(patient.nodes, patient.hexes)
-    return {"wall_s": wall, "rep": rep, "min_sj": float(q.min()), "n_inverted": int((q <= 0).sum()),
-            "lm_max": max(lm_err.values()), "lm_beyond_max": max(lm_beyond.values()),
-            "lm_worst": max(lm_err, key=lm_err.get)}
+    out = {"wall_s": wall, "rep": rep, "min_sj": float(q.min()), "n_inverted": int((q <= 0).sum()),
+           "lm_max": max(lm_err.values()), "lm_worst": max(lm_err, key=lm_err.get)}
+    if surfaces_alone:  # the same head without its landmarks: what the surfaces alone carry
+        p2, rep2 = mesh_match_and_repair(generic, head.skin, head.bones, None, cache=False)
+        e2 = landmark_errors(generic, p2, head)
+        out.update(free_lm=e2, free_skin_mean=rep2["fit"]["skin"]["mean_mm"])
+    if held_out:
+        out["held_lm"] = held_out_errors(generic, head)
+    return out
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--heads", type=int, default=10)
     ap.add_argument("--resolutions", default="coarse,standard")
+    ap.add_argument("--held-out", default="coarse",
+                    help="resolutions also registered twice with a group of landmarks held out "
+                         f"({' / '.join(', '.join(g) for g in HELD_OUT)}), the held-out ones "
+                         "measured; 'none' to skip")
+    ap.add_argument("--surfaces-alone", default="none",
+                    help="resolutions also registered without any landmark; 'none' to skip")
     args = ap.parse_args()
+    free_res = set(args.surfaces_alone.split(","))
+    held_res = set(args.held_out.split(","))
     resolutions = args.resolutions.split(",")
     generics = {r: generic_mesh.load(r) for r in resolutions}
     for r, g in generics.items():
@@ -79,14 +120,22 @@ def main() -> int:
         print(f"\n{name}: maxilla_ap {s.maxilla_ap:+.1f} mandible_ap {s.mandible_ap:+.1f} chin {s.chin_projection:+.1f} "
               f"asym {s.asymmetry:+.1f} width {s.width:.2f} height {s.height:.2f}")
         for r in resolutions:
-            res = run_one(generics[r], head)
+            res = run_one(generics[r], head, r in free_res, r in held_res)
             rep, fit, t = res["rep"], res["rep"]["fit"], res["rep"]["time"]
             results[r].append(res)
             print(f"  {r:8s} skin {fit['skin']['mean_mm']:.3f}/{fit['skin']['p95_mm']:.3f}/{fit['skin']['max_mm']:.2f} mm "
                   f"(patient->mesh {fit['skin_patient_to_mesh']['mean_mm']:.3f}) bone {fit['bone']['mean_mm']:.3f} mm  "
                   f"repaired {rep['repair']['elements_needing_repair']:3d} (inverted {rep['repair']['elements_inverted_before']:3d})  "
-                  f"min SJ {res['min_sj']:.3f}  landmarks max {res['lm_max']:.2f} mm ({res['lm_worst']}; "
-                  f"beyond truth-to-skin {res['lm_beyond_max']:.2f})")
+                  f"min SJ {res['min_sj']:.3f}  landmarks max {res['lm_max']:.2f} mm ({res['lm_worst']})")
+            if "held_lm" in res:
+                e = res["held_lm"]
+                print("           held out: " + ", ".join(f"{k} {v:.2f}" for k, v in e.items()) + " mm")
+            if "free_lm" in res:
+                e = res["free_lm"]
+                worst = max(e, key=e.get)
+                print(f"           without landmarks: skin {res['free_skin_mean']:.3f} mm, landmarks max "
+                      f"{e[worst]:.2f} mm ({worst}), Stms {e['Stms']:.2f}, others max "
+                      f"{max(v for k, v in e.items() if k != 'Stms'):.2f}")
             print(f"           time {res['wall_s']:.1f} s: " + ", ".join(
                 f"{k[:-2]} {v:.2f}" for k, v in t.items() if k.endswith("_s") and k != "total_s"))
     print("\nsummary (targets: skin mean < 0.3, p95 < 1.0, bone mean < 0.5 mm, no inverted element, "
@@ -98,8 +147,20 @@ def main() -> int:
         bm = [x["rep"]["fit"]["bone"]["mean_mm"] for x in rs]
         print(f"  {r:8s} heads {len(rs)}: skin mean max {max(sm):.3f}, p95 max {max(sp):.3f}, bone mean max {max(bm):.3f}, "
               f"inverted {sum(x['n_inverted'] for x in rs)}, min SJ {min(x['min_sj'] for x in rs):.3f}, "
-              f"landmarks max {max(x['lm_max'] for x in rs):.2f} (beyond truth-to-skin {max(x['lm_beyond_max'] for x in rs):.2f}), "
+              f"landmarks max {max(x['lm_max'] for x in rs):.2f}, "
               f"time mean {np.mean([x['wall_s'] for x in rs]):.1f} s max {max(x['wall_s'] for x in rs):.1f} s")
+        held = [x["held_lm"] for x in rs if "held_lm" in x]
+        if held:
+            names = list(held[0])
+            print(f"  {r:8s} held-out landmarks: max {max(max(e.values()) for e in held):.2f} mm; per landmark "
+                  "median/max " + ", ".join(f"{k} {np.median([e[k] for e in held]):.1f}/{max(e[k] for e in held):.1f}"
+                                            for k in names)
+                  + f"; within 1.5 mm {sum(v < 1.5 for e in held for v in e.values())}/{len(held) * len(names)}")
+        free = [x["free_lm"] for x in rs if "free_lm" in x]
+        if free:
+            print(f"  {r:8s} without landmarks: landmarks max {max(max(e.values()) for e in free):.2f} mm, "
+                  f"Stms max {max(e['Stms'] for e in free):.2f}, heads with all within 1.5 mm "
+                  f"{sum(max(e.values()) < 1.5 for e in free)}/{len(free)}")
     key = "standard" if "standard" in results else resolutions[-1]
     rs = results[key]
     print(f"register_s={max(x['wall_s'] for x in rs):.2f} "

@@ -15,7 +15,7 @@ scalar queries stay cheap; CGAL's triangulation is not reproducible run to run).
 segments (skull, maxilla, mandible, chin) are closed shells of the facial skeleton cut along
 Le Fort I, the mouth line and a genioplasty line, swept as structured surfaces of the same
 radial bone function; the teeth are swept closed arches; landmarks are the skin points on
-their rays.
+their rays, picked on the triangulated skin (closest point).
 """
 from __future__ import annotations
 
@@ -200,8 +200,18 @@ def bone_surfaces(shape: hg.HeadShape, scale: float = 1.0) -> dict:
     return out
 
 
-def landmarks(shape: hg.HeadShape) -> dict:
-    """Soft-tissue landmarks (mm RAS) of a head shape."""
+def landmarks(shape: hg.HeadShape, skin=None) -> dict:
+    """Soft-tissue landmarks (mm RAS) of a head shape.
+
+    Each landmark is the skin point on its ray (`head_geometry.LANDMARK_ANGLES`); the stomia
+    are the lip ends at the mouth line (Stms: the lowest point of the upper lip vermilion at
+    the midline, Stmi: the highest of the lower lip), taken 0.3 deg (0.5 mm) inside their own
+    lip so that they sit on that lip and not on the mouth-line step. Given the head's
+    triangulated `skin` (trimesh), every landmark is then the closest point of that surface,
+    i.e. the point an observer picks on the scanned surface: a triangulation with ~3 mm
+    edges cuts convex tips (pronasale ~0.5 mm) and bridges the step between the lips (in a
+    strong class III the upper lip ends up to ~2.3 mm behind the triangles that join it to
+    the protruding lower lip), and a true landmark lies on the skin the patient data show."""
     out = {}
     for name, (t, p, sd) in hg.LANDMARK_ANGLES.items():
         if name == "Stms":
@@ -209,6 +219,12 @@ def landmarks(shape: hg.HeadShape) -> dict:
         elif name == "Stmi":
             p = p - 0.3
         out[name] = hg.to_cartesian(t, p, hg.skin_radius(t, p, shape, side=sd), shape)
+    if skin is not None:
+        import trimesh
+
+        names = list(out)
+        on_skin, _, _ = trimesh.proximity.closest_point(skin, np.array([out[k] for k in names]))
+        out = {k: np.asarray(v, dtype=float) for k, v in zip(names, on_skin)}
     return out
 
 
@@ -218,7 +234,7 @@ def synthetic_head(seed: int, size: float = 3.0, distance: float = 0.25,
     shape = random_shape(seed)
     teeth = {"upper": (*hg.teeth_arch("upper", shape), "maxilla"),
              "lower": (*hg.teeth_arch("lower", shape), "mandible")}
-    return SyntheticHead(seed=int(seed), shape=shape,
-                         skin=skin_surface(shape, size, distance, seed=int(seed) % 2**31,
-                                           table_step=table_step, mesher=mesher),
-                         bones=bone_surfaces(shape), teeth=teeth, landmarks=landmarks(shape))
+    skin = skin_surface(shape, size, distance, seed=int(seed) % 2**31, table_step=table_step,
+                        mesher=mesher)
+    return SyntheticHead(seed=int(seed), shape=shape, skin=skin, bones=bone_surfaces(shape),
+                         teeth=teeth, landmarks=landmarks(shape, skin))

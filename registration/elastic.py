@@ -164,13 +164,17 @@ def elastic_register(nodes: np.ndarray, skin: SurfaceGroup, skin_tris: np.ndarra
     return x, log
 
 
-def mesh_laplacian(n_nodes: int, hexes: np.ndarray) -> sp.csr_matrix:
-    """Graph Laplacian over the 12 edges of every hexahedron (unit weights)."""
+def mesh_laplacian(n_nodes: int, hexes: np.ndarray, x: np.ndarray | None = None) -> sp.csr_matrix:
+    """Graph Laplacian over the 12 edges of every hexahedron: unit weights, or 1/|edge|^2 for
+    node positions `x` (the finite-difference weights: a thin layer then follows its faces)."""
     edges = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
                       [0, 4], [1, 5], [2, 6], [3, 7]])
     e = np.asarray(hexes)[:, edges].reshape(-1, 2)
     e = np.unique(np.sort(e, axis=1), axis=0)
-    a = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_nodes, n_nodes))
+    w = np.ones(len(e))
+    if x is not None:
+        w = 1.0 / np.maximum(np.sum((x[e[:, 0]] - x[e[:, 1]]) ** 2, axis=1), 1e-12)
+    a = sp.coo_matrix((w, (e[:, 0], e[:, 1])), shape=(n_nodes, n_nodes))
     a = (a + a.T).tocsr()
     return (sp.diags(np.asarray(a.sum(axis=1)).ravel()) - a).tocsr()
 

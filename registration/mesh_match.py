@@ -4,8 +4,13 @@ The stages follow Bucki, Lobos and Payan (Med. Image Anal. 14, 2010): (1) a simi
 landmarks (Umeyama) or from the surfaces (principal axes + trimmed ICP), (2) the joint elastic
 registration of skin and bone-attachment nodes by a composed multilevel B-spline FFD
 (`registration.elastic`), (3) a snap of the surface nodes onto the patient surfaces with a
-harmonic spread into the volume, (4) the repair of every element whose minimum scaled Jacobian
-is below the threshold (`registration.repair`), (5) the teeth placed with their bone segments
+harmonic spread into the volume, (3b) with given landmarks, the landmark nodes moved onto them
+by a geodesic correction of the skin that can separate the lips (`registration.landmark_fit`),
+(4) the repair of every element whose minimum scaled Jacobian is below the threshold
+(`registration.repair`; landmark nodes held), (4b) the least-squares facet fit that places the
+skin nodes so that the bilinear facets, not only the nodes, lie on the patient skin
+(`registration.surface_fit`; landmark nodes stay on it, no element goes below the threshold),
+(5) the teeth placed with their bone segments
 (or the patient's own) and the soft tissue cleared of them (`registration.teeth`), then fit
 errors (mean / 95th percentile / max of the distances from the registered skin -- its nodes and points inside its facets -- to the
 patient skin where the patient surface covers the model, the reverse distances, and the
@@ -26,9 +31,11 @@ from registration.alignment import Similarity, align_surfaces, umeyama
 from registration.elastic import (ElasticSchedule, SurfaceGroup, elastic_register, mesh_laplacian,
                                   snap_to_surfaces, vertex_normals)
 from registration.errors import RegistrationFailure, RegistrationInputError
+from registration.landmark_fit import landmark_correction
 from registration.quality import min_scaled_jacobian, quality_summary
 from registration.repair import SurfaceConstraint, repair_mesh
 from registration.surface import TargetSurface
+from registration.surface_fit import facet_fit
 from registration.teeth import Arch, clear_teeth, place_teeth
 
 
@@ -44,6 +51,12 @@ class MatchOptions:
     # soft-tissue nodes end at least this far outside the teeth (the clearance that
     # facemodel.teeth.clear_teeth asks of a contact start, so that it has nothing to move)
     teeth_clearance_mm: float = 0.25
+    # given landmarks: the landmark nodes brought onto them after the snap, the correction
+    # spread over the skin with this geodesic radius (registration.landmark_fit)
+    landmark_correction: bool = True
+    landmark_sigma_mm: float = 8.0
+    # skin nodes placed so that the facets, not only the nodes, fit the skin (least squares)
+    facet_fit: bool = True
     seed: int = 0
 
 
@@ -65,6 +78,20 @@ def _fit_stats(d: np.ndarray) -> dict:
         return {"mean_mm": None, "p95_mm": None, "max_mm": None, "n_points": 0}
     return {"mean_mm": float(d.mean()), "p95_mm": float(np.percentile(d, 95)),
             "max_mm": float(d.max()), "n_points": int(len(d))}
+
+
+def _quads_on_surface(x: np.ndarray, skin_quads: np.ndarray, skin_tris: np.ndarray,
+                      skin: TargetSurface) -> np.ndarray:
+    """Skin quads whose four nodes have their closest patient-skin point inside the surface
+    (not on an open border) with a compatible normal: the facets the patient skin covers."""
+    skin_quads = np.asarray(skin_quads)
+    ids = np.unique(skin_quads)
+    normals = vertex_normals(x, skin_tris)
+    cl = skin.closest(x[ids])
+    ok = ~cl.on_boundary & (np.einsum("ij,ij->i", normals[ids], cl.normal) > 0.5)
+    node_ok = np.zeros(len(x), bool)
+    node_ok[ids[ok]] = True
+    return skin_quads[node_ok[skin_quads].all(axis=1)]
 
 
 def _extent(v: np.ndarray) -> float:
@@ -232,13 +259,41 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     x, snapped = snap_to_surfaces(x, hexes, skin_group, skin_tris, groups, opt.max_snap_mm, lap)
     times["snap_s"] = time.perf_counter() - t2
 
+    landmark_report = None
+    if lm is not None and opt.landmark_correction:
+        t_l = time.perf_counter()
+        held = np.concatenate([snapped[g.name] for g in groups]) if groups else np.zeros(0, np.int64)
+        x, landmark_report = landmark_correction(x, hexes, model.skin_quads, lm[0], lm[1], skin_g,
+                                                 snapped["skin"], held, sigma_mm=opt.landmark_sigma_mm,
+                                                 max_distance_mm=opt.max_snap_mm)
+        names = [k for k in model.landmark_nodes if k in landmarks]
+        landmark_report["landmarks_not_followed"] = [names[i] for i in landmark_report["landmarks_not_followed"]]
+        times["landmarks_s"] = time.perf_counter() - t_l
+
     t3 = time.perf_counter()
     constraints = [SurfaceConstraint("skin", snapped["skin"], skin_g)]
     constraints += [SurfaceConstraint(g.name, snapped[g.name], g.target) for g in groups]
-    x, rep = repair_mesh(x, hexes, threshold=opt.threshold, constraints=constraints)
+    # landmark nodes placed on given landmarks stay there (the repair moves their neighbours);
+    # should that leave an element below the threshold, the repair runs again with them free
+    pin = np.asarray(landmark_report["nodes"] if landmark_report else [], np.int64)
+    x_in = x
+    x, rep = repair_mesh(x_in, hexes, threshold=opt.threshold, constraints=constraints, fixed=pin)
+    if len(pin) and rep["elements_still_below_threshold"]:
+        x, rep = repair_mesh(x_in, hexes, threshold=opt.threshold, constraints=constraints)
+    rep["landmark_nodes_held"] = bool(len(pin)) and bool(np.array_equal(x[pin], x_in[pin]))
     times["repair_s"] = time.perf_counter() - t3
 
     x = sim.apply(x)  # back to the patient frame; measured against the patient's own surfaces
+
+    # the facets onto the skin: nodes of the skin quads lying on the patient skin straddle it
+    facet_report = None
+    if opt.facet_fit:
+        t6 = time.perf_counter()
+        x, facet_report = facet_fit(x, hexes, _quads_on_surface(x, model.skin_quads, skin_tris, skin),
+                                    skin_tris, skin, threshold=opt.threshold,
+                                    pinned=np.fromiter(model.landmark_nodes.values(), np.int64,
+                                                       len(model.landmark_nodes)))
+        times["facet_fit_s"] = time.perf_counter() - t6
 
     # teeth with their segments (or the patient's own), then the lips cleared of them; skin
     # and attached nodes stay where they are, so the fits below are those of the repair
@@ -301,6 +356,8 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         },
         "quality": quality_summary(x, hexes, opt.threshold),
         "repair": rep,
+        "landmark_correction": landmark_report,
+        "facet_fit": facet_report,
         "teeth": teeth_info,
         "teeth_clearance": clearance_report,
         "elastic": elog.levels,

@@ -71,10 +71,14 @@ def test_front_only_with_holes_registers_on_what_is_there(generic, head):
     patient, rep = mesh_match_and_repair(generic, (v, f[keep]), head.bones, head.landmarks, cache=False)
     _valid(patient, rep)
     assert rep["fit"]["skin"]["n_outside_patient_surface"] > 0  # the rim that the scan misses
-    # the skin nodes where the scan exists lie on the full true skin
+    # the skin surface where the scan exists lies on the full true skin: nodes and facet
+    # centres measured against the full skin (the facet fit sets nodes a few tenths of a mm
+    # off the surface so that the facets straddle it); the median over the whole mesh skin,
+    # rim included, stays within the skin target (mean < 0.3 mm) as it does on a full scan
     full = TargetSurface(v, f)
-    on = full.closest(patient.nodes[np.unique(generic.facet_sets["skin"])]).distance
-    assert np.median(on) < 0.05
+    quads = np.asarray(generic.facet_sets["skin"])
+    pts = np.concatenate([patient.nodes[np.unique(quads)], patient.nodes[quads].mean(axis=1)])
+    assert np.median(full.closest(pts).distance) < 0.3
 
 
 def test_other_triangulation_density(generic, head):

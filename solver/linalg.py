@@ -400,7 +400,7 @@ class LaggedFactorSolver:
         self.has_factor = False
         self.stale = False
         self.direct_mode = False
-        self._first_of_step = None      # did the first solve of the step find the factor stale
+        self._step_refactorizations = 0     # factors renewed (not the first one) in this step
         self.krylov_iterations = 0
         self._factorizations = 0
         self.last = {}
@@ -416,19 +416,22 @@ class LaggedFactorSolver:
 
     def begin_step(self) -> None:
         """A new load step: try the preconditioned CG path again after direct solves, and
-        refactorise at once if the previous step's first system needed a new factor (a load
-        increment changes the tangent most: CG with the old factor would fail again, in vain)."""
+        refactorise at once if the factor had to be renewed during the previous step (not its
+        first): a load increment changes the tangent most, and a factor that went stale within
+        the last step would make CG fail on the new step's first system, in vain."""
         self.direct_mode = False
-        if self._first_of_step is not None and self._first_of_step:
+        if self._step_refactorizations > 0:
             self.stale = True
-        self._first_of_step = None
+        self._step_refactorizations = 0
 
     def _factorize_preconditioner(self, A) -> bool:
         try:
             if self._precond is not None:
                 self._precond.factorize(A)
+                self._step_refactorizations += self._factorizations > 0
                 self._factorizations += 1
             else:
+                self._step_refactorizations += self.direct.factorizations > 0
                 self.direct.factorize(A)
         except Exception:                   # not positive definite (or singular)
             self.has_factor = False
@@ -460,9 +463,6 @@ class LaggedFactorSolver:
             return self._direct(A, b, 0, True)
         its = 0
         x = None
-        first = self._first_of_step is None
-        if first:
-            self._first_of_step = False
         if self.has_factor and not self.stale:
             x, its, status, rel = preconditioned_cg(A, b, self._apply, rtol, self.maxiter)
             self.krylov_iterations += its
@@ -475,8 +475,6 @@ class LaggedFactorSolver:
                 return self._direct(A, b, its, False)
             if not np.all(np.isfinite(x)):
                 x = None
-        if first and self.has_factor:
-            self._first_of_step = True      # the step's first system needed a new factor
         if not self._factorize_preconditioner(A):
             return self._direct(A, b, its, False)
         # with the fresh factor CG converges in a few iterations (one for an exact factor)

@@ -30,7 +30,7 @@ import scipy.sparse as sp
 
 from solver.bc import ConstraintSet
 from solver.errors import SolveFailed
-from solver.linalg import LaggedFactorSolver, SymmetricSolver, sym_matvec
+from solver.linalg import LaggedFactorSolver, SymmetricSolver, _dot, sym_matvec
 
 __all__ = ["newton_solve", "NewtonResult", "StepRecord"]
 
@@ -103,7 +103,7 @@ class _System:
             self.timing["assembly"] += time.perf_counter() - t0
             return ev, None, None, None
         r = ev.force.copy()
-        f_int_norm = np.linalg.norm(r)
+        f_int_norm = _norm(r)
         f_term_norm = 0.0
         energy = ev.energy
         Kt = None
@@ -341,6 +341,12 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     return result
 
 
+def _norm(v) -> float:
+    # numba loop, not NumPy's BLAS (its threads cost milliseconds per call on a loaded machine)
+    v = np.ascontiguousarray(v, dtype=float)
+    return float(np.sqrt(_dot(v, v)))
+
+
 def _extrapolate(history, target):
     """Lagrange extrapolation in the load fraction through the last two or three converged
     states (x and the three-field state): linear (secant) from two, quadratic from three."""
@@ -409,7 +415,7 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
             if isinstance(lin, LaggedFactorSolver):
                 # forcing term: loose while far from the solution, tighter as the residual
                 # falls, so that the convergence stays (nearly) quadratic
-                eta = _forcing(lin, float(np.linalg.norm(rhs)), rtol * max(ev.force_scale, 1e-300))
+                eta = _forcing(lin, _norm(rhs), rtol * max(ev.force_scale, 1e-300))
                 du_hat = lin.solve(A, rhs, rtol=eta)
             else:
                 du_hat = lin.solve(A, rhs)
@@ -427,7 +433,7 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
         snap = system.body.mixed_snapshot() if getattr(system.body, "mixed", None) is not None else None
         # directional derivative of the potential along du (the coupling to the constrained
         # increments included), its magnitude is FEBio's "energy norm" of the iteration
-        g0 = -float(du_hat[free] @ rhs[free])
+        g0 = -_dot(du_hat[free], rhs[free])
         en_norm0 = abs(g0)
         has_gap = bool(np.any(gap != 0.0))
         # line search: halve on invalid states, then secant on g(s) = du . r(x + s du)
@@ -479,11 +485,11 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
                         ev1, r1, A1, c1 = system.evaluate(x + du, target, targets=targets)
         x = x + s * du
         ev, r, A, cpl = ev1, r1, A1, c1
-        rn = float(np.linalg.norm(r[free]))
-        en = abs(s * float(du_hat[free] @ r[free]))
+        rn = _norm(r[free])
+        en = abs(s * _dot(du_hat[free], r[free]))
         if e0 is None:
             e0 = max(en_norm0, 1e-300)
-        dn = float(np.linalg.norm(s * du))
+        dn = abs(s) * _norm(du.ravel())
         gap_after = float(np.max(np.abs(targets - uhat(x)[cons.dofs]))) if len(cons.dofs) else 0.0
         scale = max(ev.force_scale, 1e-300)
         rec = {"step": step_no, "load": target, "iteration": it, "residual_norm": rn,

@@ -18,8 +18,6 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from solver.assembly._kernels import finish_element_matrix
-
 __all__ = ["yeoh_element_matrices"]
 
 
@@ -39,7 +37,8 @@ def _vol(kind, K, J):
 @nb.njit(cache=True, parallel=True, fastmath=True)
 def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dilatation,
                           tangent, Ke, fe, We, minJ, theta_in, p_in, use_state, v_out, dv_out):
-    """Element matrices Ke (m,24,24), residuals fe (m,24), energies We (m,), min J (m,).
+    """Element matrices Ke (m, 300: the upper triangle of each 24 x 24 matrix, row by row),
+    residuals fe (m,24), energies We (m,), min J (m,).
 
     params (m, 4) = C10, C20, C30, K per element; volkind (m,) 0 = Simo-Taylor, 1 = quadratic.
     Returns nothing; an element with J <= 0 gets minJ <= 0 and is not computed further.
@@ -224,7 +223,14 @@ def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dila
             fe[e, r] = f[r]
         if not tangent:
             continue
-        finish_element_matrix(K, dvv, kee)
+        # upper triangle, row by row (np.triu_indices order), with the condensed
+        # mean-dilatation term kee dv dv^T; the diagonal node blocks were computed whole:
+        # average their two triangles (equal up to round-off)
+        p = 0
         for r in range(24):
-            for c in range(24):
-                Ke[e, r, c] = K[r, c]
+            for c in range(r, 24):
+                v = K[r, c]
+                if (r // 3) == (c // 3):
+                    v = 0.5 * (v + K[c, r])
+                Ke[e, p] = v + kee * dvv[r] * dvv[c]
+                p += 1

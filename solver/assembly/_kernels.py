@@ -23,7 +23,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["element_matrices", "element_residuals", "scatter_upper", "scatter_vector",
+__all__ = ["element_matrices", "element_residuals", "scatter_upper", "scatter_packed",
+           "scatter_vector",
            "upper_pairs"]
 
 
@@ -198,6 +199,17 @@ def scatter_upper(Ke, slots, lr, lc, data):
     for e in range(m):
         for p in range(npair):
             data[slots[e, p]] += Ke[e, lr[p], lc[p]]
+
+
+@nb.njit(cache=True)
+def scatter_packed(Kp, slots, data):
+    """data[slots[e, p]] += Kp[e, p] (Kp: packed element upper triangles); data zeroed first."""
+    for j in range(data.shape[0]):
+        data[j] = 0.0
+    m, npair = slots.shape
+    for e in range(m):
+        for p in range(npair):
+            data[slots[e, p]] += Kp[e, p]
 
 
 @nb.njit(cache=True)

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from solver.assembly import (UpperPattern, element_matrices, element_residuals, scatter_upper,
-                             scatter_vector)
+from solver.assembly import (UpperPattern, element_matrices, element_residuals, scatter_packed,
+                             scatter_upper, scatter_vector)
 from solver.assembly._fused import yeoh_element_matrices
 from solver.constitution._hyperelastic import Yeoh
 from solver.constitution.base import inverse_and_det
@@ -85,9 +85,9 @@ class SolidBody:
         X = mesh.nodes[mesh.hexes]                                   # (m, 8, 3)
         xg, wg = gauss_hex(2)
         dNdxi = hex8_gradients(xg)                                   # (q, 8, 3)
-        Jac = np.einsum("mai,qaj->mqij", X, dNdxi)                   # dX/dxi
+        Jac = np.matmul(X.transpose(0, 2, 1)[:, None], dNdxi[None])  # dX/dxi (m, q, 3, 3)
         Jinv, detJ = inverse_and_det(Jac)
-        self.dNdX = np.ascontiguousarray(np.einsum("qaj,mqji->mqai", dNdxi, Jinv))
+        self.dNdX = np.ascontiguousarray(np.matmul(dNdxi[None], Jinv))  # (m, q, 8, 3)
         self.dV = np.ascontiguousarray(detJ * wg[None, :])
         self.volume = self.dV.sum(axis=1)                            # V_e
         self.pattern = UpperPattern.build(mesh.hexes, mesh.n_nodes)
@@ -107,6 +107,7 @@ class SolidBody:
                 self._volkind[idx] = 0 if mat.volumetric_kind == "simo_taylor" else 1
             self._We = np.empty(m)
             self._minJ = np.empty(m)
+            self._Kp = np.empty((m, 300))        # packed element upper triangles
         # three-field (u, p, theta) Newton state of the mean-dilatation elements (fused path):
         # None means theta = v/V and p = U'(theta) are recomputed from u (the purely
         # displacement-based linearisation); set by `begin_mixed` (newton_solve does)
@@ -249,7 +250,7 @@ class SolidBody:
         th, pp = self.mixed if use else (self._v, self._v)
         yeoh_element_matrices(x, self.mesh.hexes, self.dNdX, self.dV, self.volume, self._params,
                               self._volkind, self.formulation == "mean_dilatation", tangent,
-                              self._Ke, self._fe, self._We, self._minJ, th, pp, use,
+                              self._Kp, self._fe, self._We, self._minJ, th, pp, use,
                               self._v, self._dv)
         worst = int(np.argmin(self._minJ))
         minJ = float(self._minJ[worst])
@@ -263,8 +264,7 @@ class SolidBody:
         data = None
         if tangent:
             data = np.empty(self.pattern.nnz)
-            scatter_upper(self._Ke, self.pattern.slots, self.pattern.local_rows,
-                          self.pattern.local_cols, data)
+            scatter_packed(self._Kp, self.pattern.slots, data)
         energy = float(self._We.sum())
         valid = bool(np.isfinite(energy) and np.all(np.isfinite(f)))
         return Evaluation(f, data, energy, valid, worst, minJ)

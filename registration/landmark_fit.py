@@ -50,13 +50,14 @@ def landmark_correction(x: np.ndarray, hexes: np.ndarray, skin_quads: np.ndarray
     """Move the landmark nodes onto the given landmarks (projected on the skin) with a smooth
     geodesic correction of the skin around them; returns (new nodes, report).
 
-    movable_skin: skin node ids allowed to move (those on the patient skin); held: node ids
-    that keep their position (bone-attached nodes)."""
+    movable_skin: skin node ids on the patient skin (projected back onto it after the
+    correction); held: node ids that keep their position (bone-attached nodes). A landmark
+    node is placed on its landmark whether it was on the patient skin before or not."""
     skin_quads = np.asarray(skin_quads)
     skin_ids = np.unique(skin_quads)
     landmark_nodes = np.asarray(landmark_nodes, dtype=np.int64)
     cl = skin.closest(np.asarray(landmarks, dtype=float).reshape(-1, 3))
-    use = (~cl.on_boundary) & (cl.distance <= max_distance_mm) & np.isin(landmark_nodes, movable_skin)
+    use = (~cl.on_boundary) & (cl.distance <= max_distance_mm)
     report = {"landmarks_used": int(use.sum()), "sigma_mm": float(sigma_mm), "nodes": []}
     # a landmark the registered surface misses by more than max_correction_mm contradicts the
     # surfaces (a mislabelled or misplaced point): reported, not followed
@@ -82,13 +83,15 @@ def landmark_correction(x: np.ndarray, hexes: np.ndarray, skin_quads: np.ndarray
     w = np.linalg.solve(a + 1e-9 * np.eye(len(src)), corr)
     u_skin = phi.T @ w  # (n_skin, 3)
 
+    # skin nodes on the patient skin move with the correction and back onto it; the others
+    # (not snapped: off the scan, or facing away) move with the smooth correction alone
     movable = np.isin(skin_ids, movable_skin)
-    moving = movable & (np.linalg.norm(u_skin, axis=1) > 1e-6)
-    new_skin = x[skin_ids].copy()
-    new_skin[moving] = skin.closest(new_skin[moving] + u_skin[moving]).points
+    moving = np.linalg.norm(u_skin, axis=1) > 1e-6
+    new_skin = x[skin_ids] + np.where(moving[:, None], u_skin, 0.0)
+    proj = moving & movable
+    new_skin[proj] = skin.closest(new_skin[proj]).points
     new_skin[np.searchsorted(skin_ids, nodes)] = targets  # exactly on the projected landmarks
     delta_skin = new_skin - x[skin_ids]
-    delta_skin[~movable] = 0.0
 
     held = np.setdiff1d(np.asarray(held, dtype=np.int64), skin_ids)
     fixed = np.concatenate([skin_ids, held])

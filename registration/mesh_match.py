@@ -271,7 +271,10 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         times["landmarks_s"] = time.perf_counter() - t_l
 
     t3 = time.perf_counter()
-    constraints = [SurfaceConstraint("skin", snapped["skin"], skin_g)]
+    on_skin = snapped["skin"]
+    if landmark_report and landmark_report["nodes"]:  # now on the patient skin too
+        on_skin = np.union1d(on_skin, np.asarray(landmark_report["nodes"], np.int64))
+    constraints = [SurfaceConstraint("skin", on_skin, skin_g)]
     constraints += [SurfaceConstraint(g.name, snapped[g.name], g.target) for g in groups]
     # landmark nodes placed on given landmarks stay there (the repair moves their neighbours);
     # should that leave an element below the threshold, the repair runs again with them free

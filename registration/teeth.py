@@ -209,13 +209,21 @@ def escape_outward(arches: list[Arch], points: np.ndarray, clearance: float, cen
     radial[:, 2] = 0.0
     radial /= np.maximum(np.linalg.norm(radial, axis=1), 1e-12)[:, None]
     facing = radial @ dirs.T > 0.0                                       # (points, dirs)
-    samples = p[:, None, None] + t[None, None, :, None] * dirs[None, :, None, :]
-    sd = _union_distance(arches, samples.reshape(-1, 3), clearance + 2.0)[0].reshape(len(p), len(dirs), len(t))
-    ok = (sd >= clearance) & facing[:, :, None]
-    first = np.where(ok.any(axis=2), ok.argmax(axis=2), len(t))         # first clear sample per ray
-    k = np.argmin(first, axis=1)
-    found = first[np.arange(len(p)), k] < len(t)
-    idx = np.minimum(first[np.arange(len(p)), k], len(t) - 1)
+    # march all facing rays of the unresolved points outwards together: a point is resolved
+    # at the first sample distance where one of its rays is clear (the lowest-numbered such
+    # ray is taken); most points clear within a few samples, so few are ever evaluated
+    idx = np.full(len(p), len(t) - 1)
+    k = np.zeros(len(p), dtype=np.int64)
+    found = np.zeros(len(p), bool)
+    for j, tj in enumerate(t):
+        pi, di = np.nonzero(facing & ~found[:, None])
+        if len(pi) == 0:
+            break
+        clear = _union_distance(arches, p[pi] + tj * dirs[di], clearance + 2.0)[0] >= clearance
+        pi, di = pi[clear], di[clear]
+        first_ray = np.unique(pi, return_index=True)[1]  # pairs are ordered by point, then ray
+        hit = pi[first_ray]
+        k[hit], idx[hit], found[hit] = di[first_ray], j, True
     direction = dirs[k]
     # bisection between the last blocked and the first clear sample of the chosen ray
     hi = t[idx]

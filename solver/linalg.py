@@ -19,6 +19,7 @@ for the same converged Newton solution).
 from __future__ import annotations
 
 import ctypes
+import time
 
 import numba as nb
 import numpy as np
@@ -46,6 +47,9 @@ def available_backends() -> list[str]:
 
 
 _MKL = None
+# seconds spent in PARDISO's phases since the process started (for profiles: `newton_solve`
+# reports the share of each solve)
+TIMING = {"analysis": 0.0, "factorization": 0.0, "substitution": 0.0}
 
 
 def _mkl_pardiso_function():
@@ -128,6 +132,13 @@ class _Pardiso:
         if err.value != 0:
             raise PardisoError(int(err.value), phase)
 
+    def _timed(self, key, phase, b=None, x=None):
+        t0 = time.perf_counter()
+        try:
+            self._call(phase, b, x)
+        finally:
+            TIMING[key] += time.perf_counter() - t0
+
     def _same_pattern(self, A) -> bool:
         return (self._ia is not None and self._ia.shape[0] == A.indptr.shape[0]
                 and self._ja.shape[0] == A.indices.shape[0]
@@ -141,8 +152,8 @@ class _Pardiso:
             self._ja = np.ascontiguousarray(A.indices, dtype=np.int32)
             self._a = np.ascontiguousarray(A.data, dtype=self.dtype)
             self.n = A.shape[0]
-            self._call(11)
-        self._call(22)
+            self._timed("analysis", 11)
+        self._timed("factorization", 22)
 
     def apply(self, b: np.ndarray, refine: bool = True) -> np.ndarray:
         """Solve with the stored factor (forward/backward substitution, phase 33); without
@@ -151,12 +162,17 @@ class _Pardiso:
         self.iparm[7] = 2 if refine else 0
         bb = np.ascontiguousarray(b, dtype=self.dtype)
         x = np.empty_like(bb)
-        self._call(33, bb, x)
+        self._timed("substitution", 33, bb, x)
         return x.astype(np.float64, copy=False)
 
     def solve(self, A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
         self.factorize(A)
         return self.apply(b)
+
+    def release_factor(self) -> None:
+        """Free the numerical factor's memory (phase 0), keeping the analysis."""
+        if self._ia is not None and self.pt.any():
+            self._call(0)
 
     def release(self) -> None:
         """Free PARDISO's memory for this handle (phase -1)."""
@@ -245,6 +261,11 @@ class SymmetricSolver:
         """Solve with the factor of the matrix last given to `factorize` (`refine`: with the
         back end's iterative refinement against that matrix, PARDISO: two steps)."""
         return self._impl.apply(np.ascontiguousarray(b, dtype=float), refine)
+
+    def release_factor(self) -> None:
+        """Free the factor's memory (PARDISO: the analysis is kept for the next factorize)."""
+        if hasattr(self._impl, "release_factor"):
+            self._impl.release_factor()
 
 
 @nb.njit(cache=True)
@@ -419,6 +440,8 @@ class LaggedFactorSolver:
         refactorise at once if the factor had to be renewed during the previous step (not its
         first): a load increment changes the tangent most, and a factor that went stale within
         the last step would make CG fail on the new step's first system, in vain."""
+        if self.direct_mode:            # back to CG: free the LDL^T factor's memory
+            self.direct.release_factor()
         self.direct_mode = False
         if self._step_refactorizations > 0:
             self.stale = True
@@ -446,6 +469,8 @@ class LaggedFactorSolver:
         return self.direct.apply(v, refine=False)
 
     def _direct(self, A, b, its, stats_factored):
+        if not self.direct_mode and self._precond is not None and self.has_factor:
+            self._precond.release_factor()  # one factor in memory at a time
         self.direct_mode = True
         self.has_factor = False
         x = self.direct.solve(A, b)

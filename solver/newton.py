@@ -30,6 +30,7 @@ import scipy.sparse as sp
 
 from solver.bc import ConstraintSet
 from solver.errors import SolveFailed
+from solver import linalg as _linalg
 from solver.linalg import LaggedFactorSolver, SymmetricSolver, _dot, sym_matvec
 
 __all__ = ["newton_solve", "NewtonResult", "StepRecord"]
@@ -255,6 +256,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     result = NewtonResult(x=x, u=x - X, load=0.0, converged=False,
                           linear_strategy=linear_strategy)
     t_start = time.perf_counter()
+    pardiso0 = dict(_linalg.TIMING)
     dt_max = 1.0 / max(int(steps), 1)
     dt = dt_max
     load = 0.0
@@ -337,7 +339,8 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     result.reactions = reac.reshape(n, 3)
     result.converged = True
     result.factorizations = lin.factorizations
-    result.timings = dict(system.timing, total=time.perf_counter() - t_start)
+    result.timings = dict(system.timing, total=time.perf_counter() - t_start,
+                          **{f"pardiso_{k}": v - pardiso0[k] for k, v in _linalg.TIMING.items()})
     return result
 
 
@@ -436,14 +439,22 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
         g0 = -_dot(du_hat[free], rhs[free])
         en_norm0 = abs(g0)
         has_gap = bool(np.any(gap != 0.0))
+        # Near convergence (relative residual below 10 sqrt(rtol), from where a quadratically
+        # converging iteration lands below rtol) the new iterate is evaluated without its
+        # tangent first: if it has converged the tangent is not needed (one assembly saved per
+        # load step); if not, the tangent is assembled afterwards (one residual evaluation lost)
+        lazy = (not line_search and not has_gap
+                and _norm(r[free]) <= 10.0 * np.sqrt(rtol) * max(ev.force_scale, 1e-300))
         # line search: halve on invalid states, then secant on g(s) = du . r(x + s du)
         s = 1.0
         for _ in range(12):
             if snap is not None:
                 system.body.mixed_update(snap, s * du)
-            ev1, r1, A1, c1 = system.evaluate(x + s * du, target, targets=targets)
+            ev1, r1, A1, c1 = system.evaluate(x + s * du, target, targets=targets,
+                                              tangent=not lazy)
             if ev1.valid:
                 break
+            lazy = False
             s *= 0.5
         else:
             info.update(reason="every trial update inverts an element",
@@ -524,5 +535,7 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
         if it >= 4 and rn > 1e6 * max(min(rnorm_hist[:3]), 1e-300):
             info["reason"] = "residual diverges"
             return False, x, info
+        if A is None:               # evaluated without the tangent and not converged
+            ev, r, A, cpl = system.evaluate(x, target, targets=targets)
     info["reason"] = f"no convergence in {max_it} iterations (|R| = {rn:.3e})"
     return False, x, info

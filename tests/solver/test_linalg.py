@@ -102,3 +102,21 @@ def test_indefinite_matrix_falls_back_to_direct_solve():
     x = lin.solve(_upper(K0), b)
     assert not lin.last["direct"] and lin.last["refactorized"]
     assert np.linalg.norm(K0 @ x - b) <= 1e-9 * np.linalg.norm(b) * 1.0001
+
+
+def test_breakdown_on_indefinite_system_then_back_to_cg():
+    # the factor of an SPD matrix is kept; the next system is indefinite: CG meets negative
+    # curvature (or fails), the system is solved directly (1e-10, backward stable), the
+    # Cholesky factor's memory is freed, and after begin_step CG works again with a new factor
+    K0 = _spd()
+    b = np.random.default_rng(5).standard_normal(K0.shape[0])
+    lin = LaggedFactorSolver(rtol=1e-9, maxiter=40)
+    lin.solve(_upper(K0), b)
+    assert not lin.last["direct"]
+    K1 = K0 - 3.0 * sp.identity(K0.shape[0])
+    x = lin.solve(_upper(K1), b)
+    assert lin.last["direct"] and np.linalg.norm(K1 @ x - b) < 1e-10 * np.linalg.norm(b)
+    lin.begin_step()
+    x = lin.solve(_upper(K0), b)
+    assert not lin.last["direct"] and lin.last["refactorized"]
+    assert np.linalg.norm(K0 @ x - b) <= 1e-9 * np.linalg.norm(b) * 1.0001

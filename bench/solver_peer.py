@@ -22,12 +22,18 @@ Both codes run in the same process with the same MKL threading (`--threads`, def
 shared, loaded 2-core machine PARDISO factorises the 28k-DOF tangent in ~1.6 s on one thread
 against 2.4-2.7 s on two, and substitutes in 0.05 s against 0.17 s; `--threads 0` leaves MKL's
 default). `--strategy` picks faceplan's Newton linear strategy: "auto" (`newton_solve`'s
-default: lagged from 20k unknowns on, so lagged here), "exact" (a factorisation per Newton
-iteration) or "lagged" (CG on each fresh tangent preconditioned with an earlier factor,
-refactorising when CG stalls; the same converged solution with fewer factorisations).
+default: lagged from 20k unknowns on, so lagged here), "exact" (a symmetric indefinite LDL^T
+factorisation per Newton iteration, like FElupe) or "lagged" (CG on each fresh tangent
+preconditioned with a single-precision Cholesky factor of an earlier one, kept across
+iterations and load steps, refactorising when CG stalls; the same converged solution with
+fewer, cheaper factorisations). `--predictor` picks the load-step predictor: "auto" (secant /
+quadratic extrapolation of the previous steps here, as no contact terms are given), "tangent"
+(FElupe's: start from the last converged state), "secant". The faceplan line breaks its time
+down into assembly (element kernels, scatter, constraints), PARDISO phases, the rest of the
+Newton loop and the set-up (mesh, sparsity pattern, geometry).
 
 Usage: python bench/solver_peer.py [--no-scaling] [--sizes 15,24,33,40] [--threads 1]
-       [--strategy auto|exact|lagged]
+       [--strategy auto|exact|lagged] [--predictor auto|tangent|secant]
 """
 from __future__ import annotations
 

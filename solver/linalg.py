@@ -145,14 +145,29 @@ class _Pardiso:
                 and np.array_equal(self._ia, A.indptr) and np.array_equal(self._ja, A.indices))
 
     def factorize(self, A: sp.csr_matrix) -> None:
-        self._a = np.ascontiguousarray(A.data, dtype=self.dtype)
-        if not self._same_pattern(A):
-            self.release()
-            self._ia = np.ascontiguousarray(A.indptr, dtype=np.int32)
-            self._ja = np.ascontiguousarray(A.indices, dtype=np.int32)
+        if self._same_pattern(A):
             self._a = np.ascontiguousarray(A.data, dtype=self.dtype)
-            self.n = A.shape[0]
-            self._timed("analysis", 11)
+        else:
+            # A pattern that changes between calls (contact pairs coming and going) is embedded
+            # in the union of the analysed pattern and the new one: once the union has
+            # stopped growing, every factorisation reuses the analysis (explicit zeros cost a
+            # little fill, a new analysis costs about a factorisation)
+            ib = np.ascontiguousarray(A.indptr, dtype=np.int32)
+            jb = np.ascontiguousarray(A.indices, dtype=np.int32)
+            if self._ia is not None and self._ia.shape[0] == ib.shape[0]:
+                ia, ja = _pattern_union(self._ia, self._ja, ib, jb)
+            else:
+                ia, ja = ib, jb
+            grown = not (self._ia is not None and ia.shape == self._ia.shape
+                         and ja.shape == self._ja.shape)
+            a = np.zeros(len(ja))
+            _embed_values(ia, ja, ib, jb, np.ascontiguousarray(A.data, dtype=float), a)
+            self._a = a.astype(self.dtype, copy=False)
+            if grown:
+                self.release()
+                self._ia, self._ja = ia, ja
+                self.n = A.shape[0]
+                self._timed("analysis", 11)
         self._timed("factorization", 22)
 
     def apply(self, b: np.ndarray, refine: bool = True) -> np.ndarray:
@@ -266,6 +281,45 @@ class SymmetricSolver:
         """Free the factor's memory (PARDISO: the analysis is kept for the next factorize)."""
         if hasattr(self._impl, "release_factor"):
             self._impl.release_factor()
+
+
+@nb.njit(cache=True)
+def _pattern_union(ia, ja, ib, jb):
+    """CSR pattern (sorted columns) holding the entries of both sorted CSR patterns."""
+    n = ia.shape[0] - 1
+    indptr = np.zeros(n + 1, dtype=np.int32)
+    out = np.empty(ja.shape[0] + jb.shape[0], dtype=np.int32)
+    pos = 0
+    for i in range(n):
+        p, pe = ia[i], ia[i + 1]
+        q, qe = ib[i], ib[i + 1]
+        while p < pe or q < qe:
+            if q >= qe or (p < pe and ja[p] < jb[q]):
+                out[pos] = ja[p]
+                p += 1
+            elif p >= pe or jb[q] < ja[p]:
+                out[pos] = jb[q]
+                q += 1
+            else:
+                out[pos] = ja[p]
+                p += 1
+                q += 1
+            pos += 1
+        indptr[i + 1] = pos
+    return indptr, out[:pos].copy()
+
+
+@nb.njit(cache=True)
+def _embed_values(iu, ju, ia, ja, a, out):
+    """out (on the pattern iu, ju, zeroed) += the values a of its sub-pattern ia, ja."""
+    n = iu.shape[0] - 1
+    for i in range(n):
+        p = iu[i]
+        for k in range(ia[i], ia[i + 1]):
+            c = ja[k]
+            while ju[p] < c:
+                p += 1
+            out[p] += a[k]
 
 
 @nb.njit(cache=True)

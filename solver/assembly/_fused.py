@@ -36,15 +36,18 @@ def _vol(kind, K, J):
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
 def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dilatation,
-                          tangent, Ke, fe, We, minJ, theta_in, p_in, use_state, v_out, dv_out):
+                          tangent, Ke, fe, We, minJ, theta_in, p_in, use_state, v_out, dv_out,
+                          elems):
     """Element matrices Ke (m, 300: the upper triangle of each 24 x 24 matrix, row by row),
     residuals fe (m,24), energies We (m,), min J (m,).
 
     params (m, 4) = C10, C20, C30, K per element; volkind (m,) 0 = Simo-Taylor, 1 = quadratic.
+    Only the elements listed in `elems` are computed (the others' rows are left untouched).
     Returns nothing; an element with J <= 0 gets minJ <= 0 and is not computed further.
     """
-    m, nq = dV.shape
-    for e in nb.prange(m):
+    nq = dV.shape[1]
+    for ie in nb.prange(elems.shape[0]):
+        e = elems[ie]
         xe = np.empty((8, 3))
         for a in range(8):
             for i in range(3):

@@ -213,6 +213,26 @@ def scatter_packed(Kp, slots, data):
 
 
 @nb.njit(cache=True)
+def scatter_packed_subset_add(Kp, slots, elems, data):
+    """data[slots[e, p]] += Kp[e, p] for the elements e in `elems` (data not zeroed)."""
+    npair = slots.shape[1]
+    for i in range(elems.shape[0]):
+        e = elems[i]
+        for p in range(npair):
+            data[slots[e, p]] += Kp[e, p]
+
+
+@nb.njit(cache=True)
+def scatter_vector_subset_add(fe, dofs, elems, out):
+    """out[dofs[e, r]] += fe[e, r] for the elements e in `elems` (out not zeroed)."""
+    nd = dofs.shape[1]
+    for i in range(elems.shape[0]):
+        e = elems[i]
+        for r in range(nd):
+            out[dofs[e, r]] += fe[e, r]
+
+
+@nb.njit(cache=True)
 def scatter_vector(fe, dofs, out):
     """out[dofs[e, r]] += fe[e, r]; out zeroed first."""
     for j in range(out.shape[0]):

@@ -24,6 +24,7 @@ import numpy as np
 
 from solver.assembly import (UpperPattern, element_matrices, element_residuals, scatter_packed,
                              scatter_upper, scatter_vector)
+from solver.assembly._kernels import scatter_packed_subset_add, scatter_vector_subset_add
 from solver.assembly._fused import yeoh_element_matrices
 from solver.constitution._hyperelastic import Yeoh
 from solver.constitution.base import inverse_and_det
@@ -96,18 +97,43 @@ class SolidBody:
         self._dv = np.zeros((m, 24))
         self._Ke = np.empty((m, 24, 24))
         self._fe = np.empty((m, 24))
-        # isotropic Yeoh / neo-Hookean everywhere: fused numba kernel (material inlined)
-        self.fused = all(type(mat) in (Yeoh,) or isinstance(mat, Yeoh) and
-                         type(mat).isochoric is Yeoh.isochoric for mat in materials.values())
-        if self.fused:
+        # isotropic Yeoh / neo-Hookean everywhere: fused numba kernel (material inlined);
+        # on some labels only ("hybrid", e.g. a face with muscles): the fused kernel on those
+        # elements, the generic Material-protocol path on the others
+        def _is_yeoh(mat):
+            return type(mat) in (Yeoh,) or isinstance(mat, Yeoh) and \
+                type(mat).isochoric is Yeoh.isochoric
+
+        yeoh_groups = [(mat, idx) for mat, idx in self.groups if _is_yeoh(mat)]
+        self.fused = len(yeoh_groups) == len(self.groups)
+        self.hybrid = not self.fused and len(yeoh_groups) > 0
+        if self.fused or self.hybrid:
             self._params = np.zeros((m, 4))
             self._volkind = np.zeros(m, dtype=np.int64)
-            for mat, idx in self.groups:
+            for mat, idx in yeoh_groups:
                 self._params[idx] = (mat.C10, mat.C20, mat.C30, mat.K)
                 self._volkind[idx] = 0 if mat.volumetric_kind == "simo_taylor" else 1
-            self._We = np.empty(m)
-            self._minJ = np.empty(m)
+            self._We = np.zeros(m)
+            self._minJ = np.full(m, np.inf)
             self._Kp = np.empty((m, 300))        # packed element upper triangles
+            self._fused_elems = np.sort(np.concatenate([idx for _, idx in yeoh_groups]))
+        if self.hybrid:
+            g = np.sort(np.concatenate([idx for mat, idx in self.groups if not _is_yeoh(mat)]))
+            pos = np.full(m, -1, dtype=np.int64)
+            pos[g] = np.arange(len(g))
+            self._generic_elems = g
+            self._generic_groups = [(mat, pos[idx]) for mat, idx in self.groups
+                                    if not _is_yeoh(mat)]
+            self._generic_slots = np.ascontiguousarray(self.pattern.slots[g])
+            self._generic_dofs = np.ascontiguousarray(self.pattern.dofs[g])
+            self._g_hexes = np.ascontiguousarray(mesh.hexes[g])
+            self._g_dNdX = np.ascontiguousarray(self.dNdX[g])
+            self._g_dV = np.ascontiguousarray(self.dV[g])
+            self._g_volume = np.ascontiguousarray(self.volume[g])
+            self._g_fibres = None if self.fibres is None else np.ascontiguousarray(self.fibres[g])
+            self._Ke_g = np.empty((len(g), 24, 24))
+            self._fe_g = np.empty((len(g), 24))
+            self._dv_g = np.zeros((len(g), 24))
         # three-field (u, p, theta) Newton state of the mean-dilatation elements (fused path):
         # None means theta = v/V and p = U'(theta) are recomputed from u (the purely
         # displacement-based linearisation); set by `begin_mixed` (newton_solve does)
@@ -122,20 +148,24 @@ class SolidBody:
         """F (m, q, 3, 3) at the Gauss points for current coordinates x (n, 3)."""
         return np.einsum("mai,mqaJ->mqiJ", x[self.mesh.hexes], self.dNdX, optimize=True)
 
-    def _material(self, C, tangent, load):
-        if self.single:
-            mat = self.groups[0][0]
-            fib = None if self.fibres is None else np.broadcast_to(
-                self.fibres[:, None, :], C.shape[:2] + (3,))
+    def _material(self, C, tangent, load, groups=None, fibres=None):
+        """Isochoric S, CC, W at all Gauss points; `groups` [(material, positions in C)] and
+        `fibres` for an element subset (default: the whole body)."""
+        if groups is None:
+            groups, fibres = self.groups, self.fibres
+        if len(groups) == 1 and len(groups[0][1]) == C.shape[0]:
+            mat = groups[0][0]
+            fib = None if fibres is None else np.broadcast_to(
+                fibres[:, None, :], C.shape[:2] + (3,))
             S, CC, W = mat.isochoric(C, fibres=fib, load=load)
             return S, CC, W
         m, nq = C.shape[:2]
         S = np.empty((m, nq, 3, 3))
         CC = np.empty((m, nq, 3, 3, 3, 3)) if tangent else None
         W = np.empty((m, nq))
-        for mat, idx in self.groups:
-            fib = None if self.fibres is None else np.broadcast_to(
-                self.fibres[idx][:, None, :], (len(idx), nq, 3))
+        for mat, idx in groups:
+            fib = None if fibres is None else np.broadcast_to(
+                fibres[idx][:, None, :], (len(idx), nq, 3))
             s, cc, w = mat.isochoric(C[idx], fibres=fib, load=load)
             S[idx] = s
             W[idx] = w
@@ -143,14 +173,17 @@ class SolidBody:
                 CC[idx] = cc
         return S, CC, W
 
-    def _volumetric(self, J):
-        """U, U', U'' per Gauss point (J (m, q)) or per element (J (m,))."""
-        if self.single:
-            return self.groups[0][0].volumetric(J)
+    def _volumetric(self, J, groups=None):
+        """U, U', U'' per Gauss point (J (m, q)) or per element (J (m,)); `groups` as in
+        `_material` for an element subset."""
+        if groups is None:
+            groups = self.groups
+        if len(groups) == 1 and len(groups[0][1]) == J.shape[0]:
+            return groups[0][0].volumetric(J)
         U = np.empty_like(J)
         dU = np.empty_like(J)
         d2U = np.empty_like(J)
-        for mat, idx in self.groups:
+        for mat, idx in groups:
             U[idx], dU[idx], d2U[idx] = mat.volumetric(J[idx])
         return U, dU, d2U
 
@@ -159,7 +192,38 @@ class SolidBody:
         """Internal forces, tangent (CSR data of `self.pattern`) and energy at coordinates x."""
         if self.fused:
             return self._evaluate_fused(x, tangent)
-        F = self.deformation_gradient(x)
+        if self.hybrid:
+            return self._evaluate_hybrid(x, load, tangent)
+        part = self._generic_part(x, load, tangent, None)
+        if not part[0]:
+            return part[1]
+        _, fe, Ke, energy, minJ_e = part
+        worst = int(np.argmin(minJ_e))
+        f = np.empty(self.n_dofs)
+        data = None
+        if tangent:
+            data = np.empty(self.pattern.nnz)
+            scatter_upper(Ke, self.pattern.slots, self.pattern.local_rows,
+                          self.pattern.local_cols, data)
+        scatter_vector(fe, self.pattern.dofs, f)
+        valid = bool(np.isfinite(energy) and np.all(np.isfinite(f)))
+        return Evaluation(f, data, energy, valid, worst, float(minJ_e[worst]))
+
+    def _generic_part(self, x, load, tangent, subset):
+        """Element forces / matrices through the Material protocol for all elements (subset
+        None) or the hybrid body's non-Yeoh elements. Returns (True, fe, Ke or None, energy,
+        min J per element) or (False, invalid Evaluation)."""
+        if subset is None:
+            elems = None
+            hexes, dNdX, dV, volume = self.mesh.hexes, self.dNdX, self.dV, self.volume
+            groups, fibres = self.groups, self.fibres
+            Ke, fe, dv = self._Ke, self._fe, self._dv
+        else:
+            elems = self._generic_elems
+            hexes, dNdX, dV, volume = self._g_hexes, self._g_dNdX, self._g_dV, self._g_volume
+            groups, fibres = self._generic_groups, self._g_fibres
+            Ke, fe, dv = self._Ke_g, self._fe_g, self._dv_g
+        F = np.einsum("mai,mqaJ->mqiJ", x[hexes], dNdX, optimize=True)
         Finv, Jq = inverse_and_det(F)
         m, nq = Jq.shape
         minJ_e = Jq.min(axis=1)
@@ -167,50 +231,88 @@ class SolidBody:
         if not np.all(np.isfinite(Jq)) or minJ_e[worst] <= 0.0:
             bad = np.nonzero(~(minJ_e > 0))[0]
             worst = int(bad[0]) if len(bad) else worst
-            return Evaluation(np.full(self.n_dofs, np.nan), None, np.nan, False, worst,
-                              float(np.nan_to_num(minJ_e[worst], nan=-np.inf)))
+            mj = float(np.nan_to_num(minJ_e[worst], nan=-np.inf))
+            if elems is not None:
+                worst = int(elems[worst])
+            return False, Evaluation(np.full(self.n_dofs, np.nan), None, np.nan, False, worst,
+                                     mj)
         C = np.einsum("mqkI,mqkJ->mqIJ", F, F, optimize=True)
-        S, CC, W = self._material(C, tangent, load)
-        energy = float(np.sum(W * self.dV))
+        S, CC, W = self._material(C, tangent, load, groups, fibres)
+        energy = float(np.sum(W * dV))
         if self.formulation == "mean_dilatation":
-            v = np.einsum("mq,mq->m", Jq, self.dV)
-            self._v[:] = v
-            theta = v / self.volume
-            U, dU, d2U = self._volumetric(theta)
-            energy += float(np.sum(U * self.volume))
+            v = np.einsum("mq,mq->m", Jq, dV)
+            if elems is None:
+                self._v[:] = v
+            else:
+                self._v[elems] = v
+            theta = v / volume
+            U, dU, d2U = self._volumetric(theta, groups)
+            energy += float(np.sum(U * volume))
             pres = dU
             if self.mixed is not None:
                 # three-field Newton: residual pressure linearised about the stored dilatation,
                 # geometric stiffness with the stored pressure
                 th, p_state = self.mixed
-                _, dUt, d2Ut = self._volumetric(th)
+                if elems is not None:
+                    th, p_state = th[elems], p_state[elems]
+                _, dUt, d2Ut = self._volumetric(th, groups)
                 pres = dUt + d2Ut * (theta - th)
                 dU, d2U = p_state, d2Ut
             pq = np.ascontiguousarray(np.broadcast_to(dU[:, None], (m, nq)))
             prq = np.ascontiguousarray(np.broadcast_to(pres[:, None], (m, nq)))
             kq = np.zeros((m, nq))
-            ke = d2U / self.volume
+            ke = d2U / volume
         else:
-            U, dU, d2U = self._volumetric(Jq)
-            energy += float(np.sum(U * self.dV))
+            U, dU, d2U = self._volumetric(Jq, groups)
+            energy += float(np.sum(U * dV))
             pq = np.ascontiguousarray(dU)
             prq = pq
             kq = np.ascontiguousarray(Jq * d2U)
             ke = np.zeros(m)
-        f = np.empty(self.n_dofs)
         if tangent:
-            element_matrices(F, S, np.ascontiguousarray(CC), self.dNdX, self.dV, Jq, Finv,
-                             pq, kq, ke, self._Ke, self._fe, prq, self._dv)
-            data = np.empty(self.pattern.nnz)
-            scatter_upper(self._Ke, self.pattern.slots, self.pattern.local_rows,
-                          self.pattern.local_cols, data)
+            element_matrices(F, S, np.ascontiguousarray(CC), dNdX, dV, Jq, Finv,
+                             pq, kq, ke, Ke, fe, prq, dv)
+            if elems is not None:
+                self._dv[elems] = dv
         else:
-            element_residuals(F, np.ascontiguousarray(S), self.dNdX, self.dV, Jq, Finv, prq,
-                              self._fe)
-            data = None
-        scatter_vector(self._fe, self.pattern.dofs, f)
+            element_residuals(F, np.ascontiguousarray(S), dNdX, dV, Jq, Finv, prq, fe)
+            Ke = None
+        return True, fe, Ke, energy, minJ_e
+
+    def _evaluate_hybrid(self, x, load, tangent):
+        """Fused Yeoh kernel on the Yeoh elements, the Material protocol on the others."""
+        part = self._generic_part(x, load, tangent, "generic")
+        if not part[0]:
+            return part[1]
+        _, fe_g, Ke_g, energy_g, minJ_g = part
+        x = np.ascontiguousarray(x, dtype=float)
+        use = self.mixed is not None and self.formulation == "mean_dilatation"
+        th, pp = self.mixed if use else (self._v, self._v)
+        elems = self._fused_elems
+        yeoh_element_matrices(x, self.mesh.hexes, self.dNdX, self.dV, self.volume, self._params,
+                              self._volkind, self.formulation == "mean_dilatation", tangent,
+                              self._Kp, self._fe, self._We, self._minJ, th, pp, use,
+                              self._v, self._dv, elems)
+        minJ = self._minJ.copy()
+        minJ[self._generic_elems] = minJ_g
+        worst = int(np.argmin(minJ))
+        if not minJ[worst] > 0.0 or not np.all(np.isfinite(minJ)):
+            bad = np.nonzero(~(minJ > 0))[0]
+            worst = int(bad[0]) if len(bad) else worst
+            return Evaluation(np.full(self.n_dofs, np.nan), None, np.nan, False, worst,
+                              float(np.nan_to_num(minJ[worst], nan=-np.inf)))
+        f = np.empty(self.n_dofs)
+        scatter_vector(fe_g, self._generic_dofs, f)
+        scatter_vector_subset_add(self._fe, self.pattern.dofs, elems, f)
+        data = None
+        if tangent:
+            data = np.empty(self.pattern.nnz)
+            scatter_upper(Ke_g, self._generic_slots, self.pattern.local_rows,
+                          self.pattern.local_cols, data)
+            scatter_packed_subset_add(self._Kp, self.pattern.slots, elems, data)
+        energy = energy_g + float(self._We[elems].sum())
         valid = bool(np.isfinite(energy) and np.all(np.isfinite(f)))
-        return Evaluation(f, data, energy, valid, worst, float(minJ_e[worst]))
+        return Evaluation(f, data, energy, valid, worst, float(minJ[worst]))
 
     # ------------------------------------------------------------------ three-field state
     @property
@@ -251,7 +353,7 @@ class SolidBody:
         yeoh_element_matrices(x, self.mesh.hexes, self.dNdX, self.dV, self.volume, self._params,
                               self._volkind, self.formulation == "mean_dilatation", tangent,
                               self._Kp, self._fe, self._We, self._minJ, th, pp, use,
-                              self._v, self._dv)
+                              self._v, self._dv, self._fused_elems)
         worst = int(np.argmin(self._minJ))
         minJ = float(self._minJ[worst])
         if not minJ > 0.0 or not np.all(np.isfinite(self._minJ)):

@@ -120,3 +120,26 @@ def test_breakdown_on_indefinite_system_then_back_to_cg():
     x = lin.solve(_upper(K0), b)
     assert not lin.last["direct"] and lin.last["refactorized"]
     assert np.linalg.norm(K0 @ x - b) <= 1e-9 * np.linalg.norm(b) * 1.0001
+
+
+def test_changing_pattern_reuses_the_analysis_of_the_union():
+    # a matrix whose pattern loses and regains entries (contact pairs): factorised in the
+    # union pattern, analysed only when the union grows; the solutions are exact (1e-10)
+    from solver.linalg import TIMING
+
+    K0 = _spd(6)
+    n = K0.shape[0]
+    extra = sp.coo_matrix(([0.5, 0.5], ([0, 5], [7, 60])), shape=(n, n))
+    K1 = (K0 + extra + extra.T).tocsr()             # two more coupling pairs
+    b = np.random.default_rng(6).standard_normal(n)
+    lin = SymmetricSolver()
+    if lin.backend != "pardiso":
+        return
+    for K in (K1, K0, K1, K0):
+        before = TIMING["analysis"]
+        x = lin.solve(_upper(K), b)
+        analysed = TIMING["analysis"] > before
+        assert np.linalg.norm(K @ x - b) < 1e-10 * np.linalg.norm(b)
+        if K is K0 and lin.factorizations > 1:
+            assert not analysed                      # a sub-pattern of the union
+    assert lin._impl._ja.shape[0] == _upper(K1).nnz

@@ -19,6 +19,9 @@ for the same converged Newton solution).
 from __future__ import annotations
 
 import ctypes
+import glob
+import os
+import sys
 import time
 
 import numba as nb
@@ -57,9 +60,19 @@ def _mkl_pardiso_function():
     its wrapper copies and re-indexes the pattern on every call and only passes float64)."""
     global _MKL
     if _MKL is None:
-        import pypardiso
+        # the wheel's library next to the interpreter first (pypardiso's own search walks the
+        # whole environment with a recursive glob: ~0.5 s)
+        lib = None
+        for path in sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len):
+            try:
+                lib = ctypes.CDLL(path)
+                break
+            except OSError:
+                pass
+        if lib is None:
+            import pypardiso
 
-        lib = ctypes.CDLL(pypardiso.PyPardisoSolver().libmkl._name)
+            lib = ctypes.CDLL(pypardiso.PyPardisoSolver().libmkl._name)
         fn = lib.pardiso
         fn.restype = None
         fn.argtypes = [ctypes.c_void_p] + [ctypes.POINTER(ctypes.c_int32)] * 5 + \

@@ -155,15 +155,22 @@ class _System:
             data[self.diag_c] = self.constraint_scale
             return pat.matrix(data), coupling
         Ku = pat.matrix(data)
-        K = Ku + sp.triu(Ku, k=1, format="csr").T
-        if Kt is not None:
-            K = K + 0.5 * (Kt + Kt.T)
         if cons.any_frame:
+            K = Ku + sp.triu(Ku, k=1, format="csr").T
+            if Kt is not None:
+                K = K + 0.5 * (Kt + Kt.T)
             n = cons.n_nodes
             T = sp.block_diag([sp.csr_matrix(R) for R in cons.rot], format="csr") if n < 0 else \
                 sp.bsr_matrix((cons.rot, np.arange(n), np.arange(n + 1)), shape=(3 * n, 3 * n)).tocsr()
             K = (T @ K @ T.T).tocsr()
-        K = sp.triu(K, format="csr")
+            K = sp.triu(K, format="csr")
+        else:
+            # no rotation: add the upper triangle of the (small) symmetrised term matrix to
+            # the body's upper triangle, without forming the full matrix
+            K = Ku.copy()
+            if Kt is not None:
+                Kt = sp.csr_matrix(Kt)
+                K = (K + sp.triu(0.5 * (Kt + Kt.T), format="csr")).tocsr()
         K.sum_duplicates()
         if gap is not None:
             coupling = self._sym_matvec(K, gap)

@@ -1,7 +1,9 @@
 """Sparse direct solution of the symmetric tangent system, reusing the symbolic factorisation.
 
 Matrices arrive as the upper triangle in CSR form with sorted indices (row <= column). Back
-ends: PARDISO (Intel oneMKL through pypardiso) with a real symmetric indefinite matrix type
+ends: PARDISO (Intel oneMKL, called through our own ctypes binding: pypardiso only locates the
+library, its wrapper copies and re-indexes the pattern on every call and passes float64 only)
+with a real symmetric indefinite matrix type
 (mtype -2, Bunch-Kaufman pivoting, so indefinite tangents near instabilities still factorise);
 the analysis phase (reordering and symbolic factorisation) is run once per sparsity pattern and
 only the numerical factorisation is repeated. CHOLMOD (scikit-sparse) is used when installed and
@@ -12,9 +14,12 @@ SuiteSparse 5.12, supernodal, reference BLAS) in 29-30 s, SciPy SuperLU in 34-38
 shared, heavily loaded 2-core machine (solver/README.md). CHOLMOD is an LL^T factorisation and
 fails on indefinite tangents; PARDISO's Bunch-Kaufman LDL^T does not. Under that load PARDISO
 is faster on one MKL thread (MKL_NUM_THREADS=1: 1.4-1.7 s per factorisation) than on two.
-`LaggedFactorSolver` solves a sequence of Newton systems by conjugate gradients preconditioned
-with the factor of an earlier tangent, refactorising only when CG stalls (fewer factorisations
-for the same converged Newton solution).
+A pattern that changes between calls is factorised inside the union of the patterns seen, so
+the analysis is repeated only while that union grows. `LaggedFactorSolver` solves a sequence of
+Newton systems by conjugate gradients (`preconditioned_cg`, numba kernels) preconditioned with a
+single-precision Cholesky factor (mtype 2, iparm[27] = 1) of an earlier tangent, refactorising
+only when CG stalls, and falls back to the LDL^T direct solve for indefinite tangents (fewer,
+cheaper factorisations for the same converged Newton solution).
 """
 from __future__ import annotations
 

@@ -88,6 +88,12 @@ def run_one(generic, head, surfaces_alone: bool, held_out: bool) -> dict:
     q = min_scaled_jacobian(patient.nodes, patient.hexes)
     out = {"wall_s": wall, "rep": rep, "min_sj": float(q.min()), "n_inverted": int((q <= 0).sum()),
            "lm_max": max(lm_err.values()), "lm_worst": max(lm_err, key=lm_err.get)}
+    # lips across the mouth slit, before / after the lip separation stage (deepest crossing of
+    # either lip into the other) and the smallest gap left
+    lips = rep.get("lip_separation") or {}
+    crossed = lambda d: max(d.get("lower_in_upper_mm", 0.0), d.get("upper_in_lower_mm", 0.0))
+    out.update(lip_before=crossed(lips.get("before", {})), lip_after=crossed(lips.get("after", {})),
+               lip_gap=float((lips.get("after") or {}).get("min_gap_mm") or 0.0))
     if surfaces_alone:  # the same head without its landmarks: what the surfaces alone carry
         p2, rep2 = mesh_match_and_repair(generic, head.skin, head.bones, None, cache=False)
         e2 = landmark_errors(generic, p2, head)
@@ -126,7 +132,8 @@ def main() -> int:
             print(f"  {r:8s} skin {fit['skin']['mean_mm']:.3f}/{fit['skin']['p95_mm']:.3f}/{fit['skin']['max_mm']:.2f} mm "
                   f"(patient->mesh {fit['skin_patient_to_mesh']['mean_mm']:.3f}) bone {fit['bone']['mean_mm']:.3f} mm  "
                   f"repaired {rep['repair']['elements_needing_repair']:3d} (inverted {rep['repair']['elements_inverted_before']:3d})  "
-                  f"min SJ {res['min_sj']:.3f}  landmarks max {res['lm_max']:.2f} mm ({res['lm_worst']})")
+                  f"min SJ {res['min_sj']:.3f}  landmarks max {res['lm_max']:.2f} mm ({res['lm_worst']})  "
+                  f"lips crossed {res['lip_before']:.2f} -> {res['lip_after']:.2f} mm (gap {res['lip_gap']:+.2f})")
             if "held_lm" in res:
                 e = res["held_lm"]
                 print("           held out: " + ", ".join(f"{k} {v:.2f}" for k, v in e.items()) + " mm")
@@ -148,6 +155,8 @@ def main() -> int:
         print(f"  {r:8s} heads {len(rs)}: skin mean max {max(sm):.3f}, p95 max {max(sp):.3f}, bone mean max {max(bm):.3f}, "
               f"inverted {sum(x['n_inverted'] for x in rs)}, min SJ {min(x['min_sj'] for x in rs):.3f}, "
               f"landmarks max {max(x['lm_max'] for x in rs):.2f}, "
+              f"lips crossed max {max(x['lip_before'] for x in rs):.2f} -> {max(x['lip_after'] for x in rs):.2f} mm "
+              f"(min gap {min(x['lip_gap'] for x in rs):.2f}), "
               f"time mean {np.mean([x['wall_s'] for x in rs]):.1f} s max {max(x['wall_s'] for x in rs):.1f} s")
         held = [x["held_lm"] for x in rs if "held_lm" in x]
         if held:

@@ -185,6 +185,9 @@ def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dic
         landmark_nodes=dict(model.landmarks),
         bone_quads=np.asarray(model.facet_sets["deep_bone"]) if "deep_bone" in model.facet_sets else None,
         teeth=dict(model.teeth),
+        lip_quads=(np.asarray(model.facet_sets["lip_upper_contact"]),
+                   np.asarray(model.facet_sets["lip_lower_contact"]))
+        if {"lip_upper_contact", "lip_lower_contact"} <= set(model.facet_sets) else None,
     )
     x, sim, report, placed = match_and_repair_arrays(arrays, skin_t, bone_t, lms or None, opt, files,
                                                      teeth=own_teeth or None)

@@ -32,11 +32,12 @@ from registration.elastic import (ElasticSchedule, SurfaceGroup, elastic_registe
                                   snap_to_surfaces, vertex_normals)
 from registration.errors import RegistrationFailure, RegistrationInputError
 from registration.landmark_fit import landmark_correction
+from registration.lips import lip_overlap, separate_lips
 from registration.quality import min_scaled_jacobian, quality_summary
 from registration.repair import SurfaceConstraint, repair_mesh
 from registration.surface import TargetSurface
 from registration.surface_fit import facet_fit
-from registration.teeth import Arch, clear_teeth, place_teeth
+from registration.teeth import Arch, union_distance, clear_teeth, place_teeth
 
 
 @dataclass
@@ -57,6 +58,8 @@ class MatchOptions:
     landmark_sigma_mm: float = 8.0
     # skin nodes placed so that the facets, not only the nodes, fit the skin (least squares)
     facet_fit: bool = True
+    # lips kept at least this far apart across the mouth slit (registration.lips); 0 disables
+    lip_gap_mm: float = 0.1
     seed: int = 0
 
 
@@ -71,6 +74,7 @@ class MatchInput:
     landmark_nodes: dict = field(default_factory=dict)  # landmark name -> node id
     bone_quads: np.ndarray | None = None  # (k, 4) deep facets on bone, outward from the tissue
     teeth: dict = field(default_factory=dict)  # arch -> (vertices, faces, segment), generic frame
+    lip_quads: tuple | None = None  # (upper, lower) contact facets across the mouth slit, outward
 
 
 def _fit_stats(d: np.ndarray) -> dict:
@@ -311,6 +315,39 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                                           threshold=opt.threshold)
     times["teeth_clearance_s"] = time.perf_counter() - t5
 
+    # the lips apart across the mouth slit (the stages above move its two sides independently);
+    # the teeth cleared again should a lip node have been pushed towards them
+    lip_report = None
+    if model.lip_quads is not None and opt.lip_gap_mm > 0:
+        t7 = time.perf_counter()
+        attached = np.concatenate([np.asarray(i, np.int64) for i in model.bone_node_sets.values()]
+                                  or [np.zeros(0, np.int64)])
+        up, low = model.lip_quads
+        lip_before = lip_overlap(x, up, low)
+        passes = []
+        x_lips = x.copy()
+        for _ in range(3):
+            x, rep_l = separate_lips(x, hexes, up, low, attached, skin_nodes=skin_ids, skin=skin,
+                                     gap=opt.lip_gap_mm, threshold=opt.threshold)
+            passes.append(rep_l)
+            if not placed or rep_l["nodes_pushed"] == 0:
+                break
+            moved = np.flatnonzero(np.linalg.norm(x - x_lips, axis=1) > 1e-3)
+            moved = np.setdiff1d(moved, keep)
+            if not len(moved) or union_distance(arches, x[moved], opt.teeth_clearance_mm + 1.0)[0].min() \
+                    >= opt.teeth_clearance_mm:
+                break  # nothing the lips moved came near the teeth
+            x, again = clear_teeth(x, hexes, arches, keep, clearance=opt.teeth_clearance_mm,
+                                   threshold=opt.threshold)
+            clearance_report.setdefault("after_lip_separation", []).append(again)
+            if again["nodes_pushed"] == 0:
+                break
+        lip_report = {"gap_mm": opt.lip_gap_mm, "before": lip_before, "after": lip_overlap(x, up, low),
+                      "nodes_pushed": int(sum(p["nodes_pushed"] for p in passes)),
+                      "elements_repaired": int(sum(p["elements_repaired"] for p in passes)),
+                      "passes": passes}
+        times["lip_separation_s"] = time.perf_counter() - t7
+
     t4 = time.perf_counter()
     groups = _bone_groups(model, bones)
     normals = vertex_normals(x, skin_tris)
@@ -363,6 +400,7 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         "facet_fit": facet_report,
         "teeth": teeth_info,
         "teeth_clearance": clearance_report,
+        "lip_separation": lip_report,
         "elastic": elog.levels,
     }
     if lm is not None:

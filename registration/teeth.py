@@ -171,7 +171,7 @@ def place_teeth(generic_teeth: dict, attach: dict, generic_nodes: np.ndarray,
     return out, info
 
 
-def _union_distance(arches: list[Arch], points: np.ndarray, margin: float):
+def union_distance(arches: list[Arch], points: np.ndarray, margin: float):
     """The smallest signed distance (n,) over all arches (inf for points farther than
     `margin` from every arch's bounding box) and the index (n,) of the arch giving it."""
     p = np.asarray(points, float).reshape(-1, 3)
@@ -219,7 +219,7 @@ def escape_outward(arches: list[Arch], points: np.ndarray, clearance: float, cen
         pi, di = np.nonzero(facing & ~found[:, None])
         if len(pi) == 0:
             break
-        clear = _union_distance(arches, p[pi] + tj * dirs[di], clearance + 2.0)[0] >= clearance
+        clear = union_distance(arches, p[pi] + tj * dirs[di], clearance + 2.0)[0] >= clearance
         pi, di = pi[clear], di[clear]
         first_ray = np.unique(pi, return_index=True)[1]  # pairs are ordered by point, then ray
         hit = pi[first_ray]
@@ -230,7 +230,7 @@ def escape_outward(arches: list[Arch], points: np.ndarray, clearance: float, cen
     lo = np.where(idx > 0, t[np.maximum(idx - 1, 0)], 0.0)
     for _ in range(10):
         mid = 0.5 * (lo + hi)
-        clear = _union_distance(arches, p + mid[:, None] * direction, clearance + 2.0)[0] >= clearance
+        clear = union_distance(arches, p + mid[:, None] * direction, clearance + 2.0)[0] >= clearance
         hi = np.where(clear, mid, hi)
         lo = np.where(clear, lo, mid)
     return np.where(found[:, None], p + hi[:, None] * direction, p)
@@ -253,7 +253,7 @@ def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.
     centre = np.concatenate([a.vertices for a in arches]).mean(axis=0)
 
     def measure(points_ids):
-        return _union_distance(arches, x[points_ids], clearance + 1.0)[0]
+        return union_distance(arches, x[points_ids], clearance + 1.0)[0]
 
     all_ids = np.arange(n)
     sd0 = measure(all_ids)

@@ -1,9 +1,10 @@
 """`faceplan register CASE`: the generic face mesh fitted to the patient (Mesh-Match-and-Repair).
 
 Reads the case (pre-op skin, bone segments, optional landmarks), registers the generic
-hexahedral model of the chosen resolution onto them (`registration.mesh_match_and_repair`:
-similarity from landmarks or surfaces, joint elastic registration of skin and bone
-attachments, repair of every element below the scaled-Jacobian threshold) and writes, into
+hexahedral model of the chosen resolution onto them exactly as a prediction does
+(`planner.pipeline.register_case` -> `registration.mesh_match_and_repair`: similarity from landmarks or surfaces, joint elastic registration of skin and bone
+attachments, repair of every element below the scaled-Jacobian threshold, teeth clearance and
+lip separation) and writes, into
 `CASE/register/` or `--out DIR`, all at once or not at all:
   patient_mesh.vtu + patient_mesh.json   the patient FaceModel (`FaceModel.load` reads it back)
   report.json                            fit errors (skin, bone), quality histogram, elements
@@ -22,9 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from planner.errors import InputError, SolveError
+from planner.errors import InputError
 
 RESOLUTIONS = ("coarse", "standard", "fine")
+DEFAULT_THRESHOLD = 0.2  # the registration's minimum scaled Jacobian after repair
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -32,21 +34,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", metavar="DIR", help="output folder (default CASE/register)")
     p.add_argument("--resolution", choices=RESOLUTIONS, default="standard",
                    help="generic mesh resolution (default standard)")
-    p.add_argument("--threshold", type=float, default=0.2, metavar="SJ",
-                   help="minimum scaled Jacobian after repair (default 0.2)")
+    p.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD, metavar="SJ",
+                   help=f"minimum scaled Jacobian after repair (default {DEFAULT_THRESHOLD:g})")
     p.add_argument("--no-landmarks", action="store_true",
                    help="ignore preop landmarks: align from the surfaces alone")
     p.add_argument("--no-cache", action="store_true", help="recompute even if a cached result exists")
     p.add_argument("--no-images", action="store_true", help="skip the pictures")
-
-
-def _bone_files(root: Path, bones: dict) -> dict:
-    out = {}
-    folder = root / "preop" / "bone"
-    for seg in bones:
-        hits = sorted(folder.glob(f"{seg}.*")) if folder.is_dir() else []
-        out[seg] = str(hits[0]) if hits else str(folder)
-    return out
 
 
 def _jsonable(v):
@@ -65,27 +58,48 @@ def _jsonable(v):
     return v
 
 
-def register(case_dir, *, resolution: str = "standard", threshold: float = 0.2,
+def register(case_dir, *, resolution: str = "standard", threshold: float = DEFAULT_THRESHOLD,
              use_landmarks: bool = True, cache: bool = True):
-    """Load the case and register: returns (case, patient FaceModel, report dict)."""
-    import generic_mesh
-    import registration
+    """Load the case and register it the way a prediction does (`planner.pipeline.register_case`,
+    one error mapping for both): returns (case, patient FaceModel, report dict).
+
+    Without landmarks the case is registered with its landmarks left out; without the cache the
+    registration's cache ($FACEPLAN_CACHE) points at a fresh folder for this call, so nothing is
+    reused. `register_case` takes no scaled-Jacobian threshold: it registers with the
+    registration's default (0.2); another value is refused rather than silently ignored."""
+    import inspect
+    import os
+    import tempfile
+    from dataclasses import replace
+
     from planner.case import load_case
-    from registration.errors import RegistrationFailure, RegistrationInputError
+    from planner.pipeline import Progress, register_case
 
     if not 0.0 < threshold < 1.0:
         raise InputError("--threshold must be in (0, 1)", field="--threshold")
+    extra = {}
+    if threshold != DEFAULT_THRESHOLD:
+        if "threshold" not in inspect.signature(register_case).parameters:
+            raise InputError(f"--threshold {threshold:g}: the prediction pipeline registers with the "
+                             f"default scaled-Jacobian threshold {DEFAULT_THRESHOLD:g} only",
+                             field="--threshold")
+        extra["threshold"] = threshold
     case = load_case(case_dir)
-    generic = generic_mesh.load(resolution)
-    files = {"skin": str(case.skin_path) if case.skin_path else None, **_bone_files(case.root, case.bones)}
-    try:
-        patient, report = registration.mesh_match_and_repair(
-            generic, case.skin, case.bones, (case.landmarks or None) if use_landmarks else None,
-            threshold=threshold, cache=cache, files=files, teeth=case.teeth or None)
-    except RegistrationInputError as exc:
-        raise InputError(str(exc), file=exc.file or str(case.root), field=exc.field or "registration") from exc
-    except RegistrationFailure as exc:
-        raise SolveError(f"registration of the generic face onto the patient failed: {exc}") from exc
+    if not use_landmarks:
+        case = replace(case, landmarks={})
+    if cache:
+        patient, report = register_case(case, resolution, Progress(echo=False), **extra)
+        return case, patient, report
+    saved = os.environ.get("FACEPLAN_CACHE")
+    with tempfile.TemporaryDirectory(prefix="faceplan-register-") as fresh:
+        os.environ["FACEPLAN_CACHE"] = fresh
+        try:
+            patient, report = register_case(case, resolution, Progress(echo=False), **extra)
+        finally:
+            if saved is None:
+                os.environ.pop("FACEPLAN_CACHE", None)
+            else:
+                os.environ["FACEPLAN_CACHE"] = saved
     return case, patient, report
 
 

@@ -30,8 +30,8 @@ def registered(request, generic):
     # the patient's arches as `planner.case` gives them (Case.teeth: trimesh per arch)
     teeth = {k: trimesh.Trimesh(v, f, process=False) for k, (v, f, _) in head.teeth.items()} if own else None
 
-    def spy(x, *args, **kwargs):  # keeps the nodes as the clearance stage receives them
-        seen["before"] = np.array(x)
+    def spy(x, *args, **kwargs):  # keeps the nodes as the clearance stage first receives them
+        seen.setdefault("before", np.array(x))
         return stage(x, *args, **kwargs)
 
     with pytest.MonkeyPatch.context() as mp:
@@ -88,9 +88,18 @@ def test_quality_and_skin_fit_kept(generic, registered):
             assert np.abs(d - d_before).max() < 0.05
         d_before = d
     assert report["fit"]["skin"]["mean_mm"] < 0.3
-    # and what moved is the soft tissue off the skin: the lips by up to a few mm
+    # and what moved is the soft tissue off the skin: the lips by up to a few mm, by the
+    # clearance stage, then by the lip separation (registration.lips) and the clearance run
+    # again after it when it pushed a lip node; with no lip push the clearance alone moved them
     moved = np.linalg.norm(patient.nodes - before, axis=1)
-    assert abs(moved.max() - report["teeth_clearance"]["max_push_mm"]) < 1e-9
+    tc, lips = report["teeth_clearance"], report["lip_separation"]
+    again = tc.get("after_lip_separation", [])
+    bound = tc["max_push_mm"] + sum(p["max_move_mm"] for p in lips["passes"]) + sum(a["max_push_mm"] for a in again)
+    if lips["nodes_pushed"] == 0:
+        assert abs(moved.max() - tc["max_push_mm"]) < 1e-9
+    else:  # the triangle inequality over the successive stages, to round-off
+        assert tc["max_push_mm"] - 1e-9 <= moved.max() + sum(p["max_move_mm"] for p in lips["passes"])
+        assert moved.max() <= bound + 1e-9
 
 
 def test_arches_follow_their_segment(generic, registered):
@@ -134,7 +143,7 @@ def _box(lo, hi):
 
 
 def test_point_caught_between_arches_in_occlusion_leaves_outward():
-    from registration.teeth import Arch, _union_distance, escape_outward
+    from registration.teeth import Arch, union_distance, escape_outward
 
     # two "crowns" 0.1 mm apart (a gap thinner than twice the clearance): a point inside the
     # lower one, whose normal push would land it within 0.1 mm of the upper one
@@ -142,7 +151,7 @@ def test_point_caught_between_arches_in_occlusion_leaves_outward():
     low = Arch("lower", *_box([-10, 70, -8], [10, 80, -0.05]), "mandible")
     p = np.array([[0.0, 78.0, -0.5]])
     q = escape_outward([up, low], p, 0.2, centre=np.array([0.0, 60.0, 0.0]))
-    sd = _union_distance([up, low], q, 3.0)[0]
+    sd = union_distance([up, low], q, 3.0)[0]
     # the ray search is bisected to 0.25 mm / 2^10: clear to within 1e-3 mm
     assert sd[0] >= 0.2 - 1e-3
     assert q[0, 1] > 80.0 and np.linalg.norm(q - p) < 2.2 + 0.2 + 0.01  # out through the front face

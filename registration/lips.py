@@ -1,0 +1,161 @@
+"""Lip separation: the registered lips kept apart across the mouth slit.
+
+The generic mesh has an open mouth: the lower lip's contact surface (facet set
+"lip_lower_contact", outward normal towards the upper lip) lies a small gap below the upper
+lip's ("lip_upper_contact"). The smooth transform of the elastic stage, the snap of the skin
+nodes, the landmark correction and the facet fit all move the two sides of this thin slit
+independently of each other, and can push one lip through the other (an FE contact start
+from an overlapping state). This stage restores the gap:
+
+  signed gap  g(p) = (p - q) . n(q)  of every node p of one lip surface (nodes shared by the two
+  surfaces, the closed ends of the slit, excluded) to the other lip surface, q the closest
+  point on its triangulated facets, n(q) the facet-orientation vertex normals interpolated
+  with the barycentric coordinates of q (positive outside the other lip); points whose
+  closest point is on the open border of the other surface, or deeper than `band`, are beside
+  it, not inside (the convention of the independent check `facemodel.simulation
+  .lip_penetrations`).
+
+A node with g < gap is moved by (gap + tol - g) / 2 along n(q) -- each side of an overlap moves
+half the way, as in a symmetric node-to-surface contact correction (Wriggers, "Computational
+Contact Mechanics", 2006, ch. 5: the gap function and its normal). Pushed skin nodes (the
+front edge of the slit) are projected back onto the patient skin. The displacement of the
+pushed nodes is carried into the tissue by harmonic extension over the mesh graph (edge weights
+1/|e|^2, `registration.elastic`) with the other skin nodes, the bone-attached nodes and nodes
+pushed in earlier rounds held, then `registration.repair` restores every element above the
+scaled-Jacobian threshold (skin nodes on the patient skin, pushed nodes fixed). Rounds repeat
+until no lip node lies closer than the gap to the other lip.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from registration.elastic import harmonic_extension, mesh_laplacian
+from registration.quality import min_scaled_jacobian
+from registration.repair import SurfaceConstraint, repair_mesh
+from registration.surface import TargetSurface
+
+
+def quad_vertex_normals(x: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """(n, 3) unit normals at the nodes of `quads` (area-weighted, right-hand orientation of
+    the quads; zero rows for nodes not in them)."""
+    q = np.asarray(quads)
+    p = x[q]
+    # the quad normal from its diagonals: (x2 - x0) x (x3 - x1) = 2 * vector area
+    nq = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+    vn = np.zeros((len(x), 3))
+    np.add.at(vn, q.ravel(), np.repeat(nq, 4, axis=0))
+    norm = np.linalg.norm(vn, axis=1)
+    return np.where(norm[:, None] > 0, vn / np.maximum(norm, 1e-300)[:, None], 0.0)
+
+
+def signed_gaps(x: np.ndarray, nodes: np.ndarray, quads: np.ndarray, band: float = 3.0):
+    """Signed gap of `nodes` to the surface of `quads` (module docstring).
+
+    Returns (gap (k,), normal at the closest point (k, 3), counted (k,) bool): `counted` is
+    False for nodes beside the surface (closest point on its open border) or farther than
+    `band` behind it."""
+    q = np.asarray(quads)
+    ids = np.unique(q)
+    tris = np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
+    surf = TargetSurface(x[ids], np.searchsorted(ids, tris), "lip")
+    cl = surf.closest(x[nodes])
+    # TargetSurface merges and re-indexes vertices: map its vertices back to the mesh nodes
+    _, back = cKDTree(x[ids]).query(surf.vertices)
+    vn = quad_vertex_normals(x, q)[ids[back]]
+    n = np.einsum("kc,kcd->kd", cl.bary, vn[surf.faces[cl.face]])
+    n /= np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
+    g = np.einsum("kd,kd->k", x[nodes] - cl.points, n)
+    counted = ~cl.on_boundary & (g > -band)
+    return g, n, counted
+
+
+def lip_overlap(x: np.ndarray, upper_quads: np.ndarray, lower_quads: np.ndarray,
+                band: float = 3.0) -> dict:
+    """Deepest crossing (mm, >= 0) of each lip into the other and the smallest signed gap
+    (mm; negative: crossed) over both lips."""
+    out, smallest = {}, np.inf
+    shared = np.intersect1d(np.unique(upper_quads), np.unique(lower_quads))
+    for key, slave, master in (("lower_in_upper_mm", lower_quads, upper_quads),
+                               ("upper_in_lower_mm", upper_quads, lower_quads)):
+        nodes = np.setdiff1d(np.unique(slave), shared)
+        g, _, ok = signed_gaps(x, nodes, master, band)
+        out[key] = float(max(0.0, -g[ok].min())) if ok.any() else 0.0
+        if ok.any():
+            smallest = min(smallest, float(g[ok].min()))
+    out["min_gap_mm"] = None if not np.isfinite(smallest) else smallest
+    return out
+
+
+def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
+                  lower_quads: np.ndarray, fixed: np.ndarray, *, skin_nodes: np.ndarray = (),
+                  skin: TargetSurface | None = None, gap: float = 0.1, tol: float = 0.05,
+                  threshold: float = 0.2, band: float = 3.0, max_rounds: int = 10):
+    """Move lip-surface nodes apart until each lip is at least `gap` mm from the other.
+
+    fixed: nodes that never move (bone-attached); skin_nodes: the skin nodes (held where not
+    pushed; pushed ones lying on the patient `skin` slide on it). Returns (new nodes, report)."""
+    hexes = np.asarray(hexes)
+    x = np.array(x, dtype=float)
+    n = len(x)
+    upper_quads, lower_quads = np.asarray(upper_quads), np.asarray(lower_quads)
+    shared = np.intersect1d(np.unique(upper_quads), np.unique(lower_quads))
+    sides = [(np.setdiff1d(np.unique(lower_quads), shared), upper_quads),
+             (np.setdiff1d(np.unique(upper_quads), shared), lower_quads)]
+    fixed = np.unique(np.asarray(fixed, dtype=np.int64))
+    skin_nodes = np.unique(np.asarray(skin_nodes, dtype=np.int64))
+    on_skin = np.zeros(n, bool)
+    if skin is not None and len(skin_nodes):  # the skin nodes lying on the patient skin
+        on_skin[skin_nodes[skin.closest(x[skin_nodes]).distance < 1e-2]] = True
+    before = lip_overlap(x, upper_quads, lower_quads, band)
+    x_start = x.copy()
+    held = np.zeros(n, bool)
+    lap = None
+    rounds, repaired = 0, 0
+    for rounds in range(1, max_rounds + 1):
+        push = np.zeros((n, 3))
+        hit = np.zeros(n, bool)
+        for nodes, master in sides:
+            g, nrm, ok = signed_gaps(x, nodes, master, band)
+            bad = ok & (g < gap)
+            push[nodes[bad]] += 0.5 * (gap + tol - g[bad])[:, None] * nrm[bad]
+            hit[nodes[bad]] = True
+        hit &= ~np.isin(np.arange(n), fixed)
+        if not hit.any():
+            rounds -= 1
+            break
+        ids = np.flatnonzero(hit)
+        target = x[ids] + push[ids]
+        slide = on_skin[ids]
+        if skin is not None and slide.any():
+            target[slide] = skin.closest(target[slide]).points
+        held[ids] = True
+        if lap is None:
+            lap = mesh_laplacian(n, hexes, x)
+        dirichlet = np.union1d(np.flatnonzero(held), np.union1d(fixed, skin_nodes))
+        values = np.zeros((len(dirichlet), 3))
+        values[np.searchsorted(dirichlet, ids)] = target - x[ids]
+        x = x + harmonic_extension(n, hexes, dirichlet, values, lap)
+        if min_scaled_jacobian(x, hexes).min() < threshold:
+            cons = [SurfaceConstraint("skin", np.flatnonzero(on_skin), skin)] if on_skin.any() else []
+            x_in = x
+            x, rep = repair_mesh(x_in, hexes, threshold=threshold, constraints=cons,
+                                 fixed=np.union1d(fixed, ids))
+            if rep["elements_still_below_threshold"]:
+                # the pushed nodes free too: one the repair takes back is pushed again next round
+                x, rep = repair_mesh(x_in, hexes, threshold=threshold, constraints=cons, fixed=fixed)
+            repaired += rep["elements_needing_repair"]
+    after = lip_overlap(x, upper_quads, lower_quads, band)
+    moved = np.linalg.norm(x - x_start, axis=1)
+    report = {
+        "gap_mm": float(gap),
+        "before": before,
+        "after": after,
+        "nodes_pushed": int(held.sum()),
+        "skin_nodes_pushed": int((held & on_skin).sum()),
+        "nodes_moved": int((moved > 1e-3).sum()),
+        "max_move_mm": float(moved.max()) if n else 0.0,
+        "rounds": int(rounds),
+        "elements_repaired": int(repaired),
+    }
+    return x, report

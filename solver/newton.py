@@ -209,9 +209,10 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     "lagged" keeps the Cholesky factor of an earlier tangent (single precision by default,
     `krylov_precision`) across iterations and load steps and solves each Newton system with the
     fresh tangent by conjugate gradients preconditioned with it (`solver.linalg.
-    LaggedFactorSolver`): an inexact Newton method (Dembo, Eisenstat & Steihaug 1982) with the
-    relative linear tolerance `krylov_forcing`, tightened near convergence to a tenth of what
-    the Newton tolerance needs but never below `krylov_rtol`, refactorising
+    LaggedFactorSolver`): each system is solved to a linear residual of a tenth of the Newton
+    tolerance (absolute), so that the iterates are those of exact Newton, but to no more than
+    `krylov_forcing` relative (inexact Newton, Dembo, Eisenstat & Steihaug 1982, where that is
+    looser: the last iteration of a step) and no less than `krylov_rtol`, refactorising
     when CG needs more than `krylov_maxiter` iterations, or before the next solve when it
     needed more than `krylov_refactor`; a tangent that is not positive definite is solved
     directly (symmetric indefinite LDL^T) for the rest of the load step. The residual is always
@@ -377,12 +378,13 @@ def _extrapolate(history, target):
 
 
 def _forcing(lin, rhs_norm, goal):
-    """Relative tolerance of the inexact Newton solve: the solver's largest forcing term
-    (`krylov_forcing`) while the residual is large, tightened to a tenth of the ratio of the
-    Newton tolerance to the current residual near convergence (so that the last solve is not
-    more accurate than the tolerance needs: "no oversolving", Kelley 1995, sec. 6.3), never
-    below `krylov_rtol`. (Eisenstat & Walker's adaptive choice 2 was measured too: with its
-    loose early solves the nearly incompressible cube took 16 Newton iterations instead of 13.)
+    """Relative tolerance of the Newton system's CG solve: a linear residual of a tenth of the
+    Newton tolerance `goal` (|A du - b| <= 0.1 goal: the linear error cannot keep the next
+    iterate from converging, the iterates are those of exact Newton), relaxed to at most the
+    solver's forcing term `krylov_forcing` relative where that is looser (the last iteration
+    of a step: no oversolving, Kelley 1995, sec. 6.3), at least `krylov_rtol` relative.
+    (Eisenstat & Walker's adaptive choice 2, eta up to 0.1, was measured too: with its loose
+    early solves the nearly incompressible cube took 16 Newton iterations instead of 13.)
     """
     eta = 0.1 * goal / rhs_norm if rhs_norm > 0.0 else lin.forcing_max
     return max(lin.rtol, min(lin.forcing_max, eta))

@@ -109,8 +109,15 @@ def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dila
         tau = np.empty((3, 3))
         Fi = np.empty((3, 3))
         g = np.empty((8, 3))
-        Q = np.empty((8, 3, 3))     # per node: columns u_a = d g_a, v_a = b g_a, g_a
-        QH = np.empty((8, 3, 3))
+        Q0 = np.empty(24)           # per dof 3a+i: u_a = d g_a, v_a = b g_a, g_a
+        Q1 = np.empty(24)
+        Q2 = np.empty(24)
+        H0 = np.empty(24)           # the same times H
+        H1 = np.empty(24)
+        H2 = np.empty(24)
+        Ag = np.empty((3, 24))
+        Bg = np.empty((8, 24))
+        D = np.zeros((8, 8))
         tg = np.empty((8, 3))
         for q in range(nq):
             F = Fs[q]
@@ -190,6 +197,9 @@ def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dila
             h22 = w * c4 * I1 / 9.0 + pw + kw
             eps = w * c4 * I1 / 6.0 - pw
             sig = w * c4 * I1 / 6.0
+            # flattened per dof c = 3 b + k: columns of Q (u, v, g) and of Q H, and for the
+            # term eps g_bi g_ak the vectors A_i[c] = g_b(c),i and B_a[c] = g_a,k(c), so that
+            # every row of the upper triangle is one contiguous (vectorisable) loop
             for a in range(8):
                 for i in range(3):
                     su = 0.0
@@ -197,27 +207,37 @@ def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dila
                     for j in range(3):
                         su += a23 * (b[i, j] - (I1 / 3.0 if i == j else 0.0)) * g[a, j]
                         sv += b[i, j] * g[a, j]
-                    Q[a, i, 0] = su
-                    Q[a, i, 1] = sv
-                    Q[a, i, 2] = g[a, i]
-                    QH[a, i, 0] = h00 * su
-                    QH[a, i, 1] = h12 * g[a, i]
-                    QH[a, i, 2] = h12 * sv + h22 * g[a, i]
+                    c = 3 * a + i
+                    Q0[c] = su
+                    Q1[c] = sv
+                    Q2[c] = g[a, i]
+                    H0[c] = h00 * su
+                    H1[c] = h12 * g[a, i]
+                    H2[c] = h12 * sv + h22 * g[a, i]
+                    for k in range(3):
+                        Ag[k, c] = g[a, k]
             for a in range(8):
+                for c in range(24):
+                    Bg[a, c] = g[a, c % 3]
                 for bb in range(a, 8):
                     sab = 0.0
                     tab = 0.0
                     for j in range(3):
                         sab += g[a, j] * g[bb, j]
                         tab += g[a, j] * tg[bb, j]
-                    diag = sig * sab + w * tab
-                    for i in range(3):
-                        for k in range(3):
-                            v = (QH[a, i, 0] * Q[bb, k, 0] + QH[a, i, 1] * Q[bb, k, 1]
-                                 + QH[a, i, 2] * Q[bb, k, 2] + eps * g[bb, i] * g[a, k])
-                            if i == k:
-                                v += diag
-                            K[3 * a + i, 3 * bb + k] += v
+                    D[a, bb] = sig * sab + w * tab
+            for r in range(24):
+                a = r // 3
+                i = r % 3
+                h0 = H0[r]
+                h1 = H1[r]
+                h2 = H2[r]
+                for c in range(r, 24):
+                    K[r, c] += (h0 * Q0[c] + h1 * Q1[c] + h2 * Q2[c]
+                                + eps * Ag[i, c] * Bg[a, c])
+                for bb in range(a, 8):
+                    if 3 * bb + i >= r:
+                        K[r, 3 * bb + i] += D[a, bb]
         We[e] = Wsum
         if mean_dilatation:
             for r in range(24):
@@ -227,13 +247,9 @@ def yeoh_element_matrices(x, hexes, dNdX, dV, volume, params, volkind, mean_dila
         if not tangent:
             continue
         # upper triangle, row by row (np.triu_indices order), with the condensed
-        # mean-dilatation term kee dv dv^T; the diagonal node blocks were computed whole:
-        # average their two triangles (equal up to round-off)
+        # mean-dilatation term kee dv dv^T
         p = 0
         for r in range(24):
             for c in range(r, 24):
-                v = K[r, c]
-                if (r // 3) == (c // 3):
-                    v = 0.5 * (v + K[c, r])
-                Ke[e, p] = v + kee * dvv[r] * dvv[c]
+                Ke[e, p] = K[r, c] + kee * dvv[r] * dvv[c]
                 p += 1

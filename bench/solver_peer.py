@@ -135,6 +135,19 @@ def _match(pa, pb):
     return j
 
 
+def _peak_mb():
+    """Peak resident memory of this process in MB: VmHWM (reset by exec, unlike ru_maxrss,
+    which a child started from the big parent process inherits on Linux)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def scaling_point(n, newton=True, strategy="auto", predictor="auto"):
     """One row of the scaling table (run in a child process for a clean peak memory)."""
     import solver
@@ -183,7 +196,7 @@ def scaling_point(n, newton=True, strategy="auto", predictor="auto"):
                                   linear_strategy=strategy, predictor=predictor)
         t_solve = time.perf_counter() - t
         iterations, factorizations = res.iterations, res.factorizations
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak = _peak_mb()
     return {"n": n, "dofs": 3 * len(nodes), "assembly_s": t_asm, "analysis+factor_s": t_first,
             "factor_s": t_fact, "precond_factor_s": t_prec, "newton_iterations": iterations,
             "factorizations": factorizations, "solve_s": t_solve,

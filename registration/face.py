@@ -7,7 +7,7 @@ result keeps the model's connectivity, labels, node and facet sets, regions and 
 (f' = F f / |F f|, F = J' J^-1 from the isoparametric Jacobians at the element centre) and
 carries the teeth: the patient's own arches when given (`teeth=`), else each generic arch
 moved with the similarity that best maps its bone segment's attachment nodes (Umeyama), with
-the lips cleared of them (`registration.teeth`). Results are cached on disk under a key hashing every input (model arrays,
+the lips cleared of them (`registration.teeth`) and kept apart from each other (`registration.lips`). Results are cached on disk under a key hashing every input (model arrays,
 patient surfaces, landmarks, options and the registration code itself), so that re-running a
 prediction on the same case reuses the registration.
 """

@@ -18,10 +18,13 @@ from an overlapping state). This stage restores the gap:
 A node with g < gap is moved by (gap + tol - g) / 2 along n(q) -- each side of an overlap moves
 half the way, as in a symmetric node-to-surface contact correction (Wriggers, "Computational
 Contact Mechanics", 2006, ch. 5: the gap function and its normal). Pushed skin nodes (the
-front edge of the slit) are projected back onto the patient skin. The displacement of the
-pushed nodes is carried into the tissue by harmonic extension over the mesh graph (edge weights
-1/|e|^2, `registration.elastic`) with the other skin nodes, the bone-attached nodes and nodes
-pushed in earlier rounds held, then `registration.repair` restores every element above the
+front edge of the slit) are projected back onto the patient skin; a target that comes within
+the teeth clearance of an arch is moved to the nearest clear point along a ray that does not
+go back towards the other lip (at the deep end of the slit, where the lips meet over the
+incisal edges, the lip and teeth constraints would otherwise undo each other). The displacement of the
+pushed nodes is carried into the tissue within `reach_mm` of the lips by harmonic extension
+over the mesh graph (edge weights 1/|e|^2, `registration.elastic`) with the other skin nodes, the bone-attached nodes, nodes
+within 0.5 mm of the teeth clearance and nodes pushed in earlier rounds held, then `registration.repair` restores every element above the
 scaled-Jacobian threshold (skin nodes on the patient skin, pushed nodes fixed). Rounds repeat
 until no lip node lies closer than the gap to the other lip.
 """
@@ -34,6 +37,7 @@ from registration.elastic import harmonic_extension, mesh_laplacian
 from registration.quality import min_scaled_jacobian
 from registration.repair import SurfaceConstraint, repair_mesh
 from registration.surface import TargetSurface
+from registration.teeth import escape_outward, union_distance
 
 
 def quad_vertex_normals(x: np.ndarray, quads: np.ndarray) -> np.ndarray:
@@ -90,11 +94,15 @@ def lip_overlap(x: np.ndarray, upper_quads: np.ndarray, lower_quads: np.ndarray,
 def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
                   lower_quads: np.ndarray, fixed: np.ndarray, *, skin_nodes: np.ndarray = (),
                   skin: TargetSurface | None = None, gap: float = 0.1, tol: float = 0.05,
-                  threshold: float = 0.2, band: float = 3.0, max_rounds: int = 10):
+                  threshold: float = 0.2, band: float = 3.0, max_rounds: int = 10,
+                  arches: list | None = None, teeth_clearance: float = 0.25, reach_mm: float = 15.0):
     """Move lip-surface nodes apart until each lip is at least `gap` mm from the other.
 
     fixed: nodes that never move (bone-attached); skin_nodes: the skin nodes (held where not
-    pushed; pushed ones lying on the patient `skin` slide on it). Returns (new nodes, report)."""
+    pushed; pushed ones lying on the patient `skin` slide on it); arches: the teeth
+    (`registration.teeth.Arch`), kept `teeth_clearance` away from the pushed nodes: a target
+    that comes closer is moved to the nearest clear point along a ray that does not go back
+    towards the other lip (`registration.teeth.escape_outward`). Returns (new nodes, report)."""
     hexes = np.asarray(hexes)
     x = np.array(x, dtype=float)
     n = len(x)
@@ -111,14 +119,26 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
     x_start = x.copy()
     held = np.zeros(n, bool)
     lap = None
+    # the tissue that follows the lips: nodes within `reach_mm` of a lip-surface node (the rest
+    # is held, so that each round solves a small system)
+    lip_nodes = np.union1d(np.unique(upper_quads), np.unique(lower_quads))
+    far = ~np.isfinite(cKDTree(x[lip_nodes]).query(x, distance_upper_bound=reach_mm)[0])
+    centre = np.concatenate([a.vertices for a in arches]).mean(axis=0) if arches else None
+    # nodes near the teeth clearance (where the clearance stage left them) are held unless
+    # pushed, in the spread and in the repair: the lip pushes do not carry them back
+    by_teeth = np.zeros(n, bool)
+    if arches:
+        by_teeth = union_distance(arches, x, teeth_clearance + 1.0)[0] < teeth_clearance + 0.5
     rounds, repaired = 0, 0
     for rounds in range(1, max_rounds + 1):
         push = np.zeros((n, 3))
+        normal = np.zeros((n, 3))
         hit = np.zeros(n, bool)
         for nodes, master in sides:
             g, nrm, ok = signed_gaps(x, nodes, master, band)
             bad = ok & (g < gap)
             push[nodes[bad]] += 0.5 * (gap + tol - g[bad])[:, None] * nrm[bad]
+            normal[nodes[bad]] += nrm[bad]
             hit[nodes[bad]] = True
         hit &= ~np.isin(np.arange(n), fixed)
         if not hit.any():
@@ -129,10 +149,16 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
         slide = on_skin[ids]
         if skin is not None and slide.any():
             target[slide] = skin.closest(target[slide]).points
+        if arches:
+            sd = union_distance(arches, target, teeth_clearance + 1.0)[0]
+            near = ~slide & (sd < teeth_clearance)
+            if near.any():
+                target[near] = escape_outward(arches, target[near], teeth_clearance + 0.01, centre,
+                                              away=normal[ids[near]])
         held[ids] = True
         if lap is None:
             lap = mesh_laplacian(n, hexes, x)
-        dirichlet = np.union1d(np.flatnonzero(held), np.union1d(fixed, skin_nodes))
+        dirichlet = np.union1d(np.flatnonzero(held | far | by_teeth), np.union1d(fixed, skin_nodes))
         values = np.zeros((len(dirichlet), 3))
         values[np.searchsorted(dirichlet, ids)] = target - x[ids]
         x = x + harmonic_extension(n, hexes, dirichlet, values, lap)
@@ -140,7 +166,7 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
             cons = [SurfaceConstraint("skin", np.flatnonzero(on_skin), skin)] if on_skin.any() else []
             x_in = x
             x, rep = repair_mesh(x_in, hexes, threshold=threshold, constraints=cons,
-                                 fixed=np.union1d(fixed, ids))
+                                 fixed=np.union1d(np.union1d(fixed, ids), np.flatnonzero(by_teeth)))
             if rep["elements_still_below_threshold"]:
                 # the pushed nodes free too: one the repair takes back is pushed again next round
                 x, rep = repair_mesh(x_in, hexes, threshold=threshold, constraints=cons, fixed=fixed)

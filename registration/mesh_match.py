@@ -11,7 +11,9 @@ by a geodesic correction of the skin that can separate the lips (`registration.l
 skin nodes so that the bilinear facets, not only the nodes, lie on the patient skin
 (`registration.surface_fit`; landmark nodes stay on it, no element goes below the threshold),
 (5) the teeth placed with their bone segments
-(or the patient's own) and the soft tissue cleared of them (`registration.teeth`), then fit
+(or the patient's own) and the soft tissue cleared of them (`registration.teeth`), (6) the lips
+kept at least `lip_gap_mm` apart across the mouth slit (`registration.lips`; the teeth cleared
+again if that pushed a lip node towards them), then fit
 errors (mean / 95th percentile / max of the distances from the registered skin -- its nodes and points inside its facets -- to the
 patient skin where the patient surface covers the model, the reverse distances, and the
 bone-attachment node distances) and quality figures.
@@ -32,7 +34,7 @@ from registration.elastic import (ElasticSchedule, SurfaceGroup, elastic_registe
                                   snap_to_surfaces, vertex_normals)
 from registration.errors import RegistrationFailure, RegistrationInputError
 from registration.landmark_fit import landmark_correction
-from registration.lips import lip_overlap, separate_lips
+from registration.lips import lip_overlap, quad_vertex_normals, separate_lips
 from registration.quality import min_scaled_jacobian, quality_summary
 from registration.repair import SurfaceConstraint, repair_mesh
 from registration.surface import TargetSurface
@@ -96,6 +98,17 @@ def _quads_on_surface(x: np.ndarray, skin_quads: np.ndarray, skin_tris: np.ndarr
     node_ok = np.zeros(len(x), bool)
     node_ok[ids[ok]] = True
     return skin_quads[node_ok[skin_quads].all(axis=1)]
+
+
+def _lip_away(model: MatchInput, x: np.ndarray) -> np.ndarray | None:
+    """(n, 3): for each lip-surface node the direction away from the other lip (against its own
+    contact surface's outward normal); zero elsewhere and on the nodes the two lips share."""
+    if model.lip_quads is None:
+        return None
+    up, low = (np.asarray(q) for q in model.lip_quads)
+    away = -(quad_vertex_normals(x, up) + quad_vertex_normals(x, low))
+    away[np.intersect1d(np.unique(up), np.unique(low))] = 0.0
+    return away
 
 
 def _extent(v: np.ndarray) -> float:
@@ -316,7 +329,7 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     times["teeth_clearance_s"] = time.perf_counter() - t5
 
     # the lips apart across the mouth slit (the stages above move its two sides independently);
-    # the teeth cleared again should a lip node have been pushed towards them
+    # the teeth cleared again while a movable node is short of their clearance
     lip_report = None
     if model.lip_quads is not None and opt.lip_gap_mm > 0:
         t7 = time.perf_counter()
@@ -325,23 +338,20 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         up, low = model.lip_quads
         lip_before = lip_overlap(x, up, low)
         passes = []
-        x_lips = x.copy()
-        for _ in range(3):
+        movable = np.setdiff1d(np.arange(len(x)), keep) if placed else None
+        for _ in range(6):
             x, rep_l = separate_lips(x, hexes, up, low, attached, skin_nodes=skin_ids, skin=skin,
-                                     gap=opt.lip_gap_mm, threshold=opt.threshold)
+                                     gap=opt.lip_gap_mm, threshold=opt.threshold,
+                                     arches=arches if placed else None,
+                                     teeth_clearance=opt.teeth_clearance_mm)
             passes.append(rep_l)
-            if not placed or rep_l["nodes_pushed"] == 0:
-                break
-            moved = np.flatnonzero(np.linalg.norm(x - x_lips, axis=1) > 1e-3)
-            moved = np.setdiff1d(moved, keep)
-            if not len(moved) or union_distance(arches, x[moved], opt.teeth_clearance_mm + 1.0)[0].min() \
-                    >= opt.teeth_clearance_mm:
-                break  # nothing the lips moved came near the teeth
+            if not placed or union_distance(arches, x[movable], opt.teeth_clearance_mm + 1.0)[0].min() \
+                    >= opt.teeth_clearance_mm - 1e-6:
+                break  # lips apart and every movable node clear of the teeth
+            # lip nodes pushed out of the teeth preferably not back into the other lip
             x, again = clear_teeth(x, hexes, arches, keep, clearance=opt.teeth_clearance_mm,
-                                   threshold=opt.threshold)
+                                   threshold=opt.threshold, away=_lip_away(model, x))
             clearance_report.setdefault("after_lip_separation", []).append(again)
-            if again["nodes_pushed"] == 0:
-                break
         lip_report = {"gap_mm": opt.lip_gap_mm, "before": lip_before, "after": lip_overlap(x, up, low),
                       "nodes_pushed": int(sum(p["nodes_pushed"] for p in passes)),
                       "elements_repaired": int(sum(p["elements_repaired"] for p in passes)),

@@ -194,12 +194,16 @@ def _sphere_directions(n: int) -> np.ndarray:
 
 
 def escape_outward(arches: list[Arch], points: np.ndarray, clearance: float, centre: np.ndarray,
-                   reach: float = 8.0, step: float = 0.25, n_dirs: int = 64) -> np.ndarray:
+                   reach: float = 8.0, step: float = 0.25, n_dirs: int = 64,
+                   away: np.ndarray | None = None) -> np.ndarray:
     """For points the normal projection cannot clear (caught between two arches in occlusion,
     where the outward normals of the upper and lower crowns oppose each other): the nearest
     clear point along rays of the half-space that faces away from the dental arch (labial /
     buccal: the lips and cheeks lie outside the arch, away from its centre in the horizontal
-    plane), sampled every `step` mm up to `reach` mm. Points with no clear sample are kept."""
+    plane), sampled every `step` mm up to `reach` mm. Points with no clear sample are kept.
+    `away` (n, 3): optional directions each point must not move against (a lip node held
+    clear of the other lip by `registration.lips`: only rays with a non-negative component
+    along its lip normal, or any ray where none of those clears within reach)."""
     p = np.array(points, dtype=float).reshape(-1, 3)
     if len(p) == 0:
         return p
@@ -209,6 +213,8 @@ def escape_outward(arches: list[Arch], points: np.ndarray, clearance: float, cen
     radial[:, 2] = 0.0
     radial /= np.maximum(np.linalg.norm(radial, axis=1), 1e-12)[:, None]
     facing = radial @ dirs.T > 0.0                                       # (points, dirs)
+    if away is not None:
+        facing &= np.asarray(away, float).reshape(-1, 3) @ dirs.T >= 0.0
     # march all facing rays of the unresolved points outwards together: a point is resolved
     # at the first sample distance where one of its rays is clear (the lowest-numbered such
     # ray is taken); most points clear within a few samples, so few are ever evaluated
@@ -233,15 +239,22 @@ def escape_outward(arches: list[Arch], points: np.ndarray, clearance: float, cen
         clear = union_distance(arches, p + mid[:, None] * direction, clearance + 2.0)[0] >= clearance
         hi = np.where(clear, mid, hi)
         lo = np.where(clear, lo, mid)
-    return np.where(found[:, None], p + hi[:, None] * direction, p)
+    out = np.where(found[:, None], p + hi[:, None] * direction, p)
+    if away is not None and not found.all():
+        # no clear ray away from the other lip within reach: the nearest clear point of any ray
+        lost = ~found
+        out[lost] = escape_outward(arches, p[lost], clearance, centre, reach, step, n_dirs)
+    return out
 
 
 def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.ndarray, *,
                 clearance: float = 0.2, threshold: float = 0.2, max_rounds: int = 8,
-                tol: float = 0.01):
+                tol: float = 0.01, away: np.ndarray | None = None):
     """Move movable nodes to at least `clearance` mm outside every arch (module docstring).
 
-    `fixed`: nodes that never move (skin, attached). Returns (new nodes, report)."""
+    `fixed`: nodes that never move (skin, attached); `away` (n, 3): optional per-node
+    directions a push must not go against (zero rows: any; the lip-surface nodes, kept from
+    moving into the other lip). Returns (new nodes, report)."""
     hexes = np.asarray(hexes)
     x = np.array(x, dtype=float)
     n = len(x)
@@ -270,7 +283,8 @@ def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.
         push_ids = ids[bad]
         # a margin `tol` beyond the clearance, so that the small moves of the repair that
         # follows do not bring a node back below it
-        target = escape_outward(arches, x[push_ids], clearance + tol, centre)
+        target = escape_outward(arches, x[push_ids], clearance + tol, centre,
+                                away=None if away is None else away[push_ids])
         held[push_ids] = True
         # held nodes keep their place (zero displacement) unless pushed again in this round
         dirichlet = np.flatnonzero(held | ~movable)

@@ -168,7 +168,7 @@ def _shear_modulus(mat) -> float:
 
 def simulate(model, motions: dict | None = None, activations: dict | None = None, *,
              contact: bool = True, sliding=(), materials: dict | None = None,
-             n_steps: int = 4, log=None, penalty_factor: float = 10.0,
+             n_steps: int = 4, log=None, penalty_factor: float = 1.0,
              contact_tolerance: float = 0.05, max_iterations: int = 25) -> SimulationResult:
     """Solve the face for bone `motions` {segment: 4x4} and muscle `activations` {muscle: a}.
 
@@ -263,7 +263,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
                     X, np.asarray(V, float), np.asarray(F, np.int64), slave_facets=mucosa,
                     motion=_segment_motion(motions, seg),
                     penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
-                    search_radius=max(2.0, h), max_depth=max(3.0, 1.5 * h))
+                    search_radius=max(2.0, h), max_depth=max(3.0, 1.5 * h), smooth=True)
 
     def callback(rec):
         if log is not None:
@@ -290,6 +290,10 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     if contact:
         info["penetration_mm"] = {k: float(_term_penetration(t, x)) for k, t in terms.items()
                                   if not k.startswith("sliding")}
+        if "lip_contact" in terms:
+            # lips overlapping before any movement (a registered mesh can have them so) are
+            # left as they are; contact acts against further penetration only
+            info["initial_lip_overlap_mm"] = float(terms["lip_contact"].initial_penetration)
     log_ = logging.getLogger("facemodel.simulation")
     log_.info("face solved in %.1f s, %d iterations", elapsed, res.iterations)
     return SimulationResult(x=x, displacement=x - X, cauchy=sig, von_mises=vm,

@@ -1,6 +1,7 @@
 """Geometry kernels of contact: closest points on triangles, pseudo-normals, plane gaps.
 
-* `closest_point_on_triangles`: vectorised closest point of points to triangles with the
+* `closest_on_triangle` (numba, one point) and `closest_point_on_triangles` (rows of points and
+  triangles): the closest point of a point on a triangle with the
   Voronoi-region tests of Ericson (*Real-Time Collision Detection*, 2005, sec. 5.1.5), returning
   the region (face, edge, vertex) so that the gap can be signed with the angle-weighted
   pseudo-normals of Baerentzen & Aanaes (2005, IEEE TVCG 11): a point is outside a closed
@@ -17,10 +18,11 @@
 """
 from __future__ import annotations
 
+import numba as nb
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["closest_point_on_triangles", "TriangleSurface", "plane_gap", "triangulate",
+__all__ = ["closest_point_on_triangles", "closest_on_triangle", "TriangleSurface", "plane_gap", "triangulate",
            "nodal_areas", "facet_normals", "skew"]
 
 FACE, VERT_A, VERT_B, VERT_C, EDGE_AB, EDGE_BC, EDGE_CA = range(7)
@@ -76,48 +78,59 @@ def _dot(u, v):
     return np.einsum("...i,...i->...", u, v)
 
 
+@nb.njit(cache=True)
+def closest_on_triangle(p, a, b, c):
+    """Closest point (qx, qy, qz) on triangle (a, b, c) to point p and its Voronoi region
+    (FACE, VERT_A/B/C, EDGE_AB/BC/CA), Ericson's tests; p, a, b, c are (3,) arrays."""
+    ab0, ab1, ab2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    ac0, ac1, ac2 = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+    d1 = ab0 * (p[0] - a[0]) + ab1 * (p[1] - a[1]) + ab2 * (p[2] - a[2])
+    d2 = ac0 * (p[0] - a[0]) + ac1 * (p[1] - a[1]) + ac2 * (p[2] - a[2])
+    if d1 <= 0.0 and d2 <= 0.0:
+        return a[0], a[1], a[2], VERT_A
+    d3 = ab0 * (p[0] - b[0]) + ab1 * (p[1] - b[1]) + ab2 * (p[2] - b[2])
+    d4 = ac0 * (p[0] - b[0]) + ac1 * (p[1] - b[1]) + ac2 * (p[2] - b[2])
+    if d3 >= 0.0 and d4 <= d3:
+        return b[0], b[1], b[2], VERT_B
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        t = d1 / (d1 - d3)
+        return a[0] + t * ab0, a[1] + t * ab1, a[2] + t * ab2, EDGE_AB
+    d5 = ab0 * (p[0] - c[0]) + ab1 * (p[1] - c[1]) + ab2 * (p[2] - c[2])
+    d6 = ac0 * (p[0] - c[0]) + ac1 * (p[1] - c[1]) + ac2 * (p[2] - c[2])
+    if d6 >= 0.0 and d5 <= d6:
+        return c[0], c[1], c[2], VERT_C
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        t = d2 / (d2 - d6)
+        return a[0] + t * ac0, a[1] + t * ac1, a[2] + t * ac2, EDGE_CA
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return (b[0] + t * (c[0] - b[0]), b[1] + t * (c[1] - b[1]), b[2] + t * (c[2] - b[2]),
+                EDGE_BC)
+    denom = va + vb + vc
+    v = vb / denom if denom != 0.0 else 0.0
+    w = vc / denom if denom != 0.0 else 0.0
+    return (a[0] + ab0 * v + ac0 * w, a[1] + ab1 * v + ac1 * w, a[2] + ab2 * v + ac2 * w,
+            FACE)
+
+
+@nb.njit(cache=True)
+def _closest_rows(p, a, b, c, q, region):
+    for i in range(p.shape[0]):
+        q[i, 0], q[i, 1], q[i, 2], region[i] = closest_on_triangle(p[i], a[i], b[i], c[i])
+
+
 def closest_point_on_triangles(p, a, b, c):
     """Closest points on triangles (a, b, c) to points p, all (k, 3), paired row by row.
 
     Returns (q (k, 3), region (k,) int: FACE, VERT_A/B/C, EDGE_AB/BC/CA).
     """
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = _dot(ab, ap), _dot(ac, ap)
-    bp = p - b
-    d3, d4 = _dot(ab, bp), _dot(ac, bp)
-    cp = p - c
-    d5, d6 = _dot(ab, cp), _dot(ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denom = va + vb + vc
-        v = np.where(denom != 0, vb / denom, 0.0)
-        w = np.where(denom != 0, vc / denom, 0.0)
-        q = a + ab * v[:, None] + ac * w[:, None]
-        region = np.full(len(p), FACE)
-        # edges and vertices, assigned in reverse priority so that vertices win
-        m = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-        t = np.where(m, (d4 - d3) / np.where(m, (d4 - d3) + (d5 - d6), 1.0), 0.0)
-        q = np.where(m[:, None], b + (c - b) * t[:, None], q)
-        region[m] = EDGE_BC
-        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-        t = np.where(m, d2 / np.where(m, d2 - d6, 1.0), 0.0)
-        q = np.where(m[:, None], a + ac * t[:, None], q)
-        region[m] = EDGE_CA
-        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-        t = np.where(m, d1 / np.where(m, d1 - d3, 1.0), 0.0)
-        q = np.where(m[:, None], a + ab * t[:, None], q)
-        region[m] = EDGE_AB
-    m = (d6 >= 0) & (d5 <= d6)
-    q[m] = c[m]
-    region[m] = VERT_C
-    m = (d3 >= 0) & (d4 <= d3)
-    q[m] = b[m]
-    region[m] = VERT_B
-    m = (d1 <= 0) & (d2 <= 0)
-    q[m] = a[m]
-    region[m] = VERT_A
+    p, a, b, c = (np.ascontiguousarray(v, dtype=float).reshape(-1, 3) for v in (p, a, b, c))
+    q = np.empty_like(p)
+    region = np.empty(len(p), dtype=np.int64)
+    _closest_rows(p, a, b, c, q, region)
     return q, region
 
 

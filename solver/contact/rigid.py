@@ -18,7 +18,9 @@ converged step `end_step` applies the Uzawa update lambda_i <- p_i (Simo & Laurs
 the largest penetration (contact) or gap (sliding) is below `tolerance`. After `freeze_after`
 evaluations at one load the active set is frozen (status freezing), and `end_step` asks for
 another solve when the converged state has a different status.
-Frictionless; optional `stick=True` adds a tangential penalty that ties a node to the surface
+With `smooth=True` the faceted gap is replaced by a C2 tricubic-spline signed distance sampled
+once in the surface's frame (`solver.contact._sdf`), with its exact gradient and Hessian in the
+tangent eps_i n (x) n - p_i d2g/dx2. Frictionless; optional `stick=True` adds a tangential penalty that ties a node to the surface
 point where it first touched (sticking, the infinite-friction limit).
 """
 from __future__ import annotations
@@ -27,8 +29,10 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
+from solver.contact._sdf import SignedDistanceGrid
 from solver.contact._uzawa import UzawaLoop
-from solver.contact._geometry import FACE, TriangleSurface, closest_point_on_triangles, nodal_areas
+from solver.contact._geometry import (EDGE_AB, EDGE_BC, EDGE_CA, FACE, TriangleSurface,
+                                      closest_point_on_triangles, nodal_areas)
 
 __all__ = ["RigidSurfaceContact", "ramped_rigid_motion"]
 
@@ -56,6 +60,10 @@ class RigidSurfaceContact:
     search_radius: nodes farther than this from the surface are ignored (mm); max_depth:
     contact is only detected up to this penetration (for open surfaces). tolerance: largest
     penetration/gap accepted at convergence (mm); max_augmentations bounds the Uzawa loop.
+    smooth: use the C2 spline signed distance of `solver.contact._sdf.SignedDistanceGrid`
+    (grid step `grid_spacing`) instead of the faceted surface: no gradient jumps across facet
+    edges, so nodes pressed onto convex edges do not make Newton cycle (the facets' corners
+    are rounded over about one grid step).
     """
 
     def __init__(self, nodes, vertices, faces, *, slave_facets=None, slave_nodes=None,
@@ -63,7 +71,8 @@ class RigidSurfaceContact:
                  bilateral: bool = False, augmented: bool = True, tolerance: float = 0.05,
                  max_augmentations: int = 10, search_radius: float = 5.0,
                  max_depth: float = np.inf, stick: bool = False,
-                 freeze_after: int | None = 4):
+                 freeze_after: int | None = 4, smooth: bool = False,
+                 grid_spacing: float | None = None):
         nodes = np.asarray(nodes, dtype=float)
         self.n_nodes = len(nodes)
         if slave_facets is not None:
@@ -82,6 +91,12 @@ class RigidSurfaceContact:
         if not penalty > 0:
             raise ValueError(f"penalty must be > 0, got {penalty}")
         self.surface = TriangleSurface(vertices, faces)
+        self.grid = None
+        if smooth:
+            band = min(search_radius, 50.0) + (min(max_depth, 50.0) if np.isfinite(max_depth)
+                                               else search_radius)
+            self.grid = SignedDistanceGrid(self.surface, band=band, spacing=grid_spacing)
+        self._hess = None
         self.motion = motion
         self.penalty = float(penalty)
         self.eps = self.penalty * self.areas
@@ -119,12 +134,21 @@ class RigidSurfaceContact:
         With `frozen`, each node keeps the face found at the last unfrozen evaluation (its
         closest point is taken on that face), so that a node deep in a thin body does not
         flip between the faces of both sides within a Newton solve.
+        With a smooth (`smooth=True`) surface, g is the spline signed distance and `normal`
+        its gradient (unit up to the interpolation error), the region always FACE.
         Returns (g (s,), normal (s, 3) current, region (s,), y (s, 3) pulled-back positions).
         """
         T = self.transform(load)
         R, t = T[:3, :3], T[:3, 3]
         y = (np.asarray(x)[self.slaves] - t) @ R
         radius = self.search_radius + float(np.max(self.multipliers / self.eps, initial=0.0))
+        if self.grid is not None:
+            phi, grad, hess, on_grid = self.grid.evaluate(y)
+            near = on_grid & (phi <= radius)
+            g = np.where(near, phi, np.nan)
+            n = np.where(near[:, None], grad, 0.0) @ R.T
+            self._hess = np.einsum("ia,kab,jb->kij", R, hess, R)
+            return g, n, np.full(len(g), FACE), y
         if frozen and self._face is not None:
             idx = np.nonzero(self._face >= 0)[0]
             face = self._face[idx]
@@ -197,11 +221,16 @@ class RigidSurfaceContact:
         np.add.at(f, dofs.ravel(), (-pa[:, None] * na).ravel())
         Kb = ea[:, None, None] * na[:, :, None] * na[:, None, :]
         off = reg[active] != FACE
-        if np.any(off):
-            # curvature of the distance to an edge or a vertex, d2g/dx2 = (I - n n)/g, in the
-            # tangent -p d2g/dx2; |g| is kept above 1e-4 mm so that a node resting exactly on
-            # an edge has a finite (if very stiff) tangential stiffness
+        if self.grid is not None:
+            Kb -= pa[:, None, None] * self._hess[active]
+        elif np.any(off):
+            # curvature of the distance to a vertex, d2g/dx2 = (I - n n)/g, or to an edge's
+            # line, (I - n n - t t)/g with t the unit edge direction (no curvature along the
+            # edge), in the tangent -p d2g/dx2; |g| is kept above 1e-4 mm so that a node
+            # resting exactly on an edge has a finite (if very stiff) tangential stiffness
             P = np.eye(3) - na[off, :, None] * na[off, None, :]
+            t = self._edge_directions(reg[active][off], self._face[active][off], load)
+            P -= t[:, :, None] * t[:, None, :]
             go = ga[off]
             greg = np.where(go >= 0, 1.0, -1.0) * np.maximum(np.abs(go), 1e-4)
             Kb[off] += (-pa[off] / greg)[:, None, None] * P
@@ -214,6 +243,18 @@ class RigidSurfaceContact:
         K = sp.csr_matrix((Kb.ravel(), (rows, cols)), shape=(3 * self.n_nodes,) * 2)
         self.last = dict(gap=g, pressure=p, normal=n, active=active)
         return f, K
+
+    def _edge_directions(self, region, face, load):
+        """Unit direction (current frame) of the edge of `face` named by `region` (edge
+        regions), zero for vertex regions."""
+        F = self.surface.faces[face]
+        t = np.zeros((len(face), 3))
+        for r, (i, j) in ((EDGE_AB, (0, 1)), (EDGE_BC, (1, 2)), (EDGE_CA, (2, 0))):
+            m = region == r
+            if np.any(m):
+                e = self.surface.vertices[F[m, j]] - self.surface.vertices[F[m, i]]
+                t[m] = e / np.linalg.norm(e, axis=1, keepdims=True)
+        return t @ self.transform(load)[:3, :3].T
 
     def _stick_terms(self, load, active, y, n):
         """Tangential tie of active nodes to their first contact point (penalty eps_i)."""

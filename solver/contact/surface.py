@@ -39,6 +39,7 @@ class _Pass:
         self.slave_tri = triangulate(slave_facets)
         self.master = triangulate(master_facets)
         self.multipliers = np.zeros(len(self.slaves))
+        self.offset = np.zeros(len(self.slaves))            # initial penetration ignored (mm)
         self.previous = np.full(len(self.slaves), -1)       # paired triangle, last evaluation
         self.active = np.zeros(len(self.slaves), dtype=bool)  # in contact, last evaluation
         # slave -> its own triangles, to compute the slave node normals
@@ -110,6 +111,7 @@ class _Pass:
         pt = x[self.master[t]]
         g, grad, hess, _, _ = plane_gap(x[self.slaves[s]], pt[:, 0], pt[:, 1], pt[:, 2],
                                         hessian=hessian)
+        g = g + self.offset[s]
         if hess is None:
             hess = np.zeros((len(s), 0, 0))
         nodes = np.concatenate([self.slaves[s][:, None], self.master[t]], axis=1)   # (k, 4)
@@ -125,12 +127,18 @@ class SurfaceContact:
     otherwise a's nodes against b's facets only). penalty: eps (kPa/mm). search_radius (mm):
     how far from a master plane a slave is looked at (pairs are kept for gaps in
     (-max_depth, search_radius)). tolerance: deepest penetration accepted (mm).
+    ignore_initial_penetration: surfaces that already overlap in the reference configuration
+    (e.g. lips of a registered mesh) are not pushed apart: each slave node's initial
+    penetration is added to its gap as a fixed offset (LS-DYNA's "ignore initial
+    penetrations"), so contact acts only against further penetration; the largest offset is
+    `initial_penetration` (mm).
     """
 
     def __init__(self, nodes, surface_a, surface_b, *, two_pass: bool = True,
                  penalty: float = 100.0, augmented: bool = True, tolerance: float = 0.05,
                  max_augmentations: int = 10, search_radius: float = 2.0,
-                 max_depth: float = 2.0, freeze_after: int | None = 4):
+                 max_depth: float = 2.0, freeze_after: int | None = 4,
+                 ignore_initial_penetration: bool = True):
         nodes = np.asarray(nodes, dtype=float)
         if not penalty > 0:
             raise ValueError(f"penalty must be > 0, got {penalty}")
@@ -147,6 +155,14 @@ class SurfaceContact:
         self.last_error = 0.0
         self.freeze_after = freeze_after
         self._evals_load, self._evals = None, 0
+        self.initial_penetration = 0.0
+        if ignore_initial_penetration:
+            for ps in self.passes:
+                s, _, g, *_ = ps.pairs(nodes, self.search_radius, self.max_depth, hessian=False)
+                ps.offset[s] = np.maximum(-g, 0.0)
+                ps.previous[:] = -1
+                self.initial_penetration = max(self.initial_penetration,
+                                               float(ps.offset.max(initial=0.0)))
 
     def _evaluate(self, x, hessian=True, frozen=False):
         out = []
@@ -180,7 +196,9 @@ class SurfaceContact:
         rows, cols, vals = [], [], []
         frozen = self._frozen(load)
         for ps, s, g, grad, hess, dofs, eps, lam, p in self._evaluate(x, frozen=frozen):
-            a = p > 0
+            # frozen: every node of the frozen active set acts, pulling too (p < 0), so that
+            # the problem Newton sees is smooth; `end_step` corrects the status afterwards
+            a = ps.active[s] if frozen else p > 0
             if not np.any(a):
                 continue
             gr, hs, dd = grad[a], hess[a], dofs[a]

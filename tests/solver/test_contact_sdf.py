@@ -1,0 +1,138 @@
+"""Smooth signed distance of rigid surfaces (`solver.contact._sdf`) and the contact terms built
+on it: exact distances near the surface, consistent derivatives, and a faceted-edge tangent."""
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from solver.contact import RigidSurfaceContact
+from solver.contact._sdf import SignedDistanceGrid
+
+from tests.solver.test_contact_terms import _fd_check, _sphere
+
+
+def _box(lo, hi):
+    """Closed axis-aligned box surface with outward normals (12 triangles)."""
+    x0, y0, z0 = lo
+    x1, y1, z1 = hi
+    V = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0],
+                  [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]], float)
+    quads = [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [2, 3, 7, 6], [1, 2, 6, 5], [3, 0, 4, 7]]
+    F = np.array([t for q in quads for t in ([q[0], q[1], q[2]], [q[0], q[2], q[3]])])
+    return V, F
+
+
+def _box_sdf(p, lo, hi):
+    c, e = (np.asarray(lo) + hi) / 2, (np.asarray(hi) - lo) / 2
+    q = np.abs(p - c) - e
+    return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
+
+
+@pytest.fixture(scope="module")
+def sphere_grid():
+    V, F = _sphere(10.0, 4)
+    return V, F, SignedDistanceGrid(V, F, band=3.0, spacing=0.4)
+
+
+def test_signed_distance_of_a_sphere_is_exact_near_the_surface(sphere_grid):
+    V, F, grid = sphere_grid
+    rng = np.random.default_rng(0)
+    d = rng.standard_normal((500, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = rng.uniform(8.5, 11.5, 500)
+    phi, grad, hess, ok = grid.evaluate(d * r[:, None])
+    assert ok.all()
+    # exact distance to the faceted sphere: the facets (4 subdivisions of an octahedron, edge
+    # ~1 mm) sag below the r = 10 sphere by at most r (1 - cos(theta/2)) < 0.02 mm; the cubic
+    # spline interpolation error of a field of curvature 1/r at step 0.4 is ~ h^2 / (8 r) ~
+    # 0.002 mm: 0.05 mm covers both
+    assert np.abs(phi - (r - 10.0)).max() < 0.05
+    # |grad phi| = 1 (eikonal) within the facet/interpolation errors; the gradient points
+    # away from the closest facet, edge or vertex, which for points up to 1.5 mm off a
+    # polyhedron with ~1 mm facets is radial within ~20 degrees (cos > 0.9)
+    assert np.allclose(np.linalg.norm(grad, axis=1), 1.0, atol=0.03)
+    assert np.einsum("ij,ij->i", grad, d).min() > 0.9
+    # far inside (beyond the band) is negative, far outside positive
+    far, _, _, _ = grid.evaluate(np.array([[0.0, 0, 0], [0, 0, 2.0], [0, 13.5, 0]]))
+    assert far[0] < 0 and far[1] < 0 and far[2] > 0
+
+
+def test_spline_derivatives_match_finite_differences_and_scipy(sphere_grid):
+    _, _, grid = sphere_grid
+    rng = np.random.default_rng(1)
+    p = rng.uniform(-11, 11, (200, 3))
+    phi, grad, hess, ok = grid.evaluate(p)
+    p, phi, grad, hess = p[ok], phi[ok], grad[ok], hess[ok]
+    # the value is scipy's order-3 spline interpolation of the same coefficients (to round-off)
+    u = ((p - grid.origin) / grid.spacing).T
+    ref = ndimage.map_coordinates(grid.coefficients, u, order=3, prefilter=False, mode="mirror")
+    assert np.allclose(phi, ref, atol=1e-12)
+    # central differences, h = 1e-5 mm on a field with second derivatives ~1/h_grid: error
+    # ~1e-9; tolerance 1e-6
+    h = 1e-5
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        fp, gp, _, _ = grid.evaluate(p + e)
+        fm, gm, _, _ = grid.evaluate(p - e)
+        assert np.allclose((fp - fm) / (2 * h), grad[:, k], atol=1e-6)
+        assert np.allclose((gp - gm) / (2 * h), hess[:, :, k], atol=1e-6)
+    assert np.allclose(hess, np.swapaxes(hess, 1, 2))
+
+
+def test_box_corners_are_rounded_by_about_one_grid_step():
+    lo, hi = np.array([0.0, 0, 0]), np.array([8.0, 6, 5])
+    V, F = _box(lo, hi)
+    grid = SignedDistanceGrid(V, F, band=2.0, spacing=0.25)
+    rng = np.random.default_rng(2)
+    p = rng.uniform(-1.5, 9.5, (4000, 3))
+    phi, _, _, ok = grid.evaluate(p)
+    exact = _box_sdf(p, lo, hi)
+    sel = ok & (np.abs(exact) < 1.5)
+    err = np.abs(phi[sel] - exact[sel])
+    # the signed distance of a box is not smooth across its edges (inside: the medial
+    # planes; outside it is C1): the C2 spline rounds those creases over ~2 steps, an error
+    # below ~h/4 there; away from them the interpolating spline's prefilter spreads a crease's
+    # error with a decay of |sqrt(3) - 2| ~ 0.27 per step, so the typical point (a few steps
+    # from the nearest crease here) is within 1e-3 mm
+    assert err.max() < 0.25 * grid.spacing + 1e-9
+    assert np.median(err) < 1e-3
+
+
+@pytest.mark.parametrize("bilateral", [False, True])
+def test_smooth_rigid_contact_force_and_tangent_are_consistent(bilateral):
+    V, F = _sphere(2.0, 3)
+    rng = np.random.default_rng(3)
+    d = rng.standard_normal((6, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    x = d * rng.uniform(1.8, 2.1, 6)[:, None]
+    motion = np.eye(4)
+    motion[:3, :3] = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])     # 90 deg about z
+    motion[:3, 3] = [0.1, -0.05, 0.02]
+    term = RigidSurfaceContact(x, V, F, slave_nodes=np.arange(6),
+                               slave_areas=rng.uniform(0.5, 1.5, 6), motion=motion,
+                               penalty=30.0, bilateral=bilateral, smooth=True,
+                               grid_spacing=0.2, search_radius=1.0, max_depth=1.0)
+    term.multipliers[:] = rng.uniform(0, 3, 6)
+    f, K = _fd_check(term, x, 0.7)
+    assert np.abs(f).max() > 0
+    assert np.allclose(K, K.T)
+
+
+def test_faceted_contact_tangent_near_a_reflex_edge():
+    """Nodes just inside an L-shaped (reflex-edged) body, whose closest features are the edge
+    and its end vertices: the distance to an edge line has no curvature along the edge."""
+    # an L-shaped prism: union of two boxes, built as one closed surface
+    lo1, hi1 = (0.0, 0.0, 0.0), (4.0, 1.0, 2.0)
+    V1, F1 = _box(lo1, hi1)
+    lo2, hi2 = (0.0, 0.0, 0.0), (1.0, 4.0, 2.0)
+    # nodes inside the first box near the reflex edge x = 1, y = 1 (along z) of the union
+    # are tested against the first box's top face and its edges: place them by the edge
+    pts = np.array([[1.0 - 0.003, 0.997, 1.0], [2.0, 0.996, 1.2], [3.997, 0.5, 1.997],
+                    [3.998, 0.998, 1.0]])
+    term = RigidSurfaceContact(pts, V1, F1, slave_nodes=np.arange(4),
+                               slave_areas=np.ones(4), penalty=50.0, max_depth=0.5)
+    g, n, reg, _ = term.gaps(pts, 1.0)
+    assert np.all(g < 0)
+    f, K = _fd_check(term, pts, 1.0)
+    assert np.abs(f).max() > 0
+    del lo2, hi2

@@ -63,3 +63,39 @@ def test_landmarks_in_another_frame_are_refused(case, tmp_path, capsys):
     rc = main(["register", str(bad), "--out", str(out), "--resolution", "coarse", "--no-images", "--no-cache"])
     err = capsys.readouterr().err
     assert rc == 2 and not out.exists(), err
+
+
+def test_command_registers_as_the_pipeline_does(case, tmp_path, monkeypatch):
+    """`faceplan register` goes through `planner.pipeline.register_case`: a prediction of the
+    same case then finds the very registration in the cache (same inputs, teeth and options),
+    and the report carries the lip separation (lips apart, before/after)."""
+    from planner.case import load_case
+    from planner.pipeline import Progress, register_case
+
+    monkeypatch.setenv("FACEPLAN_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "reg"
+    assert main(["register", str(case), "--out", str(out), "--resolution", "coarse", "--no-images"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    patient, summary = register_case(load_case(case), "coarse", Progress(echo=False))
+    assert summary["cached"] is True and summary["cache_key"] == rep["cache_key"]
+    from facemodel.model import FaceModel
+
+    # the saved mesh is the pipeline's mesh (vtu round trip in float64: exact)
+    np.testing.assert_array_equal(FaceModel.load(out / "patient_mesh.vtu").nodes, patient.nodes)
+    lips = rep["lip_separation"]
+    assert lips["after"]["lower_in_upper_mm"] == 0.0 and lips["after"]["upper_in_lower_mm"] == 0.0
+    # --no-cache registers afresh (a private cache for the call) and leaves the cache as it was
+    before = sorted(p.name for p in (tmp_path / "cache" / "registration").iterdir())
+    out2 = tmp_path / "reg2"
+    assert main(["register", str(case), "--out", str(out2), "--resolution", "coarse", "--no-images",
+                 "--no-cache", "--no-landmarks"]) == 0
+    rep2 = json.loads((out2 / "report.json").read_text())
+    assert rep2["cached"] is False and rep2["alignment"]["method"] == "surfaces"
+    assert sorted(p.name for p in (tmp_path / "cache" / "registration").iterdir()) == before
+
+
+def test_threshold_the_pipeline_cannot_apply_is_refused(case, tmp_path, capsys):
+    out = tmp_path / "out"
+    rc = main(["register", str(case), "--out", str(out), "--resolution", "coarse", "--threshold", "0.3"])
+    assert rc == 2 and not out.exists()
+    assert "--threshold" in capsys.readouterr().err

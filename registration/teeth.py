@@ -249,12 +249,13 @@ def escape_outward(arches: list[Arch], points: np.ndarray, clearance: float, cen
 
 def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.ndarray, *,
                 clearance: float = 0.2, threshold: float = 0.2, max_rounds: int = 8,
-                tol: float = 0.01, away: np.ndarray | None = None):
+                tol: float = 0.01, away: np.ndarray | None = None, reach: float = 20.0):
     """Move movable nodes to at least `clearance` mm outside every arch (module docstring).
 
     `fixed`: nodes that never move (skin, attached); `away` (n, 3): optional per-node
     directions a push must not go against (zero rows: any; the lip-surface nodes, kept from
-    moving into the other lip). Returns (new nodes, report)."""
+    moving into the other lip); nodes farther than `reach` mm from the arches' bounding boxes
+    are held. Returns (new nodes, report)."""
     hexes = np.asarray(hexes)
     x = np.array(x, dtype=float)
     n = len(x)
@@ -268,6 +269,9 @@ def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.
     def measure(points_ids):
         return union_distance(arches, x[points_ids], clearance + 1.0)[0]
 
+    # the tissue that follows the pushes: nodes within `reach` mm of an arch's bounding box
+    # (the rest is held, so that each round solves a small system)
+    far = ~np.any([a.near(x, reach) for a in arches], axis=0)
     all_ids = np.arange(n)
     sd0 = measure(all_ids)
     inside0 = sd0 < 0.0
@@ -287,7 +291,7 @@ def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.
                                 away=None if away is None else away[push_ids])
         held[push_ids] = True
         # held nodes keep their place (zero displacement) unless pushed again in this round
-        dirichlet = np.flatnonzero(held | ~movable)
+        dirichlet = np.flatnonzero(held | ~movable | far)
         values = np.zeros((len(dirichlet), 3))
         pos = np.searchsorted(dirichlet, push_ids)
         values[pos] = target - x[push_ids]

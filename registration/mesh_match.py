@@ -335,6 +335,8 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         t7 = time.perf_counter()
         attached = np.concatenate([np.asarray(i, np.int64) for i in model.bone_node_sets.values()]
                                   or [np.zeros(0, np.int64)])
+        # landmark nodes placed on given landmarks stay there (the other lip moves instead)
+        attached = np.union1d(attached, np.asarray(landmark_report["nodes"] if landmark_report else [], np.int64))
         up, low = model.lip_quads
         lip_before = lip_overlap(x, up, low)
         passes = []

@@ -271,12 +271,20 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
                 f"|R| {rec['residual_norm']:.3e} (rel {rec['relative_residual']:.2e}) "
                 f"|du| {rec['displacement_norm']:.3e} ls {rec['line_search']:.2g}")
 
+    # Damping: no free node moves more than a quarter of the contact facets' size in one
+    # Newton iteration (contact switching on can make an undamped update overshoot)
+    max_inc = None
+    if terms:
+        lips = [np.asarray(model.facet_sets[k], dtype=np.int64) for k in
+                ("lip_upper_contact", "lip_lower_contact") if len(model.facet_sets.get(k, ()))]
+        max_inc = 0.25 * (_typical_size(X, np.vstack(lips)) if lips else 2.0)
     t0 = time.perf_counter()
     # Convergence: relative residual 1e-6 and energy ratio 1e-8 (FEBio's defaults are looser,
     # rtol 0 / etol 1e-2 / dtol 1e-3): node-to-surface contact near facet edges has a
     # clamped curvature term, so the last digits converge linearly, not quadratically.
     res = newton_solve(body, constraints, list(terms.values()), steps=n_steps,
                        max_iterations=max_iterations, max_retries=20, callback=callback,
+                       max_increment=max_inc,
                        rtol=1e-6, etol=1e-8)
     elapsed = time.perf_counter() - t0
     x = res.x

@@ -191,7 +191,8 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
                  step_callback=None, mixed: bool = True, linear_strategy: str = "auto",
                  krylov_rtol: float = 1e-8, krylov_maxiter: int = 10, krylov_forcing: float = 1e-2,
                  lagged_min_dofs: int = 20000, krylov_refactor: int = 8,
-                 krylov_precision: str = "single", predictor: str = "auto") -> NewtonResult:
+                 krylov_precision: str = "single", predictor: str = "auto",
+                 max_increment: float | None = None) -> NewtonResult:
     """Solve the static equilibrium of `body` from load fraction 0 to 1.
 
     body: `solver.mechanics.SolidBody`; constraints: `Prescribed` / `LocalFrame` list;
@@ -228,6 +229,9 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     after a cut-back), which saves about one Newton iteration per step on smooth load paths;
     "auto" takes "secant" with the lagged strategy when no extra terms (contact...) are
     given, "tangent" otherwise.
+    max_increment: if given (mm), a Newton update that would move some free node farther is
+    scaled down to that length (damped Newton far from the solution, e.g. when contact
+    switches on; near the solution updates are small and the full step is taken).
     """
     mesh = body.mesh
     X = mesh.nodes
@@ -240,6 +244,10 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
         if external.shape != (3 * n,):
             raise ValueError(f"external must have shape ({3 * n},), got {external.shape}")
     system = _System(body, cons, terms, external)
+    system.max_increment = None if max_increment is None else float(max_increment)
+    held = np.zeros(n, dtype=bool)
+    held[np.asarray(cons.dofs, dtype=np.int64) // 3] = True
+    system.free_nodes = np.nonzero(~held)[0]
     if linear_strategy not in ("auto", "exact", "lagged"):
         raise ValueError(f"linear_strategy must be 'auto', 'exact' or 'lagged', got {linear_strategy!r}")
     if linear_strategy == "auto":
@@ -461,6 +469,15 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
                 and _norm(r[free]) <= 10.0 * np.sqrt(rtol) * max(ev.force_scale, 1e-300))
         # line search: halve on invalid states, then secant on g(s) = du . r(x + s du)
         s = 1.0
+        if system.max_increment is not None:
+            # step-length limiter: no node moves more than max_increment in one iteration
+            # (a damped Newton step far from the solution; near it the full step is taken)
+            # (measured on the free nodes: prescribed increments are part of the load)
+            d2 = np.einsum("ij,ij->i", du, du)[system.free_nodes]
+            biggest = float(np.sqrt(np.max(d2, initial=0.0)))
+            if biggest > system.max_increment:
+                s = system.max_increment / biggest
+                lazy = False
         for _ in range(12):
             if snap is not None:
                 system.body.mixed_update(snap, s * du)

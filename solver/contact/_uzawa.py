@@ -4,7 +4,8 @@ At a converged load step a contact term asks for another solve of the same step 
 active set changed or, with augmentation, when the penetration still exceeds the tolerance
 (Laursen, *Computational Contact and Impact Mechanics*, 2002, ch. 5: multipliers
 lambda <- lambda + eps g after each converged solve). The count restarts at every new load and
-is bounded, so a step never loops for ever.
+is bounded, so a step never loops for ever. By default only the final load step is augmented
+down to the tolerance (intermediate steps are re-solved only for a wrong contact status).
 """
 from __future__ import annotations
 
@@ -12,8 +13,9 @@ from __future__ import annotations
 class UzawaLoop:
     """Decides whether a converged step needs another augmented solve."""
 
-    def __init__(self, max_augmentations: int):
+    def __init__(self, max_augmentations: int, final_only: bool = True):
         self.max_augmentations = int(max_augmentations)
+        self.final_only = bool(final_only)
         self.count = 0
         self._load = None
 
@@ -22,8 +24,12 @@ class UzawaLoop:
         if load != self._load:                      # a new step: restart the count
             self._load = load
             self.count = 0
+        # with `final_only`, intermediate load steps keep the penalty solution (their
+        # penetration does not matter; the multipliers carry on): augmented solves are spent
+        # on the final state only
+        intermediate = self.final_only and load < 1.0 - 1e-9
         if self.count >= self.max_augmentations or \
-                (not status_changed and (not augmented or error <= tolerance)):
+                (not status_changed and (not augmented or error <= tolerance or intermediate)):
             self.count = 0
             return False
         self.count += 1

@@ -192,7 +192,8 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
                  krylov_rtol: float = 1e-8, krylov_maxiter: int = 10, krylov_forcing: float = 1e-2,
                  lagged_min_dofs: int = 20000, krylov_refactor: int = 8,
                  krylov_precision: str = "single", predictor: str = "auto",
-                 max_increment: float | None = None) -> NewtonResult:
+                 max_increment: float | None = None,
+                 stall_iterations: int | None = None) -> NewtonResult:
     """Solve the static equilibrium of `body` from load fraction 0 to 1.
 
     body: `solver.mechanics.SolidBody`; constraints: `Prescribed` / `LocalFrame` list;
@@ -232,6 +233,8 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     max_increment: if given (mm), a Newton update that would move some free node farther is
     scaled down to that length (damped Newton far from the solution, e.g. when contact
     switches on; near the solution updates are small and the full step is taken).
+    stall_iterations: if given, a step whose residual has not fallen below a tenth of its
+    first iteration's after that many iterations is cut back at once (no progress).
     """
     mesh = body.mesh
     X = mesh.nodes
@@ -245,6 +248,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
             raise ValueError(f"external must have shape ({3 * n},), got {external.shape}")
     system = _System(body, cons, terms, external)
     system.max_increment = None if max_increment is None else float(max_increment)
+    system.stall_iterations = None if not stall_iterations else int(stall_iterations)
     held = np.zeros(n, dtype=bool)
     held[np.asarray(cons.dofs, dtype=np.int64) // 3] = True
     system.free_nodes = np.nonzero(~held)[0]
@@ -565,6 +569,13 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
             return True, x, info
         if it >= 4 and rn > 1e6 * max(min(rnorm_hist[:3]), 1e-300):
             info["reason"] = "residual diverges"
+            return False, x, info
+        # no progress: after `stall_iterations` iterations the residual has never fallen to a
+        # tenth of the first one (Newton wanders, e.g. contact switching within too large a
+        # step); cutting back now saves the remaining iterations of a lost step
+        stall = system.stall_iterations
+        if stall and it >= stall and min(rnorm_hist) > 0.1 * rnorm_hist[0]:
+            info["reason"] = f"no progress in {it} iterations (|R| = {rn:.3e})"
             return False, x, info
         if A is None:               # evaluated without the tangent and not converged
             ev, r, A, cpl = system.evaluate(x, target, targets=targets)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from solver.contact import (RigidSurfaceContact, SurfaceContact, TriangleSurface,
-                            closest_point_on_triangles, plane_gap, ramped_rigid_motion)
+                            closest_point_on_triangles, plane_gap)
 
 
 def test_closest_point_on_triangles_matches_dense_sampling():
@@ -109,21 +109,23 @@ def _fd_check(term, x, load, h=1e-6):
     return f, K
 
 
+@pytest.mark.parametrize("smooth", [False, True])
 @pytest.mark.parametrize("bilateral", [False, True])
-def test_rigid_contact_force_and_tangent_are_consistent(bilateral):
-    V, F = _sphere(2.0, 2)
+def test_rigid_contact_force_and_tangent_are_consistent(bilateral, smooth):
+    """Faceted gap, or the spline signed distance (`smooth`) under a 90 deg rotation."""
+    V, F = _sphere(2.0, 3 if smooth else 2)
     rng = np.random.default_rng(3)
     d = rng.standard_normal((6, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    x = d * rng.uniform(1.7, 2.1, 6)[:, None]
-    T = np.eye(4)
-    T[:3, :3] = ramped_rigid_motion(np.block([[np.eye(3), np.zeros((3, 1))],
-                                              [np.zeros((1, 3)), 1]]), 1)[:3, :3]
+    x = d * rng.uniform(1.8 if smooth else 1.7, 2.1, 6)[:, None]
     motion = np.eye(4)
+    if smooth:
+        motion[:3, :3] = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
     motion[:3, 3] = [0.1, -0.05, 0.02]
+    grid = dict(smooth=True, grid_spacing=0.2, search_radius=1.0, max_depth=1.0) if smooth else {}
     term = RigidSurfaceContact(x, V, F, slave_nodes=np.arange(6),
                                slave_areas=rng.uniform(0.5, 1.5, 6), motion=motion,
-                               penalty=30.0, bilateral=bilateral)
+                               penalty=30.0, bilateral=bilateral, **grid)
     term.multipliers[:] = rng.uniform(0, 3, 6)
     f, K = _fd_check(term, x, 0.7)
     assert np.abs(f).max() > 0

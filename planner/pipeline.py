@@ -528,9 +528,10 @@ def _file_digest(path: Path) -> str:
     return h.hexdigest()[:16]
 
 
-def register_case(case, resolution: str, progress: Progress):
+def register_case(case, resolution: str, progress: Progress, threshold: float | None = None):
     """The generic model of `resolution` registered onto the case (Mesh-Match-and-Repair; the
-    registration caches its result by input hash, so a re-run reuses it)."""
+    registration caches its result by input hash, so a re-run reuses it). threshold: the
+    repair's scaled-Jacobian threshold (None: the registration's default, 0.2)."""
     import generic_mesh
     import registration
     from registration import errors as reg_errors
@@ -539,7 +540,7 @@ def register_case(case, resolution: str, progress: Progress):
     try:
         patient, reg_report = registration.mesh_match_and_repair(
             generic, case.skin, case.bones, landmarks=case.landmarks or None,
-            teeth=case.teeth or None)
+            teeth=case.teeth or None, threshold=threshold)
     except (InputError, SolveError):
         raise
     except reg_errors.RegistrationInputError as exc:

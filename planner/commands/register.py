@@ -65,9 +65,7 @@ def register(case_dir, *, resolution: str = "standard", threshold: float = DEFAU
 
     Without landmarks the case is registered with its landmarks left out; without the cache the
     registration's cache ($FACEPLAN_CACHE) points at a fresh folder for this call, so nothing is
-    reused. `register_case` takes no scaled-Jacobian threshold: it registers with the
-    registration's default (0.2); another value is refused rather than silently ignored."""
-    import inspect
+    reused. threshold: the repair's scaled-Jacobian threshold."""
     import os
     import tempfile
     from dataclasses import replace
@@ -77,13 +75,7 @@ def register(case_dir, *, resolution: str = "standard", threshold: float = DEFAU
 
     if not 0.0 < threshold < 1.0:
         raise InputError("--threshold must be in (0, 1)", field="--threshold")
-    extra = {}
-    if threshold != DEFAULT_THRESHOLD:
-        if "threshold" not in inspect.signature(register_case).parameters:
-            raise InputError(f"--threshold {threshold:g}: the prediction pipeline registers with the "
-                             f"default scaled-Jacobian threshold {DEFAULT_THRESHOLD:g} only",
-                             field="--threshold")
-        extra["threshold"] = threshold
+    extra = {} if threshold == DEFAULT_THRESHOLD else {"threshold": threshold}
     case = load_case(case_dir)
     if not use_landmarks:
         case = replace(case, landmarks={})

@@ -94,8 +94,22 @@ def test_command_registers_as_the_pipeline_does(case, tmp_path, monkeypatch):
     assert sorted(p.name for p in (tmp_path / "cache" / "registration").iterdir()) == before
 
 
-def test_threshold_the_pipeline_cannot_apply_is_refused(case, tmp_path, capsys):
+def test_a_stricter_threshold_is_applied(case, tmp_path, monkeypatch):
+    """--threshold 0.3 reaches the repair through the pipeline's register_case: every element
+    of the written mesh has a scaled Jacobian of at least 0.3."""
+    from facemodel.model import FaceModel
+    from registration.quality import min_scaled_jacobian
+
+    monkeypatch.setenv("FACEPLAN_CACHE", str(tmp_path / "cache"))
     out = tmp_path / "out"
-    rc = main(["register", str(case), "--out", str(out), "--resolution", "coarse", "--threshold", "0.3"])
+    assert main(["register", str(case), "--out", str(out), "--resolution", "coarse",
+                 "--no-images", "--threshold", "0.3"]) == 0
+    model = FaceModel.load(out / "patient_mesh.vtu")
+    assert min_scaled_jacobian(model.nodes, model.hexes).min() >= 0.3 - 1e-9
+
+
+def test_threshold_outside_0_1_is_refused(case, tmp_path, capsys):
+    out = tmp_path / "out"
+    rc = main(["register", str(case), "--out", str(out), "--resolution", "coarse", "--threshold", "1.5"])
     assert rc == 2 and not out.exists()
     assert "--threshold" in capsys.readouterr().err

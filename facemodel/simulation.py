@@ -242,12 +242,13 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             constraints.append(Prescribed(tied, _rigid_displacement(X[tied], T)))
 
     # --- contact: lips against each other, lip mucosa against the teeth
+    lip_size = None
     if contact:
         fs = model.facet_sets
         up = np.asarray(fs.get("lip_upper_contact", np.zeros((0, 4))), dtype=np.int64)
         lo = np.asarray(fs.get("lip_lower_contact", np.zeros((0, 4))), dtype=np.int64)
         if len(up) and len(lo):
-            h = _typical_size(X, np.vstack([up, lo]))
+            h = lip_size = _typical_size(X, np.vstack([up, lo]))
             mu = _local_shear_modulus(model, by_label, np.vstack([up, lo]))
             terms["lip_contact"] = SurfaceContact(
                 X, up, lo, penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
@@ -273,11 +274,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
 
     # Damping: no free node moves more than a quarter of the contact facets' size in one
     # Newton iteration (contact switching on can make an undamped update overshoot)
-    max_inc = None
-    if terms:
-        lips = [np.asarray(model.facet_sets[k], dtype=np.int64) for k in
-                ("lip_upper_contact", "lip_lower_contact") if len(model.facet_sets.get(k, ()))]
-        max_inc = 0.25 * (_typical_size(X, np.vstack(lips)) if lips else 2.0)
+    max_inc = 0.25 * (lip_size or 2.0) if terms else None
     t0 = time.perf_counter()
     # Convergence: relative residual 1e-6 and energy ratio 1e-8 (FEBio's defaults are looser,
     # rtol 0 / etol 1e-2 / dtol 1e-3): node-to-surface contact near facet edges has a

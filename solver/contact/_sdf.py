@@ -179,7 +179,6 @@ class SignedDistanceGrid:
         phi = phi.reshape(shape)
         self._sign_far_regions(phi, best.reshape(shape) >= 0)
         self.coefficients = ndimage.spline_filter(phi, order=3, mode="mirror")
-        self.samples = phi
 
     def _sign_far_regions(self, phi, in_band):
         """Far nodes take -band inside the surface: each connected far region gets the

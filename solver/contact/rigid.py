@@ -93,8 +93,9 @@ class RigidSurfaceContact:
         self.surface = TriangleSurface(vertices, faces)
         self.grid = None
         if smooth:
-            band = min(search_radius, 50.0) + (min(max_depth, 50.0) if np.isfinite(max_depth)
-                                               else search_radius)
+            # exact distances wherever a gap can be used: search radius outside, depth inside
+            depth = max_depth if np.isfinite(max_depth) else search_radius
+            band = min(search_radius + depth, 100.0)
             self.grid = SignedDistanceGrid(self.surface, band=band, spacing=grid_spacing)
         self._hess = None
         self.motion = motion

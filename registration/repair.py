@@ -142,21 +142,26 @@ def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h):
 
 def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
                 constraints: list[SurfaceConstraint] = (), fixed: np.ndarray | None = None,
-                margin: float = 0.1, rings: int = 1, max_rounds: int = 8, mu: float = 1e-4):
+                margin: float = 0.1, rings: int = 1, max_rounds: int = 8, mu: float = 1e-4,
+                stall_rounds: int = 3):
     """Relocate nodes until every element's minimum scaled Jacobian is >= threshold.
 
     Returns (new nodes, report dict). Nodes in a constraint stay on its surface (to the
-    closest-point precision); `fixed` nodes never move."""
+    closest-point precision); `fixed` nodes never move. The search gives up early when
+    `stall_rounds` rounds in a row neither reduce the number of elements below the threshold
+    nor raise the worst of them (fixed nodes that make the threshold unreachable: a caller
+    then retries with fewer of them fixed)."""
     hexes = np.asarray(hexes)
     x = np.array(nodes, dtype=float)
     fixed = np.zeros(0, int) if fixed is None else np.asarray(fixed, int)
-    before = quality_summary(x, hexes, threshold)
     q = min_scaled_jacobian(x, hexes)
+    before = quality_summary(x, hexes, threshold, q=q)
     bad0 = np.flatnonzero(q < threshold)
     inc = node_element_incidence(len(x), hexes)
     h = float(np.median(np.linalg.norm(x[hexes[:, 1]] - x[hexes[:, 0]], axis=1))) or 1.0
     moved = np.zeros(len(x), bool)
-    rounds = 0
+    rounds, stalled = 0, 0
+    best = (len(bad0), float(q.min()) if len(q) else 1.0)
     for rounds in range(1, max_rounds + 1):
         bad = np.flatnonzero(q < threshold)
         if len(bad) == 0:
@@ -175,8 +180,16 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
             if len(on):
                 x[on] = con.surface.closest(x[on]).points
         moved[free] = True
-        q = min_scaled_jacobian(x, hexes)
-    after = quality_summary(x, hexes, threshold)
+        # only the elements around the free nodes changed
+        q[patch_elems] = min_scaled_jacobian(x, hexes[patch_elems])
+        now = (int(np.sum(q < threshold)), float(q.min()))
+        if now[0] < best[0] or now[1] > best[1] + 1e-3:
+            best, stalled = (min(now[0], best[0]), max(now[1], best[1])), 0
+        else:
+            stalled += 1
+            if stalled >= stall_rounds:
+                break
+    after = quality_summary(x, hexes, threshold, q=q)
     report = {
         "threshold": float(threshold),
         "elements_needing_repair": int(len(bad0)),

@@ -2,13 +2,15 @@
 
 `RigidSurfaceContact`: nodes against a rigid triangulated surface moving with a prescribed
 rigid motion (unilateral contact, or bilateral sliding on the surface). `SurfaceContact`:
-two-pass node-to-segment contact between deformable facet sets. Both follow the `Term`
-protocol of `solver.terms`.
+two-pass node-to-segment contact between deformable facet sets. `SegmentContact`:
+two-half-pass Gauss-point-to-segment contact between deformable facet sets (passes the contact
+patch test on non-matching meshes). All follow the `Term` protocol of `solver.terms`.
 """
 from solver.contact._geometry import (TriangleSurface, closest_point_on_triangles, nodal_areas,
                                       plane_gap, triangulate)
 from solver.contact.rigid import RigidSurfaceContact, ramped_rigid_motion
+from solver.contact.segment import SegmentContact, facet_quadrature
 from solver.contact.surface import SurfaceContact
 
-__all__ = ["RigidSurfaceContact", "SurfaceContact", "TriangleSurface", "ramped_rigid_motion",
-           "closest_point_on_triangles", "nodal_areas", "plane_gap", "triangulate"]
+__all__ = ["RigidSurfaceContact", "SegmentContact", "SurfaceContact", "TriangleSurface",
+           "ramped_rigid_motion", "facet_quadrature", "closest_point_on_triangles", "nodal_areas", "plane_gap", "triangulate"]

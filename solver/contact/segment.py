@@ -562,18 +562,26 @@ class SegmentContact:
         return worst
 
     def contact_pressure(self, x):
-        """Per pass: (slave node ids, pressure kPa) at x, the Gauss-point pressures projected
-        on the slave nodes (lumped L2: sum w p N_a / sum w N_a)."""
+        """Per surface (a, then b): (node ids, pressure kPa) at x, the normal contact force
+        the body receives at each node (both passes) over the node's lumped area
+        sum_g w N_a: -f . n_a / A_a, n_a the area-weighted outward node normal. For two half
+        passes this is the slave Gauss-point pressure projected on the nodes (lumped L2)."""
+        x = np.asarray(x, dtype=float)
+        f = self.contact_forces(x)
         res = []
-        for ps, s, g, n, dg, dn, H, lam, p, a in self._evaluate(x, derivatives=False):
-            num = np.zeros(self.n_nodes)
-            den = np.zeros(self.n_nodes)
-            pp = np.zeros(len(ps.weights))
-            pp[s] = p
-            np.add.at(num, ps.point_nodes.ravel(), (ps.weights[:, None] * ps.N
-                                                    * pp[:, None]).ravel())
-            np.add.at(den, ps.point_nodes.ravel(), (ps.weights[:, None] * ps.N).ravel())
-            res.append((ps.slaves, num[ps.slaves] / np.maximum(den[ps.slaves], 1e-300)))
+        for ps in self.passes:
+            xg, ng = ps.points(x)
+            area = np.bincount(ps.point_nodes.ravel(), (ps.weights[:, None] * ps.N).ravel(),
+                               minlength=self.n_nodes)
+            nn = np.zeros((self.n_nodes, 3))
+            for c in range(3):
+                nn[:, c] = np.bincount(ps.point_nodes.ravel(), (ps.weights[:, None] * ps.N
+                                                               * ng[:, c:c + 1]).ravel(),
+                                       minlength=self.n_nodes)
+            nn = nn[ps.slaves]
+            nn /= np.maximum(np.linalg.norm(nn, axis=1, keepdims=True), 1e-300)
+            fn = -np.einsum("ki,ki->k", f[ps.slaves], nn)
+            res.append((ps.slaves, fn / np.maximum(area[ps.slaves], 1e-300)))
         return res
 
     def contact_forces(self, x):

@@ -101,12 +101,11 @@ def test_segment_contact_passes_the_patch_test_on_non_matching_meshes(formulatio
         + 0.5 * K * (lam - 1 / lam)
     assert szz.mean() == pytest.approx(expected, rel=1e-3)
     assert contact.penetration(res.x) < 1e-4
-    # the nodal contact pressures (Gauss-point pressures projected on the slave nodes) equal
-    # the stress: two half passes 1e-5 (measured 7e-9); symmetric 5 % (measured 0.35 % on
-    # the finer side, 2.2 % on the coarser: the multipliers of the over-constrained Gauss
-    # points carry the quadrature error of the master forces, the body stress does not)
+    # the nodal contact pressures (normal nodal contact force over lumped area, both sides)
+    # equal the stress: two half passes 1e-5 (measured 7e-9), symmetric 1 % (measured
+    # 0.085 %, the quadrature error of the master forces)
     for slaves, p in contact.contact_pressure(res.x):
-        assert np.allclose(p, -szz.mean(), rtol=5e-2 if formulation == "symmetric" else 1e-5)
+        assert np.allclose(p, -szz.mean(), rtol=1e-2 if formulation == "symmetric" else 1e-5)
 
 
 def test_hertz_line_contact_of_a_cylinder_on_a_rigid_plane():
@@ -160,3 +159,54 @@ def test_hertz_line_contact_of_a_cylinder_on_a_rigid_plane():
     assert p0_fit == pytest.approx(p0, rel=0.10)
     # the profile shape: rms deviation from the fitted Hertz profile below 3 % of p0
     assert np.sqrt(np.mean((p[use] - prof(xs[use], p0_fit, a_fit)) ** 2)) < 0.03 * p0
+
+
+def test_hertz_line_contact_of_a_cylinder_on_a_deformable_block_with_segment_contact():
+    """The Hertz cylinder cap (R = 50 mm) on a stiff deformable block (100 x the shear
+    modulus) whose contact facets (3 mm) are wider than the contact half-width (~2.2 mm):
+    segment-to-segment contact between non-matching surfaces, against Hertz with the
+    combined plane-strain modulus 1/E* = 1/(4 mu_1) + 1/(4 mu_2) (incompressible)."""
+    from scipy.optimize import curve_fit
+    R, W, H, mu, stiff = 50.0, 12.0, 12.0, 10.0, 100.0
+    fine = lambda t: 0.55 * t + 0.45 * t ** 3                  # cells grow away from x = 0
+    down = lambda t: t ** 1.8                                 # and away from the contact
+    cyl, hc = box((24, 1, 10), (W, 1.0, H), grading=(fine, None, down))
+    on_arc = lambda p: np.abs(p[:, 2] - (R - np.sqrt(R * R - p[:, 0] ** 2))) < 1e-9
+    cyl[:, 2] = (R - np.sqrt(R * R - cyl[:, 0] ** 2)) * (1 - cyl[:, 2] / H) + cyl[:, 2]
+    blk, hb = box((4, 1, 2), (W, 1.0, 2.0), origin=(0.0, 0.0, -2.0))
+    nodes = np.vstack([cyl, blk])
+    hexes = np.vstack([hc, hb + len(cyl)])
+    labels = np.r_[np.zeros(len(hc), int), np.ones(len(hb), int)]
+    body = SolidBody(HexMesh(nodes, hexes, labels),
+                     {0: NeoHooke(mu=mu, K=1000.0 * mu),
+                      1: NeoHooke(mu=stiff * mu, K=1000.0 * stiff * mu)})
+    arc = boundary_facets(hc)
+    arc = arc[np.all(on_arc(cyl)[arc], axis=1)]
+    contact = SegmentContact(nodes, arc, facets_on(blk, hb, 2, 0.0) + len(cyl), penalty=500.0,
+                             tolerance=1e-4, search_radius=0.5)
+    is_cyl = np.arange(len(nodes)) < len(cyl)
+    cons = [Prescribed(np.nonzero(is_cyl & (nodes[:, 2] > H - 1e-9))[0], [0.0, 0.0, -0.12],
+                       (2,)),
+            fix(np.nonzero(nodes[:, 2] < -2.0 + 1e-9)[0], (2,)),
+            fix(np.arange(len(nodes)), (1,)),
+            fix(np.nonzero(nodes[:, 0] < 1e-9)[0], (0,))]
+    res = newton_solve(body, cons, [contact], steps=3, max_retries=30)
+    fc = contact.contact_forces(res.x)
+    # action = reaction (symmetric formulation: exact)
+    assert fc[is_cyl, 2].sum() == pytest.approx(-fc[~is_cyl, 2].sum(), rel=1e-10)
+    P = 2.0 * fc[is_cyl, 2].sum()                        # both halves, per unit length
+    Estar = 4.0 * mu / (1.0 + 1.0 / stiff)
+    a = np.sqrt(4 * P * R / (np.pi * Estar))
+    p0 = 2 * P / (np.pi * a)
+    assert a / R < 0.1                                   # small-strain regime
+    slaves, p = contact.contact_pressure(res.x)[0]
+    xs = nodes[slaves, 0]
+    use = xs > 1e-9
+    prof = lambda x, p0f, af: p0f * np.sqrt(np.clip(1 - (x / af) ** 2, 0, None))
+    (p0_fit, a_fit), _ = curve_fit(prof, xs[use], p[use], p0=(p0, a))
+    # node spacing at the contact 0.275 mm = a/8: half-width 5 % (measured -1.8 %), peak
+    # pressure 5 % (measured +0.9 %; finite block 5.6 a wide instead of a half-space), profile
+    # rms 2 % of p0 (measured 0.3 %)
+    assert a_fit == pytest.approx(a, rel=0.05)
+    assert p0_fit == pytest.approx(p0, rel=0.05)
+    assert np.sqrt(np.mean((p[use] - prof(xs[use], p0_fit, a_fit)) ** 2)) < 0.02 * p0

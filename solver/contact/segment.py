@@ -1,33 +1,40 @@
-"""Segment-to-segment contact between deformable facet sets: two-half-pass Gauss-point-to-segment.
+"""Segment-to-segment contact between deformable facet sets: Gauss-point-to-segment (GPTS).
 
 Node-to-segment contact fails the contact patch test on non-matching meshes (Taylor &
-Papadopoulos 1991; Zavarise & De Lorenzis 2009): the pressure is sampled at slave nodes only
-and handed to the master nodes through the master shape functions, so a uniform pressure does
-not give the consistent nodal forces p * int N_A dA on either side. Here the contact traction
-is a field on each surface, sampled at Gauss points of every slave facet (n x n Gauss on
-bilinear quads, collapsed n x n Gauss on triangles, weights w = w_ref J_ref of the reference
-facet). Each Gauss point x_g = sum_a N_a(xi_g) x_a is paired with the nearest master triangle
-whose normal opposes the slave facet's (KD-tree on the current triangle centroids, rebuilt at
-every evaluation, as in `surface`); its gap g = (x_g - x_1) . n is the signed distance to the
-triangle's plane (`plane_gap`: exact gradient G and Hessian H in the 12 coordinates
-(x_g, x_1, x_2, x_3)); the traction is t = p n with p = <lambda - eps g> (kPa; penalty eps in
-kPa/mm, lambda the augmented-Lagrangian multiplier of the point). The forces follow the
-two-half-pass scheme of Sauer & De Lorenzis (2013, CMAME 253, 369-395; 2015, CMAME 295): both
-surfaces act as slave in turn and each pass applies the traction to its *slave* nodes only,
-f_a = -sum_g w_g p_g N_a(xi_g) G_s (G_s = dg/dx_g = n), the other body receiving its share from
-the other pass. The slave forces are integrated with the slave's own shape functions, so a
-uniform pressure on a flat interface gives exactly the consistent nodal forces on both
-bodies whatever the meshes: the contact patch test is passed on non-matching meshes, which the
-master-shape-function integration of a full pass (or a mortar projection onto triangulated
-masters) would not do for quad faces of hexahedra. The tangent of a half pass,
-K_a = sum_g w_g N_a [eps G_s (x) B^T G - p H_s B] (B maps the 21 (or 18) facet + triangle
-coordinates onto (x_g, x_1, x_2, x_3)), is exact for a fixed pairing and not symmetric; the
-Newton solver uses its symmetric part, which for two passes over the same interface is close
-to the whole (the two passes' coupling blocks are near transposes). The half-pass forces
-derive from no potential; `energy` returns the mean of the two full-pass penalty potentials
-sum_g w (p^2 - lambda^2) / (2 eps), which they approach as the passes agree. Pairing, status
-freezing (`freeze_after`), multiplier updates (Uzawa, lambda <- p) and the initial-penetration
-offset are those of `SurfaceContact`, per Gauss point.
+Papadopoulos 1991; Zavarise & De Lorenzis 2009): the pressure is sampled at the slave nodes and
+handed to the master through its shape functions, so a uniform pressure does not give the
+consistent nodal forces p int N_A dA of the hexahedra's bilinear faces. Here the traction is a
+field sampled at Gauss points of every slave facet (n x n Gauss on s x s sub-squares of each
+bilinear quad, collapsed Gauss on triangles; weights w = w_ref J_ref of the reference facet).
+Each point x_g = N_a(xi_g) x_a is projected (closest point, local Newton in numba) on the
+nearest master facet whose normal opposes the slave's, the master facet taken as the *bilinear*
+quad (or linear triangle) of the FE mesh, not split into triangles, so that the master forces
+are distributed with the same shape functions as the body's. Candidates come from one KD-tree
+query of the points against the current facet centroids. The gap g = (x_g - x_m(zeta)) . n
+(n the master normal at the projection) has the gradient dg = n . (dx_g - N_B dx_B) and a
+Hessian from the linearised projection (`facet_gap`; Laursen 2002, ch. 5; Wriggers 2006,
+ch. 4). The pressure is p = <lambda - eps g> (kPa; penalty eps in kPa/mm, augmented-Lagrangian
+multiplier lambda per point). Two formulations:
+* "symmetric" (default): the mean of two full passes (each surface the slave in turn, weight
+  1/2), potential E = sum_g w (p^2 - lambda^2) / (2 eps) / 2, forces -w p dg on slave and
+  master nodes, tangent w (eps dg (x) dg - p d2g): variationally consistent, symmetric (what the
+  solver's symmetric factorisation needs), momentum exact. The master forces are the master
+  shape functions sampled at slave Gauss points, exact only up to the quadrature of their kinks
+  across a non-matching slave facet: the patch test is passed to ~0.1 % with 2x2 Gauss on 2x2
+  sub-squares (the issue asks 1 %).
+* "two_half_pass" (Sauer & De Lorenzis 2013, CMAME 253; 2015, CMAME 295): each pass applies
+  the traction to its slave nodes only, f_a = -sum_g w p N_a n, the other body receiving its
+  share from the other pass: each body gets the traction integrated with its own shape
+  functions, so the patch test is passed to round-off on any meshes. The tangent
+  w N_a (eps n (x) dg - p dn) is exact but not symmetric and the forces derive from no
+  potential; the solver uses the symmetric part, so Newton converges linearly (about 1.5-2 x
+  the iterations of the symmetric form); `energy` is the symmetric form's potential.
+A mortar method (Puso & Laursen 2004) would pass the patch test exactly with a symmetric
+tangent too, at the price of polygon clipping and its linearisation; the GPTS forms reuse the
+point-wise gap machinery of the node-to-segment term. Pairing, status freezing
+(`freeze_after`), Uzawa updates (lambda <- p) and the initial-penetration offset are those of
+`SurfaceContact`, per Gauss point; `tolerance` bounds the Gauss points' penetration (facet
+corners between them may penetrate somewhat more on curved surfaces).
 """
 from __future__ import annotations
 
@@ -41,7 +48,25 @@ from solver.contact._uzawa import UzawaLoop
 __all__ = ["SegmentContact", "facet_quadrature"]
 
 
-def facet_quadrature(n: int, n_vertices: int, subdivisions: int = 1):
+def _composite_1d(n: int, m: int, rule: str):
+    """Points and weights on [-1, 1] of the n-point Gauss-Legendre or Gauss-Lobatto rule on
+    m equal sub-intervals (Lobatto end points shared by neighbours are merged)."""
+    if rule == "gauss":
+        t, wt = np.polynomial.legendre.leggauss(n)
+    elif rule == "lobatto" and n in (2, 3):
+        t, wt = (np.array([-1.0, 1.0]), np.array([1.0, 1.0])) if n == 2 else \
+            (np.array([-1.0, 0.0, 1.0]), np.array([1 / 3, 4 / 3, 1 / 3]))
+    else:
+        raise ValueError(f"quadrature rule must be 'gauss' (n >= 1) or 'lobatto' (n = 2, 3), "
+                         f"got {rule!r} with n = {n}")
+    c = np.arange(m)
+    tt = (-1.0 + (2.0 * c[:, None] + 1.0 + t[None, :]) / m).ravel()
+    ww = np.tile(wt / m, m)
+    pts, inv = np.unique(np.round(tt, 14), return_inverse=True)
+    return pts, np.bincount(inv, ww)
+
+
+def facet_quadrature(n: int, n_vertices: int, subdivisions: int = 1, rule: str = "gauss"):
     """Reference quadrature of a facet: (N (q, nv) shape functions, dN (q, nv, 2), w (q,)).
 
     Quads: n x n Gauss-Legendre on each of subdivisions x subdivisions equal sub-squares of
@@ -50,18 +75,16 @@ def facet_quadrature(n: int, n_vertices: int, subdivisions: int = 1):
     samples an integrand with kinks (the master shape functions seen from a non-matching
     slave facet) s^2 times more finely. Triangles: the n x n Gauss rule collapsed onto the unit
     triangle (Duffy), exact for polynomials of total degree 2n - 2; `subdivisions` splits the
-    triangle into s^2 similar ones.
+    triangle into s^2 similar ones. rule "lobatto" (quads, n = 2 or 3: composite trapezoid or
+    Simpson per direction) puts points on the facet's corners and edges, so that the contact
+    constraint is enforced at the nodes too (exact to degree 2n - 3 per direction).
     """
     if n < 1 or subdivisions < 1:
         raise ValueError(f"quadrature order and subdivisions must be >= 1, got {n}, "
                          f"{subdivisions}")
-    t, wt = np.polynomial.legendre.leggauss(n)
     m = int(subdivisions)
     if n_vertices == 4:
-        # sub-square c spans [-1 + 2c/m, -1 + 2(c+1)/m]
-        c = np.arange(m)
-        tt = (-1.0 + (2.0 * c[:, None] + 1.0 + t[None, :]) / m).ravel()
-        ww = np.tile(wt / m, m)
+        tt, ww = _composite_1d(n, m, rule)
         xi, eta = (a.ravel() for a in np.meshgrid(tt, tt, indexing="ij"))
         w = np.outer(ww, ww).ravel()
         sx = np.array([-1.0, 1.0, 1.0, -1.0])
@@ -71,6 +94,9 @@ def facet_quadrature(n: int, n_vertices: int, subdivisions: int = 1):
                        0.25 * sy * (1 + xi[:, None] * sx)], axis=2)
         return N, dN, w
     if n_vertices == 3:
+        if rule != "gauss":
+            raise ValueError("triangular facets take the 'gauss' quadrature rule only")
+        t, wt = np.polynomial.legendre.leggauss(n)
         s = 0.5 * (t + 1.0)
         ws = 0.5 * wt
         a, b = (v.ravel() for v in np.meshgrid(s, s, indexing="ij"))
@@ -258,14 +284,14 @@ def _inside(nv, zeta, tol):
 class _HalfPass:
     """Gauss points of one facet set against the facets of the other."""
 
-    def __init__(self, nodes, slave_facets, master_facets, order, subdivisions):
+    def __init__(self, nodes, slave_facets, master_facets, order, subdivisions, rule):
         slave_facets = np.asarray(slave_facets, dtype=np.int64)
         master_facets = np.asarray(master_facets, dtype=np.int64)
         for f in (slave_facets, master_facets):
             if f.ndim != 2 or f.shape[1] not in (3, 4):
                 raise ValueError(f"facets must be (k, 3) triangles or (k, 4) quads, got {f.shape}")
         nv = slave_facets.shape[1]
-        N, dN, w = facet_quadrature(order, nv, subdivisions)
+        N, dN, w = facet_quadrature(order, nv, subdivisions, rule)
         q = len(w)
         self.nv = nv
         self.facets = slave_facets
@@ -358,18 +384,23 @@ class SegmentContact:
     """Frictionless segment-to-segment contact between two deformable facet sets.
 
     nodes: (n, 3) reference coordinates. surface_a, surface_b: (k, 3|4) facets with outward
-    normals (right-hand rule), the same conventions as `SurfaceContact`; both always act as
-    slave in turn (two half passes). penalty: eps (kPa/mm, traction per unit gap).
-    quadrature: Gauss points per direction on each slave facet (2: exact for the patch test
-    on flat facets; more samples a curved gap field more finely). search_radius, max_depth,
-    tolerance (deepest penetration of a Gauss point accepted, mm), max_augmentations,
-    freeze_after and ignore_initial_penetration as in `SurfaceContact`.
+    normals (right-hand rule), the same conventions as `SurfaceContact`; both act as slave in
+    turn. formulation: "symmetric" (mean of two full passes: potential, symmetric tangent) or
+    "two_half_pass" (exact patch test, unsymmetric tangent); see the module docstring.
+    penalty: eps (kPa/mm, traction per unit gap: the same meaning as `SurfaceContact`'s, whose
+    nodal penalty is eps times the nodal area). quadrature, subdivisions, rule: n x n Gauss
+    ("gauss") or Gauss-Lobatto ("lobatto": points on the nodes too) points on s x s
+    sub-squares of each slave facet (default 2, 2, "gauss": 16 points per quad).
+    search_radius, max_depth, tolerance (deepest penetration of a Gauss point accepted, mm),
+    max_augmentations, freeze_after and ignore_initial_penetration as in `SurfaceContact`.
+    Results: `penetration(x)`, `contact_pressure(x)` (per surface: node ids, kPa),
+    `contact_forces(x)` ((n, 3) mN on the nodes), `initial_penetration`, `last_error`.
     """
 
     def __init__(self, nodes, surface_a, surface_b, *, penalty: float = 100.0,
                  augmented: bool = True, tolerance: float = 0.05, max_augmentations: int = 10,
                  search_radius: float = 2.0, max_depth: float = 2.0, quadrature: int = 2,
-                 subdivisions: int = 2,
+                 subdivisions: int = 2, rule: str = "gauss",
                  formulation: str = "symmetric", freeze_after: int | None = 4, ignore_initial_penetration: bool = True):
         nodes = np.asarray(nodes, dtype=float)
         if not penalty > 0:
@@ -383,8 +414,8 @@ class SegmentContact:
         # pass carries the whole traction of its slave side
         self.pass_weight = 0.5 if self.symmetric else 1.0
         self.n_nodes = len(nodes)
-        self.passes = [_HalfPass(nodes, surface_a, surface_b, quadrature, subdivisions),
-                       _HalfPass(nodes, surface_b, surface_a, quadrature, subdivisions)]
+        self.passes = [_HalfPass(nodes, surface_a, surface_b, quadrature, subdivisions, rule),
+                       _HalfPass(nodes, surface_b, surface_a, quadrature, subdivisions, rule)]
         self.penalty = float(penalty)
         self.augmented = bool(augmented)
         self.tolerance = float(tolerance)

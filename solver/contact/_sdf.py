@@ -25,7 +25,7 @@ import numba as nb
 import numpy as np
 from scipy import ndimage
 
-from solver.contact._geometry import TriangleSurface, closest_on_triangle
+from solver.contact._geometry import TriangleSurface, closest_on_triangle, closest_point_on_triangles
 
 __all__ = ["SignedDistanceGrid"]
 
@@ -168,11 +168,7 @@ class SignedDistanceGrid:
         p = lo + ijk * h
         face = best[near]
         tri = V[F[face]]
-        q = np.empty((len(near), 3))
-        region = np.empty(len(near), dtype=np.int64)
-        for m in range(len(near)):
-            q[m, 0], q[m, 1], q[m, 2], region[m] = closest_on_triangle(p[m], tri[m, 0],
-                                                                       tri[m, 1], tri[m, 2])
+        q, region = closest_point_on_triangles(p, tri[:, 0], tri[:, 1], tri[:, 2])
         sign = np.where(np.einsum("ij,ij->i", p - q, surf.pseudo_normal(face, region)) >= 0,
                         1.0, -1.0)
         phi[near] = sign * np.sqrt(dist2[near])

@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from solver.contact._uzawa import UzawaLoop
+from solver.contact._uzawa import MultiplierPredictor, UzawaLoop
 from solver.contact._geometry import facet_normals, nodal_areas, plane_gap, triangulate
 
 __all__ = ["SurfaceContact"]
@@ -150,11 +150,13 @@ class SurfaceContact:
         self.augmented = bool(augmented)
         self.tolerance = float(tolerance)
         self.uzawa = UzawaLoop(max_augmentations)
+        self.predictor = MultiplierPredictor(clip=True)
         self.search_radius = float(search_radius)
         self.max_depth = float(max_depth)
         self.last_error = 0.0
         self.freeze_after = freeze_after
         self._evals_load, self._evals = None, 0
+        self._resolve_load, self._resolved = None, []
         self.initial_penetration = 0.0
         if ignore_initial_penetration:
             for ps in self.passes:
@@ -192,6 +194,7 @@ class SurfaceContact:
         return self.freeze_after is not None and self._evals > self.freeze_after
 
     def assemble(self, x, load):
+        self._predict_multipliers(load)
         f = np.zeros(3 * self.n_nodes)
         rows, cols, vals = [], [], []
         frozen = self._frozen(load)
@@ -215,7 +218,17 @@ class SurfaceContact:
             K = sp.csr_matrix((n, n))
         return f, K
 
+    def _predict_multipliers(self, load):
+        """At the first evaluation of a new load step, extrapolate the multipliers."""
+        if not self.augmented:
+            return
+        lam = self.predictor.predict(load, np.concatenate([ps.multipliers for ps in self.passes]))
+        for ps, part in zip(self.passes, np.split(lam, np.cumsum([len(ps.slaves) for ps in
+                                                                  self.passes])[:-1])):
+            ps.multipliers = part
+
     def energy(self, x, load) -> float:
+        self._predict_multipliers(load)
         e = 0.0
         frozen = self.freeze_after is not None and load == self._evals_load \
             and self._evals > self.freeze_after
@@ -240,27 +253,47 @@ class SurfaceContact:
         before_active = [ps.active.copy() for ps in self.passes]
         was_frozen = self._evals_load == load and self.freeze_after is not None \
             and self._evals > self.freeze_after
+        frozen_q = []
+        if was_frozen:
+            # the contact forces of the frozen solve in gap units, (lambda - eps g) / eps, on
+            # the frozen pairing and active set
+            for ps, old, olda in zip(self.passes, before, before_active):
+                q = np.zeros(len(ps.slaves))
+                s = np.nonzero((old >= 0) & olda)[0]
+                if len(s):
+                    g = ps.evaluate_pairs(x, s, old[s], hessian=False)[2]
+                    q[s] = ps.multipliers[s] / (self.penalty * ps.areas[s]) - g
+                frozen_q.append(q)
+        if load != self._resolve_load:
+            self._resolve_load = load
+            self._resolved = [np.zeros(len(ps.slaves), dtype=bool) for ps in self.passes]
         self._evals_load, self._evals = None, 0
         ev = self._evaluate(x, hessian=False)
-        moved = False
-        if was_frozen:
-            # pairs (of nodes in contact) that the frozen solve kept but a fresh search
-            # assigns elsewhere: solve the step again with the new pairing
-            for (ps, s, g, grad, hess, dofs, eps, lam, p), old, olda in zip(ev, before,
-                                                                             before_active):
-                act = s[p > 0]
-                moved |= bool(np.any(old[act] != ps.previous[act]))
-                # status flips of grazing nodes (within the tolerance of the switch, in gap
-                # units) do not count, or they would cycle for ever
-                q = np.full(len(ps.slaves), np.inf)
-                q[s] = (lam - eps * g) / eps
-                moved |= bool(np.any((olda != ps.active) & (np.abs(q) > self.tolerance)))
+        changed = False
+        for (ps, s, g, grad, hess, dofs, eps, lam, p), q_old, done in zip(ev, frozen_q,
+                                                                           self._resolved):
+            # A frozen solve whose contact forces differ from those of a fresh search at the
+            # converged state (a status flip, or a node now over another triangle whose plane
+            # is elsewhere) by more than the tolerance, in gap units, is solved again. Grazing
+            # nodes (within the tolerance of the switch) do not count, and each node asks for
+            # this at most once per load step: a node over a convex crease between two
+            # triangles has no consistent pairing (the dead zone of node-to-segment contact,
+            # Wriggers 2006 sec. 9.1), it would alternate between them for ever; its
+            # penetration still counts below (augmentation)
+            q_new = np.zeros(len(ps.slaves))
+            q_new[s] = p / eps
+            off = (np.abs(q_new - q_old) > self.tolerance) & ~done
+            done |= off
+            changed |= bool(np.any(off))
         err = 0.0
         for ps, s, g, grad, hess, dofs, eps, lam, p in ev:
             if np.any(p > 0):
                 err = max(err, float(-g[p > 0].min()))
         self.last_error = err
-        if not self.uzawa.another_solve(load, moved, self.augmented, err, self.tolerance):
+        if not self.uzawa.another_solve(load, changed, self.augmented, err, self.tolerance):
+            if self.augmented:
+                self.predictor.accept(load, np.concatenate([ps.multipliers
+                                                            for ps in self.passes]))
             return False
         if not self.augmented:
             return True

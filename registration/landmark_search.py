@@ -1,0 +1,370 @@
+"""Anatomical landmarks located on the patient skin, for those the case does not give.
+
+The elastic registration carries the generic model's landmark nodes onto the patient skin but
+lets them slide along it (closest-point correspondences fix the normal offset left by the
+alignment, not the tangential one: several mm on the nose tip, the lips and the chin of a
+strong class II / III). Each soft-tissue landmark the case does not give is therefore found by
+its anatomical definition (Farkas, Anthropometry of the Head and Face, 1994; Swennen et al.,
+Three-Dimensional Cephalometry, 2006) on the patient skin near where the registration carried
+it, in the generic model's frame (x right, y anterior, z superior; the patient surface mapped
+back by the alignment similarity):
+
+* mid-sagittal plane near a landmark: x = the median of the midpoints of registered skin nodes
+  that are mirror images of each other on the symmetric generic mesh, within `MIDLINE_RADIUS`
+  of the carried landmark (a slide common to both sides cancels in the midpoint; the lower face
+  of an asymmetric head shifts sideways, and so does this plane);
+* sagittal profile: the patient skin cut by that plane (exact triangle-plane intersection,
+  chained along the cut edges into a polyline, oriented downwards);
+* pronasale (Prn): the most anterior profile point of the nose; labrale superius (Ls) and
+  inferius (Li): the most anterior points of the upper lip below subnasale and of the lower lip
+  above the labiomental fold; soft pogonion (Pog): the most anterior point of the chin below
+  the fold. Each maximum is refined by a parabola through the profile vertices within +-3 mm of
+  arc length of the best vertex (the scan's facets cut convex tips) and Li and Pog are taken on
+  their own local mid-sagittal plane;
+* subnasale (Sn) and the labiomental fold: the deepest points under the profile's anterior
+  convex hull edges (bitangents) that span the nasolabial and labiomental concavities;
+* stomion superius / inferius (Stms, Stmi): the ends of the lips at the mouth slit. A scan with
+  facets of a few mm bridges the step between an overhanging lip and the receding one by one
+  long facet (the profile's most horizontal segment near the mouth, |dy| > |dz|, at least
+  `BRIDGE_MIN_MM` long): the receding lip ends at the bridge's concave end; the overhanging
+  lip's end lies below the bridge's convex end, where that lip's profile, continued along its
+  last chord, reaches the level of the concave end -- the bridge point closest to that
+  continuation. Lips nearly flush show no bridge: the stomia then stay where the registration
+  carried them.
+Menton and the cheilia are left where the registration carried them (no feature of the scan
+defines them better: the chin's underside runs nearly straight into the submental contour; the
+mouth slit fades out towards its corners). The located landmarks are then handled as given ones
+(`registration.landmark_fit` moves the landmark nodes onto them).
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from registration.alignment import Similarity
+from registration.surface import TargetSurface
+
+MIDLINE_RADIUS = 15.0    # mm: mirror pairs around a landmark that place its mid-sagittal plane
+REFINE_HALF_WIDTH = 3.0  # mm of profile arc either side of a maximum fitted by a parabola
+# mm: skin vertices around a maximum fitted by a surface, about the size of the feature
+SUMMIT_RADIUS = {"Prn": 8.0, "Li": 8.0, "Pog": 10.0}
+BRIDGE_MIN_MM = 2.0      # mm: the shortest facet step between the lips taken as the mouth slit
+LOCATED = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "Pog")
+
+
+def mirror_pairs(nodes: np.ndarray, ids: np.ndarray, tol: float = 1e-3) -> np.ndarray:
+    """(k, 2) node ids (i, j) of `ids` mirror images of each other about x = 0 (i == j on the
+    plane), from the generic (symmetric) node positions."""
+    ids = np.asarray(ids, dtype=np.int64)
+    p = np.asarray(nodes, float)[ids]
+    d, j = cKDTree(p).query(p * [-1.0, 1.0, 1.0])
+    ok = (d < tol) & (np.arange(len(ids)) <= j)
+    return np.stack([ids[ok], ids[j[ok]]], axis=1)
+
+
+def local_midline(x: np.ndarray, pairs: np.ndarray, centre: np.ndarray,
+                  radius: float = MIDLINE_RADIUS) -> float:
+    """x of the mid-sagittal plane near `centre`: the median midpoint of the registered mirror
+    pairs within `radius` (the centre's own x when there is none)."""
+    if len(pairs) == 0:
+        return float(centre[0])
+    mid = 0.5 * (x[pairs[:, 0]] + x[pairs[:, 1]])
+    near = np.linalg.norm(mid - centre, axis=1) < radius
+    return float(np.median(mid[near, 0])) if near.any() else float(centre[0])
+
+
+def plane_cut(vertices: np.ndarray, faces: np.ndarray, x0: float) -> list[np.ndarray]:
+    """The surface cut by the plane x = x0: polylines (k, 3), each chained along the cut edges
+    (a closed loop repeats its first point at the end)."""
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces, np.int64)
+    d = v[:, 0] - x0
+    if np.any(np.abs(d) < 1e-9):  # no vertex exactly on the plane: every cut point is on an edge
+        x0 += 1e-6
+        d = v[:, 0] - x0
+    s = d[f] > 0
+    cut = s.any(axis=1) & ~s.all(axis=1)
+    fc = f[cut]
+    sc = s[cut]
+    # the two edges of each cut face whose ends lie on either side of the plane
+    edges = np.stack([fc[:, [0, 1]], fc[:, [1, 2]], fc[:, [2, 0]]], axis=1)      # (m, 3, 2)
+    crosses = np.stack([sc[:, 0] != sc[:, 1], sc[:, 1] != sc[:, 2], sc[:, 2] != sc[:, 0]], axis=1)
+    pair = edges[crosses].reshape(-1, 2, 2)                                       # (m, 2 edges, 2)
+    keys = np.sort(pair.reshape(-1, 2), axis=1)
+    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    a, b = v[uniq[:, 0]], v[uniq[:, 1]]
+    t = d[uniq[:, 0]] / (d[uniq[:, 0]] - d[uniq[:, 1]])
+    pts = a + t[:, None] * (b - a)
+    seg = inv.reshape(-1, 2)
+    n = len(uniq)
+    adj = sp.coo_matrix((np.ones(2 * len(seg)), (np.r_[seg[:, 0], seg[:, 1]], np.r_[seg[:, 1], seg[:, 0]])),
+                        shape=(n, n)).tocsr()
+    adj.data[:] = 1.0
+    deg = np.diff(adj.indptr)
+    visited = np.zeros(n, bool)
+    out = []
+    # open chains first (from one end), then the closed loops
+    for start in list(np.flatnonzero(deg == 1)) + list(range(n)):
+        if visited[start]:
+            continue
+        chain = [start]
+        visited[start] = True
+        cur = start
+        while True:
+            nxt = [k for k in adj.indices[adj.indptr[cur]:adj.indptr[cur + 1]] if not visited[k]]
+            if not nxt:
+                break
+            cur = nxt[0]
+            visited[cur] = True
+            chain.append(cur)
+        if deg[start] == 2 and len(chain) > 2 and start in adj.indices[adj.indptr[cur]:adj.indptr[cur + 1]]:
+            chain.append(start)
+        out.append(pts[chain])
+    return out
+
+
+def sagittal_profile(skin: TargetSurface, x0: float, centre: np.ndarray, radius: float) -> np.ndarray:
+    """The piece of the profile x = x0 through the point nearest `centre`, within `radius` of
+    it along the chain, ordered downwards (k, 3); empty when the plane misses the skin there."""
+    best, best_d = None, np.inf
+    for chain in plane_cut(skin.vertices, skin.faces, x0):
+        dist = np.linalg.norm(chain - centre, axis=1)
+        i = int(np.argmin(dist))
+        if dist[i] < best_d:
+            best, best_d, i0 = chain, dist[i], i
+    if best is None or best_d > radius:
+        return np.zeros((0, 3))
+    closed = len(best) > 2 and np.allclose(best[0], best[-1])
+    if closed:  # start the loop opposite the centre, so that the arc around it is contiguous
+        best = np.roll(best[:-1], len(best[:-1]) // 2 - i0, axis=0)
+        i0 = len(best) // 2
+    inside = np.linalg.norm(best - centre, axis=1) < radius
+    lo = i0
+    while lo > 0 and inside[lo - 1]:
+        lo -= 1
+    hi = i0
+    while hi < len(best) - 1 and inside[hi + 1]:
+        hi += 1
+    arc = best[lo:hi + 1]
+    if len(arc) > 1 and arc[0, 2] < arc[-1, 2]:
+        arc = arc[::-1]
+    return arc
+
+
+def _arc_length(p: np.ndarray) -> np.ndarray:
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+
+
+def _at(p: np.ndarray, s: np.ndarray, t: float) -> np.ndarray:
+    """The polyline point at arc length t."""
+    return np.array([np.interp(t, s, p[:, k]) for k in range(3)])
+
+
+def most_anterior(p: np.ndarray, lo: int = 0, hi: int | None = None) -> np.ndarray:
+    """The most anterior (max y) point of the profile between vertices lo and hi, refined by a
+    least-squares parabola y(s) of arc length s through the vertices within REFINE_HALF_WIDTH
+    of the best one, the window widened to reach at least one vertex 1 mm or more away on
+    either side (a scan's facets can leave a flat tip between two far vertices)."""
+    hi = len(p) - 1 if hi is None else hi
+    i = lo + int(np.argmax(p[lo:hi + 1, 1]))
+    s = _arc_length(p)
+    idx = np.arange(lo, hi + 1)
+    before, after = idx[s[idx] < s[i] - 1.0], idx[s[idx] > s[i] + 1.0]
+    left = min(s[i] - REFINE_HALF_WIDTH, s[before[-1]]) if len(before) else s[i]
+    right = max(s[i] + REFINE_HALF_WIDTH, s[after[0]]) if len(after) else s[i]
+    near = idx[(s[idx] >= left - 1e-9) & (s[idx] <= right + 1e-9)]
+    if len(before) and len(after) and len(near) >= 3:
+        a, b, _ = np.polyfit(s[near] - s[i], p[near, 1], 2)
+        if a < 0:
+            t = s[i] - b / (2.0 * a)
+            if s[near].min() <= t <= s[near].max():
+                return _at(p, s, t)
+    return p[i].copy()
+
+
+def anterior_summit(skin: TargetSurface, q: np.ndarray, z_range: tuple[float, float],
+                    radius: float) -> np.ndarray:
+    """The most anterior point of the skin around the profile maximum q: a least-squares
+    surface y = f(x, z), quadratic in x and cubic in z (a chin or nose tip bulges unevenly
+    above and below its summit), through the skin's vertices within `radius` of q and z in
+    `z_range` (the scan's vertices lie on the skin, its facets cut under a convex summit), its
+    maximum (Newton from q) projected onto the skin; q itself where the fit has no maximum in
+    the fitted region."""
+    v = skin.vertices
+    sel = (np.linalg.norm(v - q, axis=1) < radius) & (v[:, 2] >= z_range[0]) & (v[:, 2] <= z_range[1])
+    if sel.sum() < 10:
+        return q
+    dx, dz, y = v[sel, 0] - q[0], v[sel, 2] - q[2], v[sel, 1]
+    a = np.column_stack([np.ones_like(dx), dx, dz, dx * dx, dx * dz, dz * dz, dz**3])
+    c = np.linalg.lstsq(a, y, rcond=None)[0]
+    o = np.zeros(2)
+    for _ in range(20):
+        g = np.array([c[1] + 2 * c[3] * o[0] + c[4] * o[1],
+                      c[2] + c[4] * o[0] + 2 * c[5] * o[1] + 3 * c[6] * o[1] ** 2])
+        h = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5] + 6 * c[6] * o[1]]])
+        if np.any(np.linalg.eigvalsh(h) >= 0):
+            return q
+        step = np.linalg.solve(h, -g)
+        o = o + step
+        if np.linalg.norm(step) < 1e-6:
+            break
+    ox, oz = o
+    if not (dx.min() <= ox <= dx.max() and dz.min() <= oz <= dz.max()):
+        return q
+    y0 = c[0] + c[1] * ox + c[2] * oz + c[3] * ox**2 + c[4] * ox * oz + c[5] * oz**2 + c[6] * oz**3
+    return skin.closest(np.array([[q[0] + ox, y0, q[2] + oz]])).points[0]
+
+
+def deepest_under_bitangent(p: np.ndarray, lo: int, hi: int) -> int:
+    """On the profile arc p[lo..hi] (ordered downwards): the index of the point deepest behind
+    the anterior convex hull edge that spans the arc's deepest concavity."""
+    yz = p[:, 1:]
+    best, best_k = -1.0, lo
+    i = lo
+    while i < hi:
+        d = yz[i + 1:hi + 1] - yz[i]
+        j = i + 1 + int(np.argmax(np.arctan2(d[:, 0], -d[:, 1])))  # next anterior hull vertex
+        if j > i + 1:
+            chord = yz[j] - yz[i]
+            inward = np.array([-chord[1], chord[0]]) / np.linalg.norm(chord)
+            if inward[0] > 0:
+                inward = -inward
+            depth = (yz[i + 1:j] - yz[i]) @ inward
+            k = int(np.argmax(depth))
+            if depth[k] > best:
+                best, best_k = float(depth[k]), i + 1 + k
+        i = j
+    return best_k
+
+
+def _nearest_index(p: np.ndarray, q: np.ndarray) -> int:
+    return int(np.argmin(np.linalg.norm(p - q, axis=1)))
+
+
+def _closest_on_segment(a: np.ndarray, b: np.ndarray, q: np.ndarray) -> np.ndarray:
+    ab = b - a
+    t = float(np.clip(np.dot(q - a, ab) / max(np.dot(ab, ab), 1e-300), 0.0, 1.0))
+    return a + t * ab
+
+
+def mouth_slit(p: np.ndarray, centre: np.ndarray, reach: float = 7.0):
+    """(Stms, Stmi) on the profile near `centre` from the facets bridging the lips' step (module
+    docstring), or None when the profile shows no such step. The bridge is the run of
+    consecutive profile segments steeper in y than in z (|dy| >= 0.8 |dz|: the lips themselves
+    run mostly vertically) with the largest total |dy|, at least BRIDGE_MIN_MM, one of them
+    within `reach` of `centre`."""
+    if len(p) < 3:
+        return None
+    d = np.diff(p, axis=0)
+    mid = 0.5 * (p[1:] + p[:-1])
+    flat = np.abs(d[:, 1]) >= 0.8 * np.abs(d[:, 2])
+    sign = np.sign(d[:, 1])
+    best, best_dy = None, BRIDGE_MIN_MM
+    k = 0
+    while k < len(d):
+        if not flat[k]:
+            k += 1
+            continue
+        j = k
+        while j + 1 < len(d) and flat[j + 1] and sign[j + 1] == sign[k]:
+            j += 1
+        dy = abs(p[j + 1, 1] - p[k, 1])
+        if dy >= best_dy and np.min(np.linalg.norm(mid[k:j + 1] - centre, axis=1)) < reach:
+            best, best_dy = (k, j + 1), dy
+        k = j + 1
+    if best is None:
+        return None
+    ia, ib = best
+    a, b = p[ia], p[ib]
+    if b[1] < a[1] and ia > 0:
+        # the upper lip overhangs: the lower lip ends at the concave end b; the upper lip
+        # continues, hidden under the bridge, down to the level of b: its lowest point is where
+        # its last chord reaches that level, on the scan the bridge point closest to it
+        u = a - p[ia - 1]
+        if u[2] < -1e-9:
+            return _closest_on_segment(a, b, a + u * (b[2] - a[2]) / u[2]), b.copy()
+    # the lower lip protrudes: the upper lip ends at the concave end a, the lower lip's
+    # highest scanned point is the bridge's lower end b
+    return a.copy(), b.copy()
+
+
+def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carried: dict,
+                     wanted, frame: Similarity | None = None) -> tuple[dict, dict]:
+    """Landmarks of `wanted` (names) located on `skin` near their `carried` positions (name ->
+    (3,), the registered landmark nodes), x the registered nodes and `pairs` the mirror pairs
+    of skin nodes (`mirror_pairs`). `frame`: the similarity from the head's anatomical frame
+    (x right, y anterior, z superior) to the frame of the inputs, when they differ (the
+    directions "anterior" and "superior" of the definitions are the head's). Returns ({name:
+    (3,) point on the skin, in the inputs' frame}, report: per landmark the distance moved
+    from the carried position, and the ones not found)."""
+    if frame is not None:
+        inv = frame.inverse()
+        found, report = locate_landmarks(skin.transformed(inv.scale, inv.rotation, inv.translation),
+                                         inv.apply(x), pairs,
+                                         {k: inv.apply(np.asarray(v, float)) for k, v in carried.items()},
+                                         wanted)
+        for k in found:
+            found[k] = frame.apply(found[k])
+            report["located"][k]["moved_mm"] = float(np.linalg.norm(found[k] - carried[k]))
+        return found, report
+    wanted = [k for k in LOCATED if k in set(wanted) and k in carried]
+    c = {k: np.asarray(v, float) for k, v in carried.items()}
+    found: dict[str, np.ndarray] = {}
+    missing: list[str] = []
+
+    def profile(centre, radius):
+        return sagittal_profile(skin, local_midline(x, pairs, centre), centre, radius)
+
+    if not wanted:
+        return {}, {"located": {}, "not_found": []}
+    # pronasale and the mouth slit anchor the rest
+    prn, stms, stmi = c.get("Prn"), c.get("Stms"), c.get("Stmi")
+    if prn is not None:
+        p = profile(prn, 12.0)
+        if len(p) >= 3:
+            prn = most_anterior(p)
+            prn = anterior_summit(skin, prn, (-np.inf, np.inf), SUMMIT_RADIUS["Prn"])
+            found["Prn"] = prn
+    if stms is not None and stmi is not None:
+        mouth = 0.5 * (stms + stmi)
+        p = profile(mouth, 10.0)
+        slit = mouth_slit(p, mouth)
+        if slit is not None:
+            stms, stmi = slit
+            found["Stms"], found["Stmi"] = stms, stmi
+        elif len(p) >= 2:  # lips nearly flush: the carried stomia, on this profile
+            stms, stmi = p[_nearest_index(p, stms)], p[_nearest_index(p, stmi)]
+    # nasolabial concavity and upper lip: the profile arc from pronasale to stomion superius
+    if prn is not None and stms is not None and ("Sn" in wanted or "Ls" in wanted):
+        centre = 0.5 * (prn + stms)
+        p = profile(c.get("Ls", centre), 0.5 * np.linalg.norm(prn - stms) + 12.0)
+        if len(p) >= 4:
+            i0, i1 = _nearest_index(p, prn), _nearest_index(p, stms)
+            if i1 - i0 >= 3:
+                i_sn = deepest_under_bitangent(p, i0, i1)
+                found["Sn"] = p[i_sn].copy()
+                ls_ = most_anterior(p, i_sn, i1)
+                found["Ls"] = ls_
+    # lower lip, labiomental fold, chin: from stomion inferius down past the carried menton
+    if stmi is not None and ("Li" in wanted or "Pog" in wanted) and "Pog" in c:
+        low_end = c.get("Me", c["Pog"] + [0.0, -10.0, -10.0])
+        p = profile(c["Pog"], np.linalg.norm(stmi - low_end) + 10.0)
+        if len(p) >= 4:
+            i0, i1 = _nearest_index(p, stmi), _nearest_index(p, low_end)
+            if i1 - i0 >= 3:
+                i_fold = deepest_under_bitangent(p, i0, i1)
+                li, pog = most_anterior(p, i0, i_fold), most_anterior(p, i_fold, i1)
+                z_fold = p[i_fold, 2]
+                found["Li"] = anterior_summit(skin, li, (z_fold, p[i0, 2] - 0.5), SUMMIT_RADIUS["Li"])
+                found["Pog"] = anterior_summit(skin, pog, (p[i1, 2], z_fold), SUMMIT_RADIUS["Pog"])
+    out = {}
+    for k in wanted:
+        if k in found:
+            out[k] = found[k]
+        else:
+            missing.append(k)
+    report = {"located": {k: {"moved_mm": float(np.linalg.norm(out[k] - c[k]))} for k in out},
+              "not_found": missing}
+    return out, report

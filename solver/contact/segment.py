@@ -27,14 +27,15 @@ multiplier lambda per point). Two formulations:
   share from the other pass: each body gets the traction integrated with its own shape
   functions, so the patch test is passed to round-off on any meshes. The tangent
   w N_a (eps n (x) dg - p dn) is exact but not symmetric and the forces derive from no
-  potential; the solver uses the symmetric part, so Newton converges linearly (about 1.5-2 x
+  potential; the solver uses the symmetric part, so Newton converges linearly (about 2 x
   the iterations of the symmetric form); `energy` is the symmetric form's potential.
 A mortar method (Puso & Laursen 2004) would pass the patch test exactly with a symmetric
 tangent too, at the price of polygon clipping and its linearisation; the GPTS forms reuse the
 point-wise gap machinery of the node-to-segment term. Pairing, status freezing
 (`freeze_after`), Uzawa updates (lambda <- p) and the initial-penetration offset are those of
-`SurfaceContact`, per Gauss point; `tolerance` bounds the Gauss points' penetration (facet
-corners between them may penetrate somewhat more on curved surfaces).
+`SurfaceContact`, with the multipliers a field interpolated from the slave nodes (updated
+from the weighted nodal gaps, one constraint per node as in mortar methods; per Gauss point
+optionally).
 """
 from __future__ import annotations
 
@@ -346,11 +347,11 @@ class _HalfPass:
         best = np.full(len(xg), -1)
         if len(cand):
             zeta = self.project(xg[owner], self.master[cand], x)
-            ok = np.all(np.isfinite(zeta), axis=1) & (np.abs(zeta).max(axis=1) < 10.0)
-            cand, owner, zeta = cand[ok], owner[ok], zeta[ok]
-            g, nm, *_ = facet_gap(xg[owner], p[cand], zeta, derivatives=False)
             inside, margin = _inside(self.master.shape[1], zeta, inside_tol)
-            ok = inside & (np.einsum("ij,ij->i", ng[owner], nm) < cos_opposed) \
+            ok = inside & np.all(np.isfinite(zeta), axis=1)
+            cand, owner, zeta, margin = cand[ok], owner[ok], zeta[ok], margin[ok]
+            g, nm, *_ = facet_gap(xg[owner], p[cand], zeta, derivatives=False)
+            ok = (np.einsum("ij,ij->i", ng[owner], nm) < cos_opposed) \
                 & (g + self.offset[owner] > -max_depth) & (g + self.offset[owner] < radius)
             cand, owner, g, margin, zeta = cand[ok], owner[ok], g[ok], margin[ok], zeta[ok]
             # nearest facet, projections strictly inside preferred over those inside only
@@ -391,8 +392,14 @@ class SegmentContact:
     nodal penalty is eps times the nodal area). quadrature, subdivisions, rule: n x n Gauss
     ("gauss") or Gauss-Lobatto ("lobatto": points on the nodes too) points on s x s
     sub-squares of each slave facet (default 2, 2, "gauss": 16 points per quad).
-    search_radius, max_depth, tolerance (deepest penetration of a Gauss point accepted, mm),
-    max_augmentations, freeze_after and ignore_initial_penetration as in `SurfaceContact`.
+    nodal_multipliers: the augmented-Lagrangian multipliers form a field interpolated from the
+    slave nodes (Uzawa: lambda_a <- sum_g w N_a p_g / sum_g w N_a), one constraint per node
+    on its weighted gap sum_g w N_a g / sum_g w N_a (as mortar methods do), instead of one per
+    Gauss point (False), which over-constrains the surfaces: on curved non-matching lips the
+    point multipliers cannot zero every point's gap and the augmentations stall.
+    tolerance (mm): the deepest weighted nodal gap (or Gauss-point gap without nodal
+    multipliers) accepted. search_radius, max_depth, max_augmentations, freeze_after and
+    ignore_initial_penetration as in `SurfaceContact`.
     Results: `penetration(x)`, `contact_pressure(x)` (per surface: node ids, kPa),
     `contact_forces(x)` ((n, 3) mN on the nodes), `initial_penetration`, `last_error`.
     """
@@ -400,7 +407,7 @@ class SegmentContact:
     def __init__(self, nodes, surface_a, surface_b, *, penalty: float = 100.0,
                  augmented: bool = True, tolerance: float = 0.05, max_augmentations: int = 10,
                  search_radius: float = 2.0, max_depth: float = 2.0, quadrature: int = 2,
-                 subdivisions: int = 2, rule: str = "gauss",
+                 subdivisions: int = 2, rule: str = "gauss", nodal_multipliers: bool = True,
                  formulation: str = "symmetric", freeze_after: int | None = 4, ignore_initial_penetration: bool = True):
         nodes = np.asarray(nodes, dtype=float)
         if not penalty > 0:
@@ -409,6 +416,7 @@ class SegmentContact:
             raise ValueError(f"formulation must be 'symmetric' or 'two_half_pass', "
                              f"got {formulation!r}")
         self.formulation = formulation
+        self.nodal_multipliers = bool(nodal_multipliers)
         self.symmetric = formulation == "symmetric"
         # symmetric: the mean of the two full passes (each weighted 1/2); half passes: each
         # pass carries the whole traction of its slave side
@@ -570,7 +578,18 @@ class SegmentContact:
                 moved |= bool(np.any((olda != ps.active) & (np.abs(q) > self.tolerance)))
         err = 0.0
         for ps, s, g, n, dg, dn, H, lam, p, a in ev:
-            if np.any(a):
+            if not np.any(a):
+                continue
+            if self.nodal_multipliers:
+                # weighted (mortar-like) gap of every slave node over its active points
+                wa = ps.weights[s[a], None] * ps.N[s[a]]
+                num = np.bincount(ps.point_nodes[s[a]].ravel(), (wa * g[a, None]).ravel(),
+                                  minlength=self.n_nodes)
+                den = np.bincount(ps.point_nodes[s[a]].ravel(), wa.ravel(),
+                                  minlength=self.n_nodes)
+                has = den > 0
+                err = max(err, float(np.max(-num[has] / den[has])))
+            else:
                 err = max(err, float(-g[a].min()))
         self.last_error = err
         if not self.uzawa.another_solve(load, moved, self.augmented, err, self.tolerance):
@@ -580,6 +599,15 @@ class SegmentContact:
         for ps, s, g, n, dg, dn, H, lam, p, a in ev:
             new = np.zeros_like(ps.multipliers)
             new[s] = p
+            if self.nodal_multipliers:
+                # Uzawa on a nodal multiplier field: the point pressures projected on the slave
+                # nodes (lumped L2), interpolated back to the points
+                wN = ps.weights[:, None] * ps.N
+                num = np.bincount(ps.point_nodes.ravel(), (wN * new[:, None]).ravel(),
+                                  minlength=self.n_nodes)
+                den = np.bincount(ps.point_nodes.ravel(), wN.ravel(), minlength=self.n_nodes)
+                lam_nodes = num / np.maximum(den, 1e-300)
+                new = np.einsum("ka,ka->k", ps.N, lam_nodes[ps.point_nodes])
             ps.multipliers = new
         return True
 

@@ -308,7 +308,8 @@ class _HalfPass:
         self.master = master_facets
         self.start = np.array([0.0, 0.0]) if master_facets.shape[1] == 4 else np.array([1 / 3, 1 / 3])
         k = len(self.weights)
-        self.multipliers = np.zeros(k)          # kPa
+        self.multipliers = np.zeros(k)          # kPa, at the points
+        self.node_multipliers = np.zeros(len(nodes))   # kPa, nodal field (nodal_multipliers)
         self.offset = np.zeros(k)               # initial penetration ignored (mm)
         self.previous = np.full(k, -1)          # paired master facet, last search
         self.zeta = np.zeros((k, 2))            # its local coordinates, last evaluation
@@ -393,8 +394,8 @@ class SegmentContact:
     ("gauss") or Gauss-Lobatto ("lobatto": points on the nodes too) points on s x s
     sub-squares of each slave facet (default 2, 2, "gauss": 16 points per quad).
     nodal_multipliers: the augmented-Lagrangian multipliers form a field interpolated from the
-    slave nodes (Uzawa: lambda_a <- sum_g w N_a p_g / sum_g w N_a), one constraint per node
-    on its weighted gap sum_g w N_a g / sum_g w N_a (as mortar methods do), instead of one per
+    slave nodes (Uzawa: lambda_a <- <lambda_a - eps g_a>), one constraint per node on its
+    weighted gap g_a = sum_g w N_a g / sum_g w N_a (as mortar methods do), instead of one per
     Gauss point (False), which over-constrains the surfaces: on curved non-matching lips the
     point multipliers cannot zero every point's gap and the augmentations stall.
     tolerance (mm): the deepest weighted nodal gap (or Gauss-point gap without nodal
@@ -577,37 +578,40 @@ class SegmentContact:
                 q[s] = lam / self.penalty - g
                 moved |= bool(np.any((olda != ps.active) & (np.abs(q) > self.tolerance)))
         err = 0.0
+        updates = []
         for ps, s, g, n, dg, dn, H, lam, p, a in ev:
-            if not np.any(a):
-                continue
             if self.nodal_multipliers:
-                # weighted (mortar-like) gap of every slave node over its active points
-                wa = ps.weights[s[a], None] * ps.N[s[a]]
-                num = np.bincount(ps.point_nodes[s[a]].ravel(), (wa * g[a, None]).ravel(),
-                                  minlength=self.n_nodes)
-                den = np.bincount(ps.point_nodes[s[a]].ravel(), wa.ravel(),
-                                  minlength=self.n_nodes)
+                # weighted (mortar-like) gap of every slave node over its paired points,
+                # g_a = sum_g w N_a g / sum_g w N_a, and the nodal Uzawa update
+                # lambda_a <- <lambda_a - eps g_a>, interpolated back to the points
+                wN = ps.weights[s, None] * ps.N[s]
+                idx = ps.point_nodes[s].ravel()
+                num = np.bincount(idx, (wN * g[:, None]).ravel(), minlength=self.n_nodes)
+                den = np.bincount(idx, wN.ravel(), minlength=self.n_nodes)
                 has = den > 0
-                err = max(err, float(np.max(-num[has] / den[has])))
+                gap = np.zeros(self.n_nodes)
+                gap[has] = num[has] / den[has]
+                lam_nodes = np.where(has, np.maximum(ps.node_multipliers - self.penalty * gap,
+                                                     0.0), 0.0)
+                on = lam_nodes > 0
+                if np.any(on):
+                    err = max(err, float(np.max(-gap[on])))
+                updates.append(lam_nodes)
             else:
-                err = max(err, float(-g[a].min()))
+                if np.any(a):
+                    err = max(err, float(-g[a].min()))
+                new = np.zeros_like(ps.multipliers)
+                new[s] = p
+                updates.append(new)
         self.last_error = err
         if not self.uzawa.another_solve(load, moved, self.augmented, err, self.tolerance):
             return False
         if not self.augmented:
             return True
-        for ps, s, g, n, dg, dn, H, lam, p, a in ev:
-            new = np.zeros_like(ps.multipliers)
-            new[s] = p
+        for ps, new in zip(self.passes, updates):
             if self.nodal_multipliers:
-                # Uzawa on a nodal multiplier field: the point pressures projected on the slave
-                # nodes (lumped L2), interpolated back to the points
-                wN = ps.weights[:, None] * ps.N
-                num = np.bincount(ps.point_nodes.ravel(), (wN * new[:, None]).ravel(),
-                                  minlength=self.n_nodes)
-                den = np.bincount(ps.point_nodes.ravel(), wN.ravel(), minlength=self.n_nodes)
-                lam_nodes = num / np.maximum(den, 1e-300)
-                new = np.einsum("ka,ka->k", ps.N, lam_nodes[ps.point_nodes])
+                ps.node_multipliers = new
+                new = np.einsum("ka,ka->k", ps.N, new[ps.point_nodes])
             ps.multipliers = new
         return True
 

@@ -239,6 +239,15 @@ def deepest_under_bitangent(p: np.ndarray, lo: int, hi: int) -> int:
     return best_k
 
 
+def _valley_end(p: np.ndarray, k: int, hi: int) -> int:
+    """From vertex k, the index where the profile stops receding (y stops decreasing) going
+    down: the search for the next most anterior point starts beyond the concavity's bottom
+    (a shallow fold found one vertex early would otherwise be its own maximum)."""
+    while k < hi and p[k + 1, 1] <= p[k, 1]:
+        k += 1
+    return k
+
+
 def _nearest_index(p: np.ndarray, q: np.ndarray) -> int:
     return int(np.argmin(np.linalg.norm(p - q, axis=1)))
 
@@ -329,7 +338,7 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
             found["Prn"] = prn
     if stms is not None and stmi is not None:
         mouth = 0.5 * (stms + stmi)
-        p = profile(mouth, 10.0)
+        p = profile(mouth, 16.0)
         slit = mouth_slit(p, mouth)
         if slit is not None:
             stms, stmi = slit
@@ -345,7 +354,7 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
             if i1 - i0 >= 3:
                 i_sn = deepest_under_bitangent(p, i0, i1)
                 found["Sn"] = p[i_sn].copy()
-                ls_ = most_anterior(p, i_sn, i1)
+                ls_ = most_anterior(p, _valley_end(p, i_sn, i1), i1)
                 found["Ls"] = ls_
     # lower lip, labiomental fold, chin: from stomion inferius down past the carried menton
     if stmi is not None and ("Li" in wanted or "Pog" in wanted) and "Pog" in c:
@@ -355,7 +364,7 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
             i0, i1 = _nearest_index(p, stmi), _nearest_index(p, low_end)
             if i1 - i0 >= 3:
                 i_fold = deepest_under_bitangent(p, i0, i1)
-                li, pog = most_anterior(p, i0, i_fold), most_anterior(p, i_fold, i1)
+                li, pog = most_anterior(p, i0, i_fold), most_anterior(p, _valley_end(p, i_fold, i1), i1)
                 z_fold = p[i_fold, 2]
                 found["Li"] = anterior_summit(skin, li, (z_fold, p[i0, 2] - 0.5), SUMMIT_RADIUS["Li"])
                 found["Pog"] = anterior_summit(skin, pog, (p[i1, 2], z_fold), SUMMIT_RADIUS["Pog"])

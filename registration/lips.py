@@ -26,7 +26,9 @@ pushed nodes is carried into the tissue within `reach_mm` of the lips by harmoni
 over the mesh graph (edge weights 1/|e|^2, `registration.elastic`) with the other skin nodes, the bone-attached nodes, nodes
 within 0.5 mm of the teeth clearance and nodes pushed in earlier rounds held, then `registration.repair` restores every element above the
 scaled-Jacobian threshold (skin nodes on the patient skin, pushed nodes fixed). Rounds repeat
-until no lip node lies closer than the gap to the other lip.
+until no lip node lies closer than the gap to the other lip (up to `max_rounds`: where the other
+side is held -- a bone-attached or landmark node -- or the repair takes part of a push back, a
+round closes only part of the deficit, and a node may need 15-20 rounds).
 """
 from __future__ import annotations
 
@@ -94,7 +96,7 @@ def lip_overlap(x: np.ndarray, upper_quads: np.ndarray, lower_quads: np.ndarray,
 def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
                   lower_quads: np.ndarray, fixed: np.ndarray, *, skin_nodes: np.ndarray = (),
                   skin: TargetSurface | None = None, gap: float = 0.1, tol: float = 0.05,
-                  threshold: float = 0.2, band: float = 3.0, max_rounds: int = 10,
+                  threshold: float = 0.2, band: float = 3.0, max_rounds: int = 30,
                   arches: list | None = None, teeth_clearance: float = 0.25, reach_mm: float = 15.0):
     """Move lip-surface nodes apart until each lip is at least `gap` mm from the other.
 

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from registration.alignment import Similarity, align_surfaces, umeyama
+from registration.alignment import Similarity, align_surfaces, trimmed_icp, umeyama
 from registration.elastic import (ElasticSchedule, SurfaceGroup, elastic_register, mesh_laplacian,
                                   snap_to_surfaces, vertex_normals)
 from registration.errors import RegistrationFailure, RegistrationInputError
@@ -176,6 +176,28 @@ def initial_alignment(model: MatchInput, skin: TargetSurface, landmarks: dict | 
     return sim, info
 
 
+def _head_frame(model: MatchInput, bones: dict, seed: int = 0) -> Similarity | None:
+    """The head's anatomical frame in the working frame: the similarity that takes the generic
+    skull attachment surface (deep facets on the skull, generic frame) onto the patient skull
+    by trimmed ICP. The skull is what the face's shape differences leave in place: the
+    alignment of the whole skin tilts by several degrees on a strong class II / III (the lower
+    face differs most), and the elastic stage keeps that tilt (the surfaces slide freely along
+    each other). None without a skull surface or attachment."""
+    skull = bones.get("skull")
+    if skull is None or model.bone_quads is None or "skull" not in model.bone_node_sets:
+        return None
+    q = np.asarray(model.bone_quads)
+    on = np.zeros(len(model.nodes), bool)
+    on[np.asarray(model.bone_node_sets["skull"], np.int64)] = True
+    q = q[on[q].all(axis=1)]
+    if len(q) < 20:
+        return None
+    ids = np.unique(q)
+    tris = np.searchsorted(ids, np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]]))
+    source = TargetSurface(np.asarray(model.nodes, float)[ids], tris, "generic skull attachment")
+    return trimmed_icp(source, skull, Similarity.identity(), n_points=800, iterations=30, seed=seed).similarity
+
+
 def _bone_groups(model: MatchInput, bones: dict) -> list[SurfaceGroup]:
     """One group per attachment set: its segment's surface, or the union of the bones."""
     bone_tris = None
@@ -291,14 +313,7 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     if opt.locate_landmarks and opt.landmark_correction and missing:
         t_s = time.perf_counter()
         carried = {k: x[i] for k, i in model.landmark_nodes.items()}
-        # the head's own frame: the similarity that carries the generic skull attachment onto
-        # where the registration put it (the skull is what surgery leaves in place; the
-        # alignment of the whole face tilts by a few degrees on a strong class II / III)
-        skull = np.asarray(model.bone_node_sets.get("skull", []), np.int64)
-        if len(skull) < 10:
-            skull = np.concatenate([np.asarray(i, np.int64) for i in model.bone_node_sets.values()]
-                                   or [np.zeros(0, np.int64)])
-        head_frame = umeyama(model.nodes[skull], x[skull]) if len(skull) >= 10 else None
+        head_frame = _head_frame(model, bones_g, opt.seed)
         found, search_report = locate_landmarks(skin_g, x, mirror_pairs(model.nodes, skin_ids), carried,
                                                 missing, frame=head_frame)
         if head_frame is not None:

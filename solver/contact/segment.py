@@ -209,7 +209,8 @@ def facet_gap(xg, xm, zeta, derivatives=True, hessian=False):
 
     Returns (g (k,), n (k, 3) unit outward normal at the projection, N (k, nv) shape
     functions there, dg (k, 3 + 3 nv), dn (k, 3, 3 + 3 nv) or None, the Hessian of g
-    (k, 3 + 3 nv, 3 + 3 nv) or None), derivatives with respect to (x_g, x_1, ..., x_nv). g = (x_g - x_m(zeta)) . n; dg = n . (dx_g - N_B dx_B) (the
+    (k, 3 + 3 nv, 3 + 3 nv) or None), derivatives with respect to (x_g, x_1, ..., x_nv).
+    g = (x_g - x_m(zeta)) . n; dg = n . (dx_g - N_B dx_B) (the
     stationarity of the projection removes the zeta terms); dn follows from
     dzeta = A^-1 Z (linearised condition r . t_alpha = 0, A_ab = t_a . t_b - r . x_,ab) and
     dt_a = N_B,a dx_B + x_,ab dzeta_b, dn = (I - n n) / |t_1 x t_2| (dt_1 x t_2 + t_1 x dt_2)
@@ -305,7 +306,8 @@ class _HalfPass:
         J = np.linalg.norm(np.cross(tang[:, :, 0], tang[:, :, 1]), axis=1)
         self.weights = np.tile(w, len(slave_facets)) * J
         self.master = master_facets
-        self.start = np.array([0.0, 0.0]) if master_facets.shape[1] == 4 else np.array([1 / 3, 1 / 3])
+        # Newton start of the projection: the facet's centre
+        self.start = np.zeros(2) if master_facets.shape[1] == 4 else np.full(2, 1 / 3)
         k = len(self.weights)
         self.multipliers = np.zeros(k)          # kPa, at the points
         self.node_multipliers = np.zeros(len(nodes))   # kPa, nodal field (nodal_multipliers)
@@ -409,7 +411,8 @@ class SegmentContact:
                  augmented: bool = True, tolerance: float = 0.05, max_augmentations: int = 10,
                  search_radius: float = 2.0, max_depth: float = 2.0, quadrature: int = 2,
                  subdivisions: int = 2, rule: str = "gauss", nodal_multipliers: bool = False,
-                 formulation: str = "symmetric", freeze_after: int | None = 4, ignore_initial_penetration: bool = True):
+                 formulation: str = "symmetric", freeze_after: int | None = 4,
+                 ignore_initial_penetration: bool = True):
         nodes = np.asarray(nodes, dtype=float)
         if not penalty > 0:
             raise ValueError(f"penalty must be > 0, got {penalty}")

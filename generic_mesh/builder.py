@@ -95,6 +95,8 @@ BUCCINATOR = (_C + 3.0, 48.0, 7.0)  # |theta| range and |phi - phi_s| half-heigh
 VESTIBULE = (48.0, _S - 10.5, _S + 10.0)   # free deep surface: |theta| < .., phi in (.., ..)
 FLOOR_OF_MOUTH = -62.0              # below: free deep surface (floor of mouth, neck)
 BSSO_RELEASE = (44.0, 56.0)         # |theta| band released around the sagittal split (deg)
+MENTAL_FORAMEN = 22.0               # |theta| of the mental foramina (below the 2nd premolars)
+GENIOPLASTY_TUNNEL = 3.0            # deg released above the osteotomy line out to the border
 
 
 def orbicularis_ring(theta, phi):
@@ -265,10 +267,17 @@ def build(resolution: str = "standard") -> FaceModel:
     deep_nodes = np.flatnonzero(n_layer == 0)
     skin_nodes = np.flatnonzero(n_layer == nk)
     free = free_col[deep_nodes // (nk + 1)]
-    node_sets = {"skin": skin_nodes, "deep_free": deep_nodes[free]}
-    att = deep_nodes[~free]
-    dist = np.stack([_segment_distance(n_theta[att], n_phi[att], sname) for sname in SEGMENTS], -1)
+    dist = np.stack([_segment_distance(n_theta[deep_nodes], n_phi[deep_nodes], sname)
+                     for sname in SEGMENTS], -1)
     seg = np.argmin(dist, axis=1)
+    # the tissue a genioplasty degloves stays tied to the mandible here (no other plan frees it);
+    # `facemodel.attachments.release_for_plan` frees it when the chin moves on the mandible
+    released = ~free & (seg == SEGMENTS.index("mandible")) \
+        & _genioplasty_release(n_theta[deep_nodes], n_phi[deep_nodes])
+    node_sets = {"skin": skin_nodes, "deep_free": deep_nodes[free],
+                 "release_genioplasty": deep_nodes[released]}
+    att = deep_nodes[~free]
+    seg = seg[~free]
     for si, sname in enumerate(SEGMENTS):
         node_sets[ATTACHMENT_SETS[sname]] = att[seg == si]
     border_cols = np.zeros((nj + 1, ni + 1), bool)
@@ -325,6 +334,25 @@ def _free_deep(theta, phi):
         & (phi < np.where(th >= hg.RAMUS, 2.0, VESTIBULE[2]))
     ramus_top = (th >= hg.RAMUS) & (phi > -8.0) & (phi < 4.0)
     return vest | (phi < FLOOR_OF_MOUTH) | bsso | ramus_top
+
+
+def _genioplasty_release(theta, phi):
+    """Region (chart) of the mandible's deep points degloved for a genioplasty (the builder
+    lists the mandible-attached points in it as node set "release_genioplasty"): the
+    anterior mandible between the vestibule fornix and the osteotomy line, between the mental
+    foramina, and a subperiosteal tunnel GENIOPLASTY_TUNNEL deg high along the cut out to the
+    lower border. The chin segment keeps its soft tissue (the pedicle over its anterior and
+    inferior surfaces). This is the intra-oral sliding genioplasty (Trauner R., Obwegeser H.,
+    Oral Surg Oral Med Oral Pathol 10:677-689, 1957; Hoenig J.F., Aesthetic Plast Surg
+    31:384-391, 2007); the mental foramen lies below the second premolar (Greenstein G.,
+    Tarnow D., J Periodontol 77:1933-1943, 2006). Tying the tissue on both sides of the cut
+    imposes the bony step on the tissue itself: a displacement jump between neighbouring
+    nodes, which has no limit under mesh refinement (the fine mesh inverts elements there)."""
+    th = np.abs(theta)
+    gen = hg.genioplasty_line(th)
+    front = (th <= MENTAL_FORAMEN) & (phi <= VESTIBULE[1])
+    tunnel = phi < gen + GENIOPLASTY_TUNNEL
+    return (front | tunnel) & (gen >= hg.MANDIBLE_BORDER)
 
 
 def _skin_regions(skin, theta, phi, side):

@@ -303,3 +303,22 @@ def test_attached_nodes_lie_on_their_bone(standard):
         x = standard.nodes[standard.node_sets[ATTACHMENT_SETS[seg]]]
         _, d, _ = trimesh.proximity.closest_point(head.bones[seg], x)
         assert d.max() < 1.0, seg
+
+
+def test_genioplasty_release(model):
+    # The tissue a genioplasty degloves (between the vestibule fornix and the osteotomy,
+    # between the mental foramina, and the tunnel along the cut) is listed as
+    # "release_genioplasty": mandible-tied nodes, and every mandible-tied node in that region.
+    th, ph, _ = hg.from_cartesian(model.nodes)
+    man = model.node_sets["attach_mandible"]
+    rel = model.node_sets["release_genioplasty"]
+    assert len(rel) > 0 and np.all(np.isin(rel, man))
+    at, ap = np.abs(th[man]), ph[man]
+    gen = hg.genioplasty_line(at)
+    # 1e-6 deg: the round trip through Cartesian coordinates
+    inside = ((at <= builder.MENTAL_FORAMEN - 1e-6) & (ap < builder.VESTIBULE[1] - 1e-6)) \
+        | ((ap < gen + builder.GENIOPLASTY_TUNNEL - 1e-6) & (gen >= hg.MANDIBLE_BORDER + 1e-6))
+    assert np.all(np.isin(man[inside], rel))
+    # and nothing of the chin segment (its tissue is its pedicle)
+    chin = model.node_sets["attach_chin"]
+    assert not np.isin(rel, chin).any() and np.all(ph[rel] > hg.genioplasty_line(np.abs(th[rel])) - 1e-6)

@@ -49,14 +49,6 @@ _MUSCLE_FALLBACK = dict(C10=2.5, C20=1.175, C30=0.0, k1=2.0, k2=5.0, T_max=100.0
                         width=0.5, G_T=0.5, G_T_active=10.0)
 
 
-# Contact status frozen after the second evaluation of a Newton solve: on the face the first
-# iteration (the tangent predictor of the bone movement) sets the status far from the solution,
-# the second close to it; leaving it free longer lets the lips' nodes switch between triangles
-# and Newton stagnate (standard face, orbicularis oris a = 0.1: 34 iterations with 2, 86 and a
-# cut-back with 4, no convergence with 1; `end_step` corrects the status at convergence).
-_FREEZE_AFTER = 2
-
-
 def default_face_materials(model) -> dict:
     """Materials per label name: `facemodel.materials`' table when available, else fallback."""
     try:
@@ -260,7 +252,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             mu = _local_shear_modulus(model, by_label, np.vstack([up, lo]))
             terms["lip_contact"] = SurfaceContact(
                 X, up, lo, penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
-                search_radius=max(1.0, h), max_depth=max(2.0, h), freeze_after=_FREEZE_AFTER)
+                search_radius=max(1.0, h), max_depth=max(2.0, h))
         mucosa = [np.asarray(fs[k], dtype=np.int64) for k in ("lip_upper_teeth", "lip_lower_teeth")
                   if k in fs and len(fs[k])]
         if mucosa:
@@ -272,8 +264,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
                     X, np.asarray(V, float), np.asarray(F, np.int64), slave_facets=mucosa,
                     motion=_segment_motion(motions, seg),
                     penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
-                    search_radius=max(2.0, h), max_depth=max(3.0, 1.5 * h), smooth=True,
-                    freeze_after=_FREEZE_AFTER)
+                    search_radius=max(2.0, h), max_depth=max(3.0, 1.5 * h), smooth=True)
 
     def callback(rec):
         if log is not None:

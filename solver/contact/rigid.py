@@ -30,7 +30,7 @@ import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
 from solver.contact._sdf import SignedDistanceGrid
-from solver.contact._uzawa import MultiplierPredictor, UzawaLoop
+from solver.contact._uzawa import UzawaLoop
 from solver.contact._geometry import (EDGE_AB, EDGE_BC, EDGE_CA, FACE, TriangleSurface,
                                       closest_point_on_triangles, nodal_areas)
 
@@ -105,7 +105,6 @@ class RigidSurfaceContact:
         self.augmented = bool(augmented)
         self.tolerance = float(tolerance)
         self.uzawa = UzawaLoop(max_augmentations)
-        self.predictor = MultiplierPredictor(clip=not bilateral)
         self.search_radius = float(search_radius)
         self.max_depth = float(max_depth)
         self.stick = bool(stick)
@@ -212,13 +211,8 @@ class RigidSurfaceContact:
         return (self.freeze_after is not None and load == self._evals_load
                 and self._evals > self.freeze_after)
 
-    def _predict_multipliers(self, load):
-        """At the first evaluation of a new load step, extrapolate the multipliers."""
-        if self.augmented:
-            self.multipliers = self.predictor.predict(load, self.multipliers)
 
     def assemble(self, x, load):
-        self._predict_multipliers(load)
         frozen = self._frozen(load)
         g, n, reg, y = self.gaps(x, load, frozen)
         p, active = self._pressure(g, frozen)
@@ -283,7 +277,6 @@ class RigidSurfaceContact:
         return fs, Ks
 
     def energy(self, x, load) -> float:
-        self._predict_multipliers(load)
         frozen = self._is_frozen(load)
         g, n, _, y = self.gaps(x, load, frozen)
         p, _ = self._pressure(g, frozen)
@@ -316,8 +309,6 @@ class RigidSurfaceContact:
             err = float(np.max(-g[p > 0], initial=0.0))
         self.last_error = err
         if not self.uzawa.another_solve(load, changed, self.augmented, err, self.tolerance):
-            if self.augmented:
-                self.predictor.accept(load, self.multipliers)
             return False
         # Uzawa update (also when only the frozen status was wrong: it settles the status)
         if self.augmented:

@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from solver.contact._uzawa import MultiplierPredictor, UzawaLoop
+from solver.contact._uzawa import UzawaLoop
 from solver.contact._geometry import facet_normals, nodal_areas, plane_gap, triangulate
 
 __all__ = ["SurfaceContact"]
@@ -150,7 +150,6 @@ class SurfaceContact:
         self.augmented = bool(augmented)
         self.tolerance = float(tolerance)
         self.uzawa = UzawaLoop(max_augmentations)
-        self.predictor = MultiplierPredictor(clip=True)
         self.search_radius = float(search_radius)
         self.max_depth = float(max_depth)
         self.last_error = 0.0
@@ -194,7 +193,6 @@ class SurfaceContact:
         return self.freeze_after is not None and self._evals > self.freeze_after
 
     def assemble(self, x, load):
-        self._predict_multipliers(load)
         f = np.zeros(3 * self.n_nodes)
         rows, cols, vals = [], [], []
         frozen = self._frozen(load)
@@ -218,17 +216,8 @@ class SurfaceContact:
             K = sp.csr_matrix((n, n))
         return f, K
 
-    def _predict_multipliers(self, load):
-        """At the first evaluation of a new load step, extrapolate the multipliers."""
-        if not self.augmented:
-            return
-        lam = self.predictor.predict(load, np.concatenate([ps.multipliers for ps in self.passes]))
-        for ps, part in zip(self.passes, np.split(lam, np.cumsum([len(ps.slaves) for ps in
-                                                                  self.passes])[:-1])):
-            ps.multipliers = part
 
     def energy(self, x, load) -> float:
-        self._predict_multipliers(load)
         e = 0.0
         frozen = self.freeze_after is not None and load == self._evals_load \
             and self._evals > self.freeze_after
@@ -291,9 +280,6 @@ class SurfaceContact:
                 err = max(err, float(-g[p > 0].min()))
         self.last_error = err
         if not self.uzawa.another_solve(load, changed, self.augmented, err, self.tolerance):
-            if self.augmented:
-                self.predictor.accept(load, np.concatenate([ps.multipliers
-                                                            for ps in self.passes]))
             return False
         if not self.augmented:
             return True

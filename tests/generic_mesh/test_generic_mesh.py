@@ -289,9 +289,16 @@ def test_mean_head_is_the_generic_geometry(coarse):
     d = np.abs(trimesh.proximity.ProximityQuery(head.skin).signed_distance(
         coarse.nodes[coarse.node_sets["skin"]]))
     assert np.median(d) < 0.2 and np.percentile(d, 95) < 1.0
+    # The mean head's landmarks are located by their anatomical definitions on its exact skin
+    # (head_geometry.anatomical_landmarks); the generic mesh's are the skin nodes nearest their
+    # rays (head_geometry.LANDMARK_ANGLES). They coincide where the definition is the ray point
+    # (cheilia, menton) and otherwise agree to within half a coarse skin facet edge (measured
+    # up to 3.4 mm, Ls, against a median edge of 9 mm).
+    quads = coarse.facet_sets["skin"]
+    edge = np.median(np.linalg.norm(coarse.nodes[quads] - coarse.nodes[np.roll(quads, 1, axis=1)], axis=2))
     for k, v in head.landmarks.items():
-        if k not in ("Stms", "Stmi"):
-            np.testing.assert_allclose(v, coarse.landmark_positions[k], atol=1e-9)
+        d = np.linalg.norm(np.asarray(v) - coarse.landmark_positions[k])
+        assert d < (1e-9 if k in ("ChL", "ChR", "Me") else 0.5 * edge), (k, d)
 
 
 def test_attached_nodes_lie_on_their_bone(standard):

@@ -264,7 +264,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
                     X, np.asarray(V, float), np.asarray(F, np.int64), slave_facets=mucosa,
                     motion=_segment_motion(motions, seg),
                     penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
-                    search_radius=max(2.0, h), max_depth=max(3.0, 1.5 * h), smooth=True)
+                    search_radius=max(2.0, h), max_depth=max(3.0, 1.5 * h), smooth=True,
+                    tangent="projected")
 
     def callback(rec):
         if log is not None:

@@ -20,7 +20,12 @@ evaluations at one load the active set is frozen (status freezing), and `end_ste
 another solve when the converged state has a different status.
 With `smooth=True` the faceted gap is replaced by a C2 tricubic-spline signed distance sampled
 once in the surface's frame (`solver.contact._sdf`), with its exact gradient and Hessian in the
-tangent eps_i n (x) n - p_i d2g/dx2. Frictionless; optional `stick=True` adds a tangential penalty that ties a node to the surface
+tangent eps_i n (x) n - p_i d2g/dx2. With `tangent="projected"` the curvature part -p_i d2g/dx2
+enters the tangent with its negative eigenvalues clipped to zero (projected Newton, Teran et al.
+2005): pressed onto a convex obstacle (a tooth's incisal edge) it is a negative tangential
+stiffness that can make the tangent indefinite when the pressure is large against the tissue's
+stiffness, and Newton then wanders; the residual stays exact, so the solution is the same and
+only the convergence along those directions becomes linear. Frictionless; optional `stick=True` adds a tangential penalty that ties a node to the surface
 point where it first touched (sticking, the infinite-friction limit).
 """
 from __future__ import annotations
@@ -35,6 +40,13 @@ from solver.contact._geometry import (EDGE_AB, EDGE_BC, EDGE_CA, FACE, TriangleS
                                       closest_point_on_triangles, nodal_areas)
 
 __all__ = ["RigidSurfaceContact", "ramped_rigid_motion"]
+
+
+def _psd(M):
+    """Nearest positive semi-definite matrices (k, 3, 3) of symmetric M: negative eigenvalues
+    clipped to 0 (a projected Newton tangent, Teran, Sifakis, Irving & Fedkiw 2005)."""
+    w, V = np.linalg.eigh(0.5 * (M + np.swapaxes(M, 1, 2)))
+    return np.einsum("kij,kj,klj->kil", V, np.maximum(w, 0.0), V)
 
 
 def ramped_rigid_motion(T, load: float) -> np.ndarray:
@@ -72,8 +84,11 @@ class RigidSurfaceContact:
                  max_augmentations: int = 10, search_radius: float = 5.0,
                  max_depth: float = np.inf, stick: bool = False,
                  freeze_after: int | None = 4, smooth: bool = False,
-                 grid_spacing: float | None = None):
+                 grid_spacing: float | None = None, tangent: str = "exact"):
         nodes = np.asarray(nodes, dtype=float)
+        if tangent not in ("exact", "projected"):
+            raise ValueError(f"tangent must be 'exact' or 'projected', got {tangent!r}")
+        self.tangent = tangent
         self.n_nodes = len(nodes)
         if slave_facets is not None:
             slave_facets = np.asarray(slave_facets, dtype=np.int64)
@@ -224,7 +239,8 @@ class RigidSurfaceContact:
         Kb = ea[:, None, None] * na[:, :, None] * na[:, None, :]
         off = reg[active] != FACE
         if self.grid is not None:
-            Kb -= pa[:, None, None] * self._hess[active]
+            curvature = -pa[:, None, None] * self._hess[active]
+            Kb += _psd(curvature) if self.tangent == "projected" else curvature
         elif np.any(off):
             # curvature of the distance to a vertex, d2g/dx2 = (I - n n)/g, or to an edge's
             # line, (I - n n - t t)/g with t the unit edge direction (no curvature along the

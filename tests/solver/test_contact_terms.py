@@ -153,3 +153,33 @@ def test_deformable_contact_force_and_tangent_are_consistent():
     assert np.abs(f).max() > 0
     # action and reaction: contact forces sum to zero
     assert np.allclose(f.reshape(-1, 3).sum(axis=0), 0.0, atol=1e-10)
+
+
+def test_projected_rigid_tangent_is_positive_semidefinite_with_the_same_forces():
+    """Nodes pressed onto a convex obstacle (a sphere, spline distance): the exact tangent has
+    the negative curvature stiffness -p d2g/dx2; the projected one clips it to >= 0 per node and
+    keeps the forces."""
+    V, F = _sphere(2.0, 3)
+    rng = np.random.default_rng(5)
+    d = rng.standard_normal((6, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    x = d * rng.uniform(1.9, 2.05, 6)[:, None]
+    kw = dict(slave_nodes=np.arange(6), slave_areas=np.ones(6), penalty=30.0, smooth=True,
+              grid_spacing=0.2, search_radius=1.0, max_depth=1.0)
+    exact = RigidSurfaceContact(x, V, F, **kw)
+    proj = RigidSurfaceContact(x, V, F, tangent="projected", **kw)
+    for t in (exact, proj):
+        t.multipliers[:] = 3.0
+    f0, K0 = exact.assemble(x, 1.0)
+    f1, K1 = proj.assemble(x, 1.0)
+    assert np.array_equal(f0, f1)
+    K0, K1 = K0.toarray(), K1.toarray()
+    # convex obstacle, pressing nodes: the exact tangent has the tangential stiffness
+    # -p/R ~ -3/2 (no other stiffness acts tangentially), so it is indefinite; the projected
+    # one is not (round-off 1e-9)
+    assert np.linalg.eigvalsh(K0).min() < -0.1
+    assert np.linalg.eigvalsh(K1).min() > -1e-9
+    # the projection only removes the negative part of the curvature stiffness: K1 - K0 is
+    # positive semi-definite, and zero where the exact one already was (round-off 1e-9)
+    assert np.linalg.eigvalsh(K1 - K0).min() > -1e-9
+    assert np.abs(K1 - K0).max() > 0.1

@@ -24,8 +24,10 @@ tangent eps_i n (x) n - p_i d2g/dx2. With `tangent="projected"` the curvature pa
 enters the tangent with its negative eigenvalues clipped to zero (projected Newton, Teran et al.
 2005): pressed onto a convex obstacle (a tooth's incisal edge) it is a negative tangential
 stiffness that can make the tangent indefinite when the pressure is large against the tissue's
-stiffness, and Newton then wanders; the residual stays exact, so the solution is the same and
-only the convergence along those directions becomes linear. Frictionless; optional `stick=True` adds a tangential penalty that ties a node to the surface
+stiffness, and Newton then wanders. It is projected while the contact status is free (the
+first `freeze_after` evaluations of a solve, far from the solution); once the status is frozen
+the exact tangent gives back quadratic convergence. The residual is always exact, so the
+solution is the same. Frictionless; optional `stick=True` adds a tangential penalty that ties a node to the surface
 point where it first touched (sticking, the infinite-friction limit).
 """
 from __future__ import annotations
@@ -240,7 +242,7 @@ class RigidSurfaceContact:
         off = reg[active] != FACE
         if self.grid is not None:
             curvature = -pa[:, None, None] * self._hess[active]
-            Kb += _psd(curvature) if self.tangent == "projected" else curvature
+            Kb += _psd(curvature) if self.tangent == "projected" and not frozen else curvature
         elif np.any(off):
             # curvature of the distance to a vertex, d2g/dx2 = (I - n n)/g, or to an edge's
             # line, (I - n n - t t)/g with t the unit edge direction (no curvature along the

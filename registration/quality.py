@@ -63,6 +63,26 @@ def scaled_jacobians(nodes: np.ndarray, hexes: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True)
+def gather_element(x, hexes, i, xe):
+    """The eight node coordinates of hexahedron i into xe (8, 3)."""
+    for n in range(8):
+        for d in range(3):
+            xe[n, d] = x[hexes[i, n], d]
+
+
+@numba.njit(cache=True)
+def corner_edges(edge_op, q, xe, e):
+    """The three edge vectors e (3, 3) of corner q (0-7, 8 the centre) of element xe (8, 3):
+    e[k] = sum_n edge_op[q, k, n] xe[n]."""
+    for k in range(3):
+        for d in range(3):
+            acc = 0.0
+            for n in range(8):
+                acc += edge_op[q, k, n] * xe[n, d]
+            e[k, d] = acc
+
+
+@numba.njit(cache=True)
 def _min_scaled_jacobian_kernel(x, hexes, edge_op):
     """The minimum over the nine corners of `scaled_jacobians`, element by element (one
     pass, no (m, 9, 3, 3) temporaries: the repair and lip stages call it every round)."""
@@ -71,17 +91,10 @@ def _min_scaled_jacobian_kernel(x, hexes, edge_op):
     e = np.empty((3, 3))
     xe = np.empty((8, 3))
     for i in range(m):
-        for n in range(8):
-            for d in range(3):
-                xe[n, d] = x[hexes[i, n], d]
+        gather_element(x, hexes, i, xe)
         best = np.inf
         for q in range(9):
-            for k in range(3):
-                for d in range(3):
-                    acc = 0.0
-                    for n in range(8):
-                        acc += edge_op[q, k, n] * xe[n, d]
-                    e[k, d] = acc
+            corner_edges(edge_op, q, xe, e)
             det = (e[0, 0] * (e[1, 1] * e[2, 2] - e[1, 2] * e[2, 1])
                    + e[0, 1] * (e[1, 2] * e[2, 0] - e[1, 0] * e[2, 2])
                    + e[0, 2] * (e[1, 0] * e[2, 1] - e[1, 1] * e[2, 0]))

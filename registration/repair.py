@@ -26,7 +26,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import minimize
 
-from registration.quality import EDGE_OPERATOR, min_scaled_jacobian, quality_summary
+from registration.quality import (EDGE_OPERATOR, corner_edges, gather_element,
+                                  min_scaled_jacobian, quality_summary)
 from registration.surface import TargetSurface
 
 
@@ -77,16 +78,9 @@ def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau):
     e = np.empty((3, 3))
     xe = np.empty((8, 3))
     for m in range(hexes.shape[0]):
-        for n in range(8):
-            for d in range(3):
-                xe[n, d] = x[hexes[m, n], d]
+        gather_element(x, hexes, m, xe)
         for q in range(9):
-            for k in range(3):
-                for d in range(3):
-                    acc = 0.0
-                    for n in range(8):
-                        acc += edge_op[q, k, n] * xe[n, d]
-                    e[k, d] = acc
+            corner_edges(edge_op, q, xe, e)
             c23 = np.array([e[1, 1] * e[2, 2] - e[1, 2] * e[2, 1], e[1, 2] * e[2, 0] - e[1, 0] * e[2, 2],
                             e[1, 0] * e[2, 1] - e[1, 1] * e[2, 0]])
             c31 = np.array([e[2, 1] * e[0, 2] - e[2, 2] * e[0, 1], e[2, 2] * e[0, 0] - e[2, 0] * e[0, 2],

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 __all__ = ["closest_point_on_triangles", "closest_on_triangle", "TriangleSurface", "plane_gap", "triangulate",
-           "nodal_areas", "facet_normals", "skew"]
+           "nodal_areas", "facet_normals", "skew", "psd_projection"]
 
 FACE, VERT_A, VERT_B, VERT_C, EDGE_AB, EDGE_BC, EDGE_CA = range(7)
 
@@ -72,6 +72,13 @@ def skew(v: np.ndarray) -> np.ndarray:
     S[..., 2, 0] = -v[..., 1]
     S[..., 2, 1] = v[..., 0]
     return S
+
+
+def psd_projection(M):
+    """Nearest positive semi-definite matrices (k, n, n) of symmetric M: negative eigenvalues
+    clipped to 0 (the projected Newton tangent of Teran, Sifakis, Irving & Fedkiw 2005)."""
+    w, V = np.linalg.eigh(0.5 * (M + np.swapaxes(M, 1, 2)))
+    return np.einsum("kij,kj,klj->kil", V, np.maximum(w, 0.0), V)
 
 
 def _dot(u, v):

@@ -39,16 +39,9 @@ from scipy.spatial.transform import Rotation
 from solver.contact._sdf import SignedDistanceGrid
 from solver.contact._uzawa import UzawaLoop
 from solver.contact._geometry import (EDGE_AB, EDGE_BC, EDGE_CA, FACE, TriangleSurface,
-                                      closest_point_on_triangles, nodal_areas)
+                                      closest_point_on_triangles, nodal_areas, psd_projection)
 
 __all__ = ["RigidSurfaceContact", "ramped_rigid_motion"]
-
-
-def _psd(M):
-    """Nearest positive semi-definite matrices (k, 3, 3) of symmetric M: negative eigenvalues
-    clipped to 0 (a projected Newton tangent, Teran, Sifakis, Irving & Fedkiw 2005)."""
-    w, V = np.linalg.eigh(0.5 * (M + np.swapaxes(M, 1, 2)))
-    return np.einsum("kij,kj,klj->kil", V, np.maximum(w, 0.0), V)
 
 
 def ramped_rigid_motion(T, load: float) -> np.ndarray:
@@ -242,7 +235,9 @@ class RigidSurfaceContact:
         off = reg[active] != FACE
         if self.grid is not None:
             curvature = -pa[:, None, None] * self._hess[active]
-            Kb += _psd(curvature) if self.tangent == "projected" and not frozen else curvature
+            if self.tangent == "projected" and not frozen:
+                curvature = psd_projection(curvature)
+            Kb += curvature
         elif np.any(off):
             # curvature of the distance to a vertex, d2g/dx2 = (I - n n)/g, or to an edge's
             # line, (I - n n - t t)/g with t the unit edge direction (no curvature along the

@@ -38,3 +38,8 @@ class UzawaLoop:
         self.count += 1
         return True
 
+
+
+def deepest_penetration(gaps) -> float:
+    """Deepest penetration (mm, >= 0) among arrays of signed gaps (negative inside)."""
+    return max([0.0] + [float(-g.min()) for g in gaps if len(g)])

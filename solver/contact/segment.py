@@ -43,7 +43,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from solver.contact._uzawa import UzawaLoop
+from solver.contact._uzawa import UzawaLoop, deepest_penetration
 
 __all__ = ["SegmentContact", "facet_quadrature"]
 
@@ -621,11 +621,7 @@ class SegmentContact:
     # --- results ---------------------------------------------------------------------------
     def penetration(self, x) -> float:
         """Deepest penetration (mm, >= 0) of a Gauss point of either surface at x."""
-        worst = 0.0
-        for ps, s, g, *_ in self._evaluate(x, derivatives=False):
-            if len(g):
-                worst = max(worst, float(-g.min()))
-        return worst
+        return deepest_penetration(g for _, _, g, *_ in self._evaluate(x, derivatives=False))
 
     def contact_pressure(self, x):
         """Per surface (a, then b): (node ids, pressure kPa) at x, the normal contact force

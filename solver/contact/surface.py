@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from solver.contact._uzawa import UzawaLoop
+from solver.contact._uzawa import UzawaLoop, deepest_penetration
 from solver.contact._geometry import facet_normals, nodal_areas, plane_gap, triangulate
 
 __all__ = ["SurfaceContact"]
@@ -231,11 +231,7 @@ class SurfaceContact:
 
     def penetration(self, x) -> float:
         """Deepest penetration (mm, >= 0) over both passes at coordinates x."""
-        worst = 0.0
-        for ps, s, g, *_ in self._evaluate(x, hessian=False):
-            if len(g):
-                worst = max(worst, float(-g.min()))
-        return worst
+        return deepest_penetration(g for _, _, g, *_ in self._evaluate(x, hessian=False))
 
     def end_step(self, x, load) -> bool:
         before = [ps.previous.copy() for ps in self.passes]

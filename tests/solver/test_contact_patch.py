@@ -18,24 +18,11 @@ def test_two_block_patch_test_gives_uniform_pressure():
     (With non-matching interface meshes, 4x4 against 3x3, node-to-segment contact does not
     pass: its stress varies by 6.0-6.2 % (penalty 100 or 1000, tolerance 1e-4);
     `SegmentContact` passes, 0.11 % (symmetric) and 2e-9 (two half passes): next test.)"""
-    lower, hl = box((4, 4, 2), (2.0, 2.0, 1.0))
-    upper, hu = box((4, 4, 3), (2.0, 2.0, 1.0), origin=(0.0, 0.0, 1.0))
-    nodes = np.vstack([lower, upper])
-    hexes = np.vstack([hl, hu + len(lower)])
-    mu, K = 5.0, 50.0
-    body = SolidBody(HexMesh(nodes, hexes), NeoHooke(mu=mu, K=K))
-    surf_low = facets_on(lower, hl, 2, 1.0)
-    surf_up = facets_on(upper, hu, 2, 1.0) + len(lower)
-    contact = SurfaceContact(nodes, surf_low, surf_up, penalty=100.0, tolerance=1e-6,
-                             search_radius=0.5)
-    is_up = np.arange(len(nodes)) >= len(lower)
-    top = np.nonzero(is_up & (nodes[:, 2] > 2.0 - 1e-9))[0]
-    side_x = np.nonzero((nodes[:, 0] < 1e-9) | (nodes[:, 0] > 2.0 - 1e-9))[0]
-    side_y = np.nonzero((nodes[:, 1] < 1e-9) | (nodes[:, 1] > 2.0 - 1e-9))[0]
-    cons = [fix(np.nonzero(~is_up & (nodes[:, 2] < 1e-9))[0], (2,)),
-            Prescribed(top, [0.0, 0.0, -0.1], (2,)), fix(side_x, (0,)), fix(side_y, (1,))]
-    res = newton_solve(body, cons, [contact], steps=2, max_retries=30)
-    szz = body.cauchy_stress(res.x)[:, 2, 2]
+    mu, K = 5.0, 50.0           # the blocks' neo-Hookean constants (`_confined_blocks`)
+    szz, contact, res = _confined_blocks(
+        4, 4, lambda nodes, low, up: SurfaceContact(nodes, low, up, penalty=100.0,
+                                                    tolerance=1e-6, search_radius=0.5),
+        steps=2)
     # the contact transmits a uniform stress into both bodies: 1 % (the patch test)
     assert szz.max() < 0
     assert (szz.max() - szz.min()) / abs(szz.mean()) < 1e-2
@@ -60,7 +47,7 @@ def _confined_blocks(n_lower, n_upper, make_contact, steps=1):
     upper, hu = box((n_upper, n_upper, 3), (2.0, 2.0, 1.0), origin=(0.0, 0.0, 1.0))
     nodes = np.vstack([lower, upper])
     hexes = np.vstack([hl, hu + len(lower)])
-    body = SolidBody(HexMesh(nodes, hexes), NeoHooke(mu=5.0, K=50.0))
+    body = SolidBody(HexMesh(nodes, hexes), NeoHooke(mu=5.0, K=50.0))   # mu, K: see above
     contact = make_contact(nodes, facets_on(lower, hl, 2, 1.0),
                            facets_on(upper, hu, 2, 1.0) + len(lower))
     is_up = np.arange(len(nodes)) >= len(lower)

@@ -1,7 +1,8 @@
 """Augmented-Lagrangian bookkeeping: the bounded Uzawa loop."""
 import numpy as np
 
-from solver.contact._uzawa import UzawaLoop
+from solver.contact import SurfaceContact
+from solver.contact._uzawa import UzawaLoop, deepest_penetration
 
 
 def test_uzawa_loop_is_bounded_and_restarts_at_every_load():
@@ -11,3 +12,58 @@ def test_uzawa_loop_is_bounded_and_restarts_at_every_load():
     assert not loop.another_solve(0.5, False, True, error=1.0, tolerance=0.1)   # bounded
     assert loop.another_solve(1.0, False, True, error=1.0, tolerance=0.1)       # new load
     assert not loop.another_solve(1.0, False, True, error=0.05, tolerance=0.1)  # converged
+
+
+def _bent_patch_contact():
+    """A 2 x 2 slave quad 0.01 mm into a master patch that is flat for x < 2 and rises with
+    slope 0.5 beyond (a crease at x = 2); the contact status frozen (5 evaluations)."""
+    gx, gy = np.meshgrid(np.arange(4.0), np.arange(3.0), indexing="ij")
+    bottom = np.stack([gx.ravel(), gy.ravel(), 0.5 * np.maximum(gx - 2.0, 0.0).ravel()], axis=1)
+    quads = np.array([[i * 3 + j, (i + 1) * 3 + j, (i + 1) * 3 + j + 1, i * 3 + j + 1]
+                      for i in range(3) for j in range(2)])                  # normal +z
+    sx, sy = np.meshgrid([0.3, 1.3], [0.6, 1.6], indexing="ij")
+    top = np.stack([sx.ravel(), sy.ravel(), np.full(4, -0.01)], axis=1)
+    x = np.vstack([bottom, top])
+    slave = np.array([[0, 1, 3, 2]]) + len(bottom)                           # normal -z
+    term = SurfaceContact(x, slave, quads, two_pass=False, penalty=50.0, tolerance=0.05,
+                          search_radius=1.0, max_depth=1.0, ignore_initial_penetration=False)
+    for _ in range(5):
+        term.assemble(x, 1.0)
+    ps = term.passes[0]
+    assert ps.active.all() and term._evals > term.freeze_after
+    cen = x[ps.master].mean(axis=1)
+    return term, ps, x, cen
+
+
+def test_a_pairing_change_that_moves_no_force_asks_for_no_resolve():
+    # The slave's frozen triangle is swapped for another one of the same plane: the forces
+    # of the frozen and of a fresh search agree, the penetration (0.01) is within the
+    # tolerance, so the step is accepted (a node over a flat patch's diagonals used to cycle)
+    term, ps, x, cen = _bent_patch_contact()
+    flat = np.nonzero(cen[:, 0] < 2.0)[0]
+    ps.previous[0] = flat[flat != ps.previous[0]][0]
+    assert term.end_step(x, 1.0) is False
+
+
+def test_a_pairing_change_that_moves_the_force_asks_once_per_node_and_step():
+    # The frozen triangle is on the inclined side: its plane is ~0.3 mm from the slave, the
+    # fresh one 0.01 mm: the forces differ by more than the tolerance -> solve again; the same
+    # disagreement at the same load a second time is accepted (no endless alternation); at a
+    # new load the node may ask again
+    term, ps, x, cen = _bent_patch_contact()
+    inclined = np.nonzero(cen[:, 0] > 2.0)[0]
+    ps.previous[0] = inclined[0]
+    assert term.end_step(x, 1.0) is True
+    for _ in range(5):
+        term.assemble(x, 1.0)
+    ps.previous[0] = inclined[0]
+    assert term.end_step(x, 1.0) is False
+    term2, ps2, x2, _ = _bent_patch_contact()
+    ps2.previous[0] = inclined[0]
+    assert term2.end_step(x2, 1.0) is True
+
+
+def test_deepest_penetration_over_passes():
+    assert deepest_penetration([np.array([0.2, -0.03]), np.zeros(0), np.array([-0.01])]) == 0.03
+    assert deepest_penetration([np.array([0.2]), np.zeros(0)]) == 0.0     # separated: 0
+    assert deepest_penetration([]) == 0.0

@@ -183,3 +183,9 @@ def test_projected_rigid_tangent_is_positive_semidefinite_with_the_same_forces()
     # positive semi-definite, and zero where the exact one already was (round-off 1e-9)
     assert np.linalg.eigvalsh(K1 - K0).min() > -1e-9
     assert np.abs(K1 - K0).max() > 0.1
+    # once the contact status is frozen (after `freeze_after` evaluations at one load) the
+    # projected term gives back the exact tangent (quadratic convergence near the solution)
+    for _ in range(proj.freeze_after):
+        exact.assemble(x, 1.0)
+        _, Kf = proj.assemble(x, 1.0)
+    assert np.allclose(Kf.toarray(), exact.assemble(x, 1.0)[1].toarray(), rtol=0, atol=1e-12)

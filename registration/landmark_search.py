@@ -31,9 +31,14 @@ back by the alignment similarity):
   last chord, reaches the level of the concave end -- the bridge point closest to that
   continuation. Lips nearly flush show no bridge: the stomia then stay where the registration
   carried them.
-Menton and the cheilia are left where the registration carried them (no feature of the scan
-defines them better: the chin's underside runs nearly straight into the submental contour; the
-mouth slit fades out towards its corners). The located landmarks are then handled as given ones
+* soft-tissue menton (Me): the lowest point of the chin, below pogonion. A submental contour
+  that still descends backwards (no throat in view, or a head tilted chin-up) puts the profile's
+  lowest point on the neck, so the chin's lowest point is taken against the chin's inferior
+  border, a line descending MENTON_TILT deg backwards: the profile point farthest along the
+  direction MENTON_TILT deg in front of straight down (refined like the maxima above, on the
+  mid-sagittal plane at the point found).
+The cheilia are left where the registration carried them (the mouth slit of these scans fades
+out towards its corners). The located landmarks are then handled as given ones
 (`registration.landmark_fit` moves the landmark nodes onto them).
 """
 from __future__ import annotations
@@ -50,7 +55,12 @@ REFINE_HALF_WIDTH = 3.0  # mm of profile arc either side of a maximum fitted by 
 # mm: skin vertices around a maximum fitted by a surface, about the size of the feature
 SUMMIT_RADIUS = {"Prn": 8.0, "Li": 8.0, "Pog": 10.0}
 BRIDGE_MIN_MM = 2.0      # mm: the shortest facet step between the lips taken as the mouth slit
-LOCATED = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "Pog")
+MENTON_REACH = 25.0      # mm of profile beyond the carried menton searched for it
+# deg in front of straight down: menton is the chin's extreme along that direction (the chin's
+# inferior border taken as a line descending this much backwards: module docstring); the same
+# convention as the synthetic heads' truth (facemodel.head_geometry.MENTON_TILT)
+MENTON_TILT = 35.0
+LOCATED = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "Pog", "Me")
 
 
 def mirror_pairs(nodes: np.ndarray, ids: np.ndarray, tol: float = 1e-3) -> np.ndarray:
@@ -162,13 +172,16 @@ def _at(p: np.ndarray, s: np.ndarray, t: float) -> np.ndarray:
     return np.array([np.interp(t, s, p[:, k]) for k in range(3)])
 
 
-def most_anterior(p: np.ndarray, lo: int = 0, hi: int | None = None) -> np.ndarray:
+def most_anterior(p: np.ndarray, lo: int = 0, hi: int | None = None,
+                  direction: np.ndarray | None = None) -> np.ndarray:
     """The most anterior (max y) point of the profile between vertices lo and hi, refined by a
     least-squares parabola y(s) of arc length s through the vertices within REFINE_HALF_WIDTH
     of the best one, the window widened to reach at least one vertex 1 mm or more away on
-    either side (a scan's facets can leave a flat tip between two far vertices)."""
+    either side (a scan's facets can leave a flat tip between two far vertices). `direction`
+    (anterior y, superior z), unit: the extreme along it instead of along y."""
     hi = len(p) - 1 if hi is None else hi
-    i = lo + int(np.argmax(p[lo:hi + 1, 1]))
+    h = p[:, 1] if direction is None else p[:, 1:] @ np.asarray(direction, float)
+    i = lo + int(np.argmax(h[lo:hi + 1]))
     s = _arc_length(p)
     idx = np.arange(lo, hi + 1)
     before, after = idx[s[idx] < s[i] - 1.0], idx[s[idx] > s[i] + 1.0]
@@ -176,7 +189,7 @@ def most_anterior(p: np.ndarray, lo: int = 0, hi: int | None = None) -> np.ndarr
     right = max(s[i] + REFINE_HALF_WIDTH, s[after[0]]) if len(after) else s[i]
     near = idx[(s[idx] >= left - 1e-9) & (s[idx] <= right + 1e-9)]
     if len(before) and len(after) and len(near) >= 3:
-        a, b, _ = np.polyfit(s[near] - s[i], p[near, 1], 2)
+        a, b, _ = np.polyfit(s[near] - s[i], h[near], 2)
         if a < 0:
             t = s[i] - b / (2.0 * a)
             if s[near].min() <= t <= s[near].max():
@@ -299,6 +312,19 @@ def mouth_slit(p: np.ndarray, centre: np.ndarray, reach: float = 7.0):
     return a.copy(), b.copy()
 
 
+def _menton(p: np.ndarray, i_pog: int) -> np.ndarray | None:
+    """Menton on the profile p (ordered downwards) below pogonion (vertex i_pog): the extreme
+    along the direction MENTON_TILT deg in front of straight down (module docstring); None
+    when that extreme is the profile's end (the profile does not reach round the chin)."""
+    a = np.radians(MENTON_TILT)
+    d = np.array([np.sin(a), -np.cos(a)])
+    h = p[i_pog:, 1:] @ d
+    k = int(np.argmax(h))
+    if k == len(h) - 1:
+        return None
+    return most_anterior(p, i_pog, len(p) - 1, direction=d)
+
+
 def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carried: dict,
                      wanted, frame: Similarity | None = None) -> tuple[dict, dict]:
     """Landmarks of `wanted` (names) located on `skin` near their `carried` positions (name ->
@@ -357,9 +383,9 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
                 ls_ = most_anterior(p, _valley_end(p, i_sn, i1), i1)
                 found["Ls"] = ls_
     # lower lip, labiomental fold, chin: from stomion inferius down past the carried menton
-    if stmi is not None and ("Li" in wanted or "Pog" in wanted) and "Pog" in c:
+    if stmi is not None and ("Li" in wanted or "Pog" in wanted or "Me" in wanted) and "Pog" in c:
         low_end = c.get("Me", c["Pog"] + [0.0, -10.0, -10.0])
-        p = profile(c["Pog"], np.linalg.norm(stmi - low_end) + 10.0)
+        p = profile(c["Pog"], np.linalg.norm(stmi - low_end) + MENTON_REACH)
         if len(p) >= 4:
             i0, i1 = _nearest_index(p, stmi), _nearest_index(p, low_end)
             if i1 - i0 >= 3:
@@ -368,6 +394,12 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
                 z_fold = p[i_fold, 2]
                 found["Li"] = anterior_summit(skin, li, (z_fold, p[i0, 2] - 0.5), SUMMIT_RADIUS["Li"])
                 found["Pog"] = anterior_summit(skin, pog, (p[i1, 2], z_fold), SUMMIT_RADIUS["Pog"])
+                if "Me" in wanted:
+                    me = _menton(p, _nearest_index(p, pog))
+                    if me is not None:  # again on the mid-sagittal plane at that point
+                        q = profile(me, MENTON_REACH)
+                        me2 = _menton(q, _nearest_index(q, found["Pog"])) if len(q) >= 4 else None
+                        found["Me"] = me if me2 is None else me2
     out = {}
     for k in wanted:
         if k in found:

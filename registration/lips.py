@@ -97,14 +97,17 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
                   lower_quads: np.ndarray, fixed: np.ndarray, *, skin_nodes: np.ndarray = (),
                   skin: TargetSurface | None = None, gap: float = 0.1, tol: float = 0.05,
                   threshold: float = 0.2, band: float = 3.0, max_rounds: int = 30,
-                  arches: list | None = None, teeth_clearance: float = 0.25, reach_mm: float = 15.0):
+                  arches: list | None = None, teeth_clearance: float = 0.25, reach_mm: float = 15.0,
+                  stall_rounds: int = 4):
     """Move lip-surface nodes apart until each lip is at least `gap` mm from the other.
 
     fixed: nodes that never move (bone-attached); skin_nodes: the skin nodes (held where not
     pushed; pushed ones lying on the patient `skin` slide on it); arches: the teeth
     (`registration.teeth.Arch`), kept `teeth_clearance` away from the pushed nodes: a target
     that comes closer is moved to the nearest clear point along a ray that does not go back
-    towards the other lip (`registration.teeth.escape_outward`). Returns (new nodes, report)."""
+    towards the other lip (`registration.teeth.escape_outward`). The search ends early after
+    `stall_rounds` rounds in a row that do not reduce the largest push still needed.
+    Returns (new nodes, report)."""
     hexes = np.asarray(hexes)
     x = np.array(x, dtype=float)
     n = len(x)
@@ -131,7 +134,8 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
     by_teeth = np.zeros(n, bool)
     if arches:
         by_teeth = union_distance(arches, x, teeth_clearance + 1.0)[0] < teeth_clearance + 0.5
-    rounds, repaired = 0, 0
+    rounds, repaired, unrepairable = 0, 0, False
+    best_short, stalled = np.inf, 0
     for rounds in range(1, max_rounds + 1):
         push = np.zeros((n, 3))
         normal = np.zeros((n, 3))
@@ -146,6 +150,15 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
         if not hit.any():
             rounds -= 1
             break
+        # the deepest shortfall left: rounds that stop reducing it (a pushed skin node that the
+        # patient skin takes back, a repair undoing a push) end the search
+        short = float(np.max(np.linalg.norm(push[hit], axis=1)))
+        if short < best_short - 1e-3:
+            best_short, stalled = short, 0
+        else:
+            stalled += 1
+            if stalled >= stall_rounds:
+                break
         ids = np.flatnonzero(hit)
         target = x[ids] + push[ids]
         slide = on_skin[ids]
@@ -173,6 +186,14 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
                 # the pushed nodes free too: one the repair takes back is pushed again next round
                 x, rep = repair_mesh(x_in, hexes, threshold=threshold, constraints=cons, fixed=fixed)
             repaired += rep["elements_needing_repair"]
+    if min_scaled_jacobian(x, hexes).min() < threshold:
+        # the last round's repair fell short: a wider patch around the elements left, more
+        # rounds; failing that, the separation is undone (a valid mesh, the lips as they came)
+        cons = [SurfaceConstraint("skin", np.flatnonzero(on_skin), skin)] if on_skin.any() else []
+        x, rep = repair_mesh(x, hexes, threshold=threshold, constraints=cons, fixed=fixed, rings=3, max_rounds=12)
+        repaired += rep["elements_needing_repair"]
+        if rep["elements_still_below_threshold"] and min_scaled_jacobian(x_start, hexes).min() >= threshold:
+            x, unrepairable = x_start.copy(), True
     after = lip_overlap(x, upper_quads, lower_quads, band)
     moved = np.linalg.norm(x - x_start, axis=1)
     report = {
@@ -185,5 +206,6 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
         "max_move_mm": float(moved.max()) if n else 0.0,
         "rounds": int(rounds),
         "elements_repaired": int(repaired),
+        "undone": unrepairable,
     }
     return x, report

@@ -301,6 +301,11 @@ def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.
             # again in the next round
             x, rep = repair_mesh(x, hexes, threshold=threshold, fixed=fixed)
             repaired += rep["elements_needing_repair"]
+    if rounds and min_scaled_jacobian(x, hexes).min() < threshold:
+        # the last round's repair fell short (the next round's would have had another go): a
+        # wider patch around the elements left, more rounds
+        x, rep = repair_mesh(x, hexes, threshold=threshold, fixed=fixed, rings=3, max_rounds=12)
+        repaired += rep["elements_needing_repair"]
     sd_end = measure(all_ids)
     moved = np.linalg.norm(x - x_start, axis=1)
     finite = np.isfinite(sd_end)

@@ -185,6 +185,19 @@ def test_landmarks_at_their_anatomical_definitions(shape):
     between = np.array([point(f)[1] for f in np.arange(elevation(lm["Li"]), elevation(lm["Pog"]), -0.1)])
     # (the receding chin of the strong class II leaves a fold only ~0.4 mm deep)
     assert between.min() < min(lm["Li"][1], lm["Pog"][1]) - 0.2
+    # menton: the chin's extreme below pogonion along the direction MENTON_TILT deg in front of
+    # straight down, by bounded optimisation (same 1e-3 mm on the extreme's height as for the
+    # most anterior points), an interior extreme (not the bound: the submental contour
+    # descends less steeply), where the profile's tangent descends MENTON_TILT deg backwards
+    # (central difference over +-0.2 deg: 1.5 deg covers the chord and the curvature change)
+    a = np.radians(hg.MENTON_TILT)
+    d = np.array([np.sin(a), -np.cos(a)])
+    r = minimize_scalar(lambda f: -point(f)[1:] @ d, bounds=(-70.0, elevation(lm["Pog"])),
+                        method="bounded", options={"xatol": 1e-4})
+    assert abs(point(r.x)[1:] @ d - lm["Me"][1:] @ d) < 1e-3
+    assert -69.0 < r.x < elevation(lm["Pog"]) - 1.0 and lm["Me"][2] < lm["Pog"][2] - 2.0
+    t = point(r.x - 0.2)[1:] - point(r.x + 0.2)[1:]
+    assert np.degrees(np.arctan2(-t[1], -t[0])) == pytest.approx(hg.MENTON_TILT, abs=1.5)
     # midline landmarks on the face's own midline: x = 0 on a symmetric head; the chin of an
     # asymmetric one shifted with the lower face
     if shape.asymmetry == 0.0:

@@ -292,13 +292,14 @@ def test_mean_head_is_the_generic_geometry(coarse):
     # The mean head's landmarks are located by their anatomical definitions on its exact skin
     # (head_geometry.anatomical_landmarks); the generic mesh's are the skin nodes nearest their
     # rays (head_geometry.LANDMARK_ANGLES). They coincide where the definition is the ray point
-    # (cheilia, menton) and otherwise agree to within half a coarse skin facet edge (measured
-    # up to 3.4 mm, Ls, against a median edge of 9 mm).
+    # (cheilia) and otherwise agree to within half a coarse skin facet edge (measured up to
+    # 3.4 mm, Ls, against a median edge of 9 mm; menton, the chin's extreme along
+    # head_geometry.MENTON_TILT since session 4, lies 0.54 mm from its ray).
     quads = coarse.facet_sets["skin"]
     edge = np.median(np.linalg.norm(coarse.nodes[quads] - coarse.nodes[np.roll(quads, 1, axis=1)], axis=2))
     for k, v in head.landmarks.items():
         d = np.linalg.norm(np.asarray(v) - coarse.landmark_positions[k])
-        assert d < (1e-9 if k in ("ChL", "ChR", "Me") else 0.5 * edge), (k, d)
+        assert d < (1e-9 if k in ("ChL", "ChR") else 0.5 * edge), (k, d)
 
 
 def test_attached_nodes_lie_on_their_bone(standard):

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from registration import MatchOptions, mesh_match_and_repair
-from registration.landmark_search import (anterior_summit, deepest_under_bitangent, locate_landmarks,
-                                          mirror_pairs, most_anterior, mouth_slit, plane_cut,
-                                          sagittal_profile)
+from registration.landmark_search import (MENTON_TILT, _menton, anterior_summit, deepest_under_bitangent,
+                                          locate_landmarks, mirror_pairs, most_anterior, mouth_slit,
+                                          plane_cut, sagittal_profile)
 from registration.surface import TargetSurface
 
 trimesh = pytest.importorskip("trimesh")
@@ -81,6 +81,35 @@ def test_deepest_point_under_the_bitangent():
     assert k2 == 0
 
 
+def test_menton_on_a_round_chin():
+    """A chin of radius 12 mm (centre (y, z) = (80, -90)) sampled every 10 deg (~2.1 mm chords,
+    vertices on the circle) from its front (pogonion, y max) round to a submental line that
+    descends 15 deg backwards: menton is the circle's point along the direction MENTON_TILT
+    deg in front of straight down."""
+    c, r = np.array([80.0, -90.0]), 12.0
+    ang = np.radians(np.arange(0.0, -106.0, -10.0))    # the extreme (-55 deg) between two vertices
+    arc = c + r * np.column_stack([np.cos(ang), np.sin(ang)])
+    end = arc[-1]
+    tail = end + np.outer(np.arange(1, 8) * 3.0, [-np.cos(np.radians(15)), -np.sin(np.radians(15))])
+    yz = np.vstack([arc, tail])
+    p = np.column_stack([np.zeros(len(yz)), yz])
+    a = np.radians(MENTON_TILT)
+    d = np.array([np.sin(a), -np.cos(a)])
+    me = _menton(p, 0)
+    # the parabola through the vertices within 3 mm of arc refines the best vertex (5 deg,
+    # ~1 mm off) to the extreme, on a chord: 0.1 mm covers the chord's sagitta 2.1^2 /
+    # (8 * 12) ~ 0.05 mm and a parabola's fit to a circle over +-3 mm (0.046 mm measured)
+    assert np.linalg.norm(me[1:] - (c + r * d)) < 0.1
+    assert np.linalg.norm(p[np.argmax(yz @ d), 1:] - (c + r * d)) > 1.0
+    # a profile that stops before turning round the chin has no menton
+    assert _menton(p[:4], 0) is None
+
+
+def test_menton_convention_is_the_synthetic_heads_one():
+    hg = pytest.importorskip("facemodel.head_geometry")
+    assert MENTON_TILT == hg.MENTON_TILT
+
+
 def _lip_profile(upper_y, lower_y):
     """Upper lip vertical at y = upper_y from z = 0 to -9 (3 mm facets), a facet to the lower
     lip at (lower_y, -10), then the lower lip down to z = -19."""
@@ -134,7 +163,7 @@ def without_landmarks(generic, head):
     return searched, carried
 
 
-LOCATED_HERE = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "Pog")
+LOCATED_HERE = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "Pog", "Me")
 
 
 def test_located_landmarks_are_the_true_ones(generic, head, without_landmarks):

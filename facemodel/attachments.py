@@ -1,17 +1,42 @@
-"""Attachments that depend on the operation: the tissue a genioplasty degloves.
+"""Attachments that depend on the operation: the tissue a genioplasty degloves slides on bone.
 
-An intra-oral sliding genioplasty is reached through a vestibular incision: the periosteum
-and the mentalis are stripped from the anterior mandible between the vestibule fornix and the
-osteotomy (between the mental nerves), and along the cut to the lower border, while the chin
-segment keeps its soft-tissue pedicle (Trauner R., Obwegeser H., Oral Surg Oral Med Oral
-Pathol 10:677-689, 1957; Hoenig J.F., Aesthetic Plast Surg 31:384-391, 2007). The generic
-face lists these mandible-tied deep nodes as node set "release_genioplasty"
-(`generic_mesh.builder._genioplasty_release`). They stay tied for plans without a
-genioplasty; with one, tying them to the mandible while the chin moves would impose the bony
-step at the cut on the tissue as a displacement jump between neighbouring nodes: on a 5 mm
-advancement the soft-tissue pogonion then follows the chin by 1.035 (coarse) / 0.966
-(standard), and the fine mesh inverts elements; with the nodes released, by 1.014 / 0.978 /
-0.975 (coarse / standard / fine; published 0.8-1.0).
+An intra-oral sliding genioplasty is reached through a vestibular incision in the lower labial
+sulcus; the periosteum and the mentalis are stripped (subperiosteal degloving) from the
+anterior mandible between the vestibule fornix and the osteotomy, between the mental nerves,
+along the cut out to the lower border, and over the anterior face of the chin segment, while
+the chin segment keeps its soft-tissue pedicle on its inferior border and lingual side
+(mentalis re-suspended, digastric and geniohyoid left on the segment) (Trauner R., Obwegeser
+H., Oral Surg Oral Med Oral Pathol 10:677-689, 1957; Hoenig J.F., Aesthetic Plast Surg
+31:384-391, 2007; Reyneke J.P., Essentials of Orthognathic Surgery, 2nd ed., 2010; Posnick
+J.C., Orthognathic Surgery: Principles and Practice, 2014).
+At closure the degloved tissue lies on the bone again: it is neither tied to it nor free in
+space, it stays on the bone surface and slides on it. `genioplasty_sliding` lists, for a plan
+that moves the chin on the mandible, the deep nodes that slide on each bone:
+
+- mandible: the generic face's node set "release_genioplasty" (anterior mandible between the
+  fornix and the cut, and the tunnel along the cut; `generic_mesh.builder._genioplasty_release`);
+- chin: the chin segment's attached nodes where the bone faces more forward than downward,
+  n . anterior > n . inferior with n the bone's outward normal (the anterior face of the
+  symphysis); where the surface has turned downward (inferior border, underside) the pedicle
+  stays tied.
+
+A sliding node keeps the bone's normal displacement and is free in the bone's tangent plane:
+a `solver.bc.LocalFrame` constraint in the frame `bone_frames` gives (normal first), i.e.
+frictionless sliding linearised about the pre-operative bone surface (exact for a translated
+segment; a rotation by theta tilts the tangent plane by theta, an error of about theta times
+the slide). `facemodel.simulation.simulate`'s own `sliding=` (bilateral node-to-surface contact
+of a whole segment's deep nodes against their own facets) cannot do this: it cannot slide part
+of a segment, and on the generic face it does not converge (`sliding=("chin",)`: the slaves are
+the surface's own vertices, whose normal is undefined at zero gap; Newton converges at load
+0.5, the augmented-Lagrangian re-solve then cycles, and every cut-back down to load 1e-4 fails).
+
+Diagnosis on the coarse generic face, 5 mm chin advancement, no contact (soft-tissue pogonion
+/ chin ratio; published 0.8-1.0, San Miguel Moragas et al., Int J Oral Maxillofac Surg
+44:1009, 2015): everything tied 1.035 (the bony step and the chin's tangential drag are imposed
+on the tissue); the mandible's degloved tissue freed 1.014 (and in a setback the lower lip no
+longer follows the mandible) or sliding 1.037; the anterior chin face sliding as well 0.980
+(standard 0.969, fine 0.962). The tie of the chin's anterior face is what pushes pogonion ahead
+of the bone.
 """
 from __future__ import annotations
 
@@ -19,9 +44,12 @@ from dataclasses import replace
 
 import numpy as np
 
-__all__ = ["RELEASE_SET", "has_genioplasty", "release_for_plan"]
+__all__ = ["RELEASE_SET", "has_genioplasty", "release_for_plan", "genioplasty_sliding",
+           "bone_normals", "bone_frames"]
 
 RELEASE_SET = "release_genioplasty"
+ANTERIOR = np.array([0.0, 1.0, 0.0])      # patient RAS
+INFERIOR = np.array([0.0, 0.0, -1.0])
 
 
 def has_genioplasty(motions: dict, tol: float = 1e-9) -> bool:
@@ -34,9 +62,11 @@ def has_genioplasty(motions: dict, tol: float = 1e-9) -> bool:
 
 
 def release_for_plan(model, motions: dict):
-    """The model with the genioplasty's degloved nodes moved from "attach_mandible" to
-    "deep_free" when `motions` hold a genioplasty; the model itself otherwise (or when it
-    has no such node set)."""
+    """The model with the genioplasty's degloved mandible nodes moved from "attach_mandible" to
+    "deep_free" when `motions` hold a genioplasty; the model itself otherwise (or when it has
+    no such node set). Freed, the tissue leaves the bone (up to ~6 mm behind it in a 5 mm
+    setback) and the lower lip stops following a mandibular setback: the degloved tissue
+    slides instead (`genioplasty_sliding`); this is the comparison case."""
     ids = np.asarray(model.node_sets.get(RELEASE_SET, ()), dtype=np.int64)
     if not len(ids) or not has_genioplasty(motions):
         return model
@@ -44,3 +74,57 @@ def release_for_plan(model, motions: dict):
     sets["attach_mandible"] = np.setdiff1d(np.asarray(sets.get("attach_mandible", ()), np.int64), ids)
     sets["deep_free"] = np.union1d(np.asarray(sets.get("deep_free", ()), np.int64), ids)
     return replace(model, node_sets=sets)
+
+
+def bone_normals(model) -> np.ndarray:
+    """(n, 3) unit outward bone normals at the nodes of the "deep_bone" facets (area-weighted
+    mean of the facets' normals, zero at other nodes). The deep facets' right-hand normal
+    points out of the soft tissue, i.e. into the bone; the bone's outward normal is its
+    opposite."""
+    X = np.asarray(model.nodes, float)
+    F = np.asarray(model.facet_sets.get("deep_bone", np.zeros((0, 4))), dtype=np.int64)
+    acc = np.zeros_like(X)
+    if len(F):
+        p = X[F]
+        # quad normal times area: half the cross product of the diagonals
+        area_n = -0.5 * np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+        np.add.at(acc, F.ravel(), np.repeat(area_n, F.shape[1], axis=0))
+    norm = np.linalg.norm(acc, axis=1, keepdims=True)
+    return np.divide(acc, norm, out=np.zeros_like(acc), where=norm > 0)
+
+
+def bone_frames(model, nodes) -> np.ndarray:
+    """(k, 3, 3) right-handed orthonormal frames at `nodes`, rows (normal, t1, t2) with the
+    bone's outward normal first (ValueError where a node lies on no deep bone facet)."""
+    nodes = np.asarray(nodes, dtype=np.int64)
+    n = bone_normals(model)[nodes]
+    if len(n) and not np.all(np.linalg.norm(n, axis=1) > 0.5):
+        raise ValueError("some sliding nodes lie on no deep bone facet")
+    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(n, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    return np.stack([n, t1, np.cross(n, t1)], axis=1)
+
+
+def genioplasty_sliding(model, motions: dict) -> dict[str, np.ndarray]:
+    """{segment: deep node ids} of the tissue a genioplasty degloves, which slides on that
+    segment's bone: the mandible's "release_genioplasty" nodes and the chin segment's nodes
+    on its anterior face (bone facing more forward than downward); {} when `motions` move no
+    chin on the mandible or the model has no chin attachments."""
+    if not has_genioplasty(motions):
+        return {}
+    sets = model.node_sets
+    normals = bone_normals(model)
+    onbone = np.linalg.norm(normals, axis=1) > 0.5
+    out = {}
+    mandible = np.asarray(sets.get("attach_mandible", ()), dtype=np.int64)
+    released = np.intersect1d(np.asarray(sets.get(RELEASE_SET, ()), dtype=np.int64), mandible)
+    released = released[onbone[released]]
+    chin = np.asarray(sets.get("attach_chin", ()), dtype=np.int64)
+    chin = chin[onbone[chin]]
+    front = chin[normals[chin] @ ANTERIOR > normals[chin] @ INFERIOR]
+    if len(front):
+        out["chin"] = front
+        if len(released):
+            out["mandible"] = released
+    return out

@@ -70,9 +70,10 @@ def test_le_fort_advancement(face, le_fort, mirror_of):
 
 
 @pytest.mark.xfail(strict=True, reason="Pog/chin = 1.035 on the coarse face: the tissue a genioplasty degloves "
-                   "is tied to the mandible, imposing the bony step at the cut on the tissue (not the "
-                   "incompressibility); released (facemodel.attachments.release_for_plan, not wired "
-                   "into planner.pipeline) 1.014 coarse, 0.978 standard (tests/facemodel/test_genioplasty.py)")
+                   "(anterior mandible and the chin's anterior face) is tied to its bone and drags pogonion "
+                   "ahead of it; with it sliding on the bone (facemodel.attachments.genioplasty_sliding) 0.980 "
+                   "coarse / 0.969 standard / 0.962 fine, which needs simulate(..., sliding_nodes=) "
+                   "(tests/facemodel/test_genioplasty.py)")
 def test_genioplasty_pogonion_ratio(face, genioplasty):
     # Soft-tissue pogonion follows a genioplasty advancement by 0.8-1.0 (published range, e.g.
     # San Miguel Moragas et al., Int J Oral Maxillofac Surg 44:1009, 2015 review).

@@ -12,7 +12,10 @@ back by the alignment similarity):
 * mid-sagittal plane near a landmark: x = the median of the midpoints of registered skin nodes
   that are mirror images of each other on the symmetric generic mesh, within `MIDLINE_RADIUS`
   of the carried landmark (a slide common to both sides cancels in the midpoint; the lower face
-  of an asymmetric head shifts sideways, and so does this plane);
+  of an asymmetric head shifts sideways, and so does this plane), then refined on the scan
+  itself: the plane about which the skin within `SYMMETRY_RADIUS` of the landmark is most
+  nearly its own mirror image (`symmetry_plane`; the registered pairs alone left subnasale and
+  labrale superius up to 1.2 mm to the side on the bench heads, the scan's symmetry 0.3 mm);
 * sagittal profile: the patient skin cut by that plane (exact triangle-plane intersection,
   chained along the cut edges into a polyline, oriented downwards);
 * pronasale (Prn): the most anterior profile point of the nose; labrale superius (Ls) and
@@ -22,7 +25,10 @@ back by the alignment similarity):
   arc length of the best vertex (the scan's facets cut convex tips) and Li and Pog are taken on
   their own local mid-sagittal plane;
 * subnasale (Sn) and the labiomental fold: the deepest points under the profile's anterior
-  convex hull edges (bitangents) that span the nasolabial and labiomental concavities;
+  convex hull edges (bitangents) that span the nasolabial and labiomental concavities; the
+  subnasale corner is sharper than the scan's facets, which bridge it by a chord: it is taken
+  where the columella's and the upper lip's last chords, extended, meet behind that chord,
+  projected onto the skin (`concave_corner`);
 * stomion superius / inferius (Stms, Stmi): the ends of the lips at the mouth slit. A scan with
   facets of a few mm bridges the step between an overhanging lip and the receding one by one
   long facet (the profile's most horizontal segment near the mouth, |dy| > |dz|, at least
@@ -51,6 +57,7 @@ from registration.alignment import Similarity
 from registration.surface import TargetSurface
 
 MIDLINE_RADIUS = 15.0    # mm: mirror pairs around a landmark that place its mid-sagittal plane
+SYMMETRY_RADIUS = 12.0   # mm: skin around a landmark whose mirror symmetry refines that plane
 REFINE_HALF_WIDTH = 3.0  # mm of profile arc either side of a maximum fitted by a parabola
 # mm: skin vertices around a maximum fitted by a surface, about the size of the feature
 SUMMIT_RADIUS = {"Prn": 8.0, "Li": 8.0, "Pog": 10.0}
@@ -82,6 +89,33 @@ def local_midline(x: np.ndarray, pairs: np.ndarray, centre: np.ndarray,
     mid = 0.5 * (x[pairs[:, 0]] + x[pairs[:, 1]])
     near = np.linalg.norm(mid - centre, axis=1) < radius
     return float(np.median(mid[near, 0])) if near.any() else float(centre[0])
+
+
+def symmetry_plane(skin: TargetSurface, centre: np.ndarray, x_guess: float,
+                   radius: float = SYMMETRY_RADIUS, span: float = 3.0, step: float = 0.25) -> float:
+    """x of the plane x = x0 about which the skin around `centre` is most nearly its own mirror
+    image: the skin vertices within `radius` of the centre reflected about each candidate plane
+    (x_guess +- span, every `step` mm), their mean squared distance to the skin (the lower 80 %,
+    so that a scan's edge or a local asymmetry does not dominate), minimised by a parabola
+    through the best candidate and its neighbours. `x_guess` when fewer than 10 vertices."""
+    v = skin.vertices
+    near = v[np.linalg.norm(v - centre, axis=1) < radius]
+    if len(near) < 10:
+        return float(x_guess)
+    xs = x_guess + np.arange(-span, span + step / 2, step)
+    cost = np.empty(len(xs))
+    for n, x0 in enumerate(xs):
+        m = near.copy()
+        m[:, 0] = 2.0 * x0 - m[:, 0]
+        d = np.sort(skin.closest(m).distance)
+        cost[n] = float(np.mean(d[:max(1, int(0.8 * len(d)))] ** 2))
+    k = int(np.argmin(cost))
+    if 0 < k < len(xs) - 1:
+        c0, c1, c2 = cost[k - 1], cost[k], cost[k + 1]
+        den = c0 - 2.0 * c1 + c2
+        if den > 0:
+            return float(xs[k] + 0.5 * step * (c0 - c2) / den)
+    return float(xs[k])
 
 
 def plane_cut(vertices: np.ndarray, faces: np.ndarray, x0: float) -> list[np.ndarray]:
@@ -230,11 +264,13 @@ def anterior_summit(skin: TargetSurface, q: np.ndarray, z_range: tuple[float, fl
     return skin.closest(np.array([[q[0] + ox, y0, q[2] + oz]])).points[0]
 
 
-def deepest_under_bitangent(p: np.ndarray, lo: int, hi: int) -> int:
+def deepest_under_bitangent(p: np.ndarray, lo: int, hi: int, with_span: bool = False):
     """On the profile arc p[lo..hi] (ordered downwards): the index of the point deepest behind
-    the anterior convex hull edge that spans the arc's deepest concavity."""
+    the anterior convex hull edge that spans the arc's deepest concavity; `with_span`: also
+    that edge's ends (i, j) and its inward (posterior) unit normal in (y, z)."""
     yz = p[:, 1:]
     best, best_k = -1.0, lo
+    span = (lo, hi, np.array([-1.0, 0.0]))
     i = lo
     while i < hi:
         d = yz[i + 1:hi + 1] - yz[i]
@@ -247,9 +283,64 @@ def deepest_under_bitangent(p: np.ndarray, lo: int, hi: int) -> int:
             depth = (yz[i + 1:j] - yz[i]) @ inward
             k = int(np.argmax(depth))
             if depth[k] > best:
-                best, best_k = float(depth[k]), i + 1 + k
+                best, best_k, span = float(depth[k]), i + 1 + k, (i, j, inward)
         i = j
-    return best_k
+    return (best_k, span) if with_span else best_k
+
+
+def _thin(p: np.ndarray, min_step: float = 0.25) -> np.ndarray:
+    """The polyline's points at least `min_step` mm from the previous one kept (a skin vertex
+    close to the cutting plane is cut by each of its edges: a cluster of points carries no
+    direction for the tangents of `concave_corner`)."""
+    keep = [0]
+    for i in range(1, len(p)):
+        if np.linalg.norm(p[i] - p[keep[-1]]) >= min_step:
+            keep.append(i)
+    return p[keep]
+
+
+def _line_meet(a0, a1, b0, b1):
+    """Intersection of the lines a0-a1 and b0-b1 in a plane ((2,) points), None if parallel."""
+    da, db = a1 - a0, b1 - b0
+    det = da[0] * -db[1] - da[1] * -db[0]
+    if abs(det) < 1e-9 * np.linalg.norm(da) * np.linalg.norm(db):
+        return None
+    r = b0 - a0
+    u = (r[0] * -db[1] - r[1] * -db[0]) / det
+    return a0 + u * da
+
+
+def concave_corner(skin: TargetSurface, p: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """The deepest point of a concave corner of the profile arc p[lo..hi] (ordered downwards)
+    on a scan whose facets bridge it: the profile's cut points lie on the skin, the corner
+    itself lies between the deepest of them and a neighbour, where the chord hides it. Each
+    side's last chord is extended into the corner (the columella's and the upper lip's
+    tangents for subnasale); of the two chords next to the deepest point, the one behind whose
+    middle these tangents meet deepest holds the corner, and the corner is the skin point
+    closest to where they meet. The deepest profile point when no tangents meet behind a chord
+    (a rounded corner sampled densely)."""
+    k, (i, j, inward) = deepest_under_bitangent(p, lo, hi, with_span=True)
+    q = _thin(p[i:j + 1])
+    if len(q) < 4:
+        return p[k].copy()
+    yz = q[:, 1:]
+    m = int(np.argmax(yz @ inward))
+    best, best_depth = None, -np.inf
+    for c0, c1 in ((m - 1, m), (m, m + 1)):
+        if c0 - 1 < 0 or c1 + 1 >= len(q):
+            continue
+        x = _line_meet(yz[c0 - 1], yz[c0], yz[c1 + 1], yz[c1])
+        if x is None:
+            continue
+        chord = yz[c1] - yz[c0]
+        t = (x - yz[c0]) @ chord / (chord @ chord)
+        depth = (x - yz[c0]) @ inward
+        if 0.0 < t < 1.0 and depth > 0.0 and depth > best_depth:
+            best, best_depth = x, depth
+    if best is None:
+        return q[m].copy()
+    x0 = float(np.median(q[:, 0]))
+    return skin.closest(np.array([[x0, best[0], best[1]]])).points[0]
 
 
 def _valley_end(p: np.ndarray, k: int, hi: int) -> int:
@@ -350,7 +441,8 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
     missing: list[str] = []
 
     def profile(centre, radius):
-        return sagittal_profile(skin, local_midline(x, pairs, centre), centre, radius)
+        x0 = symmetry_plane(skin, centre, local_midline(x, pairs, centre))
+        return sagittal_profile(skin, x0, centre, radius)
 
     if not wanted:
         return {}, {"located": {}, "not_found": []}
@@ -379,7 +471,7 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
             i0, i1 = _nearest_index(p, prn), _nearest_index(p, stms)
             if i1 - i0 >= 3:
                 i_sn = deepest_under_bitangent(p, i0, i1)
-                found["Sn"] = p[i_sn].copy()
+                found["Sn"] = concave_corner(skin, p, i0, i1)
                 ls_ = most_anterior(p, _valley_end(p, i_sn, i1), i1)
                 found["Ls"] = ls_
     # lower lip, labiomental fold, chin: from stomion inferius down past the carried menton

@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 
 from registration import MatchOptions, mesh_match_and_repair
-from registration.landmark_search import (MENTON_TILT, _menton, anterior_summit, deepest_under_bitangent,
-                                          locate_landmarks, mirror_pairs, most_anterior, mouth_slit,
-                                          plane_cut, sagittal_profile)
+from registration.landmark_search import (MENTON_TILT, _menton, anterior_summit, concave_corner,
+                                          deepest_under_bitangent, locate_landmarks, mirror_pairs,
+                                          most_anterior, mouth_slit, plane_cut, sagittal_profile,
+                                          symmetry_plane)
 from registration.surface import TargetSurface
 
 trimesh = pytest.importorskip("trimesh")
@@ -108,6 +109,61 @@ def test_menton_on_a_round_chin():
 def test_menton_convention_is_the_synthetic_heads_one():
     hg = pytest.importorskip("facemodel.head_geometry")
     assert MENTON_TILT == hg.MENTON_TILT
+
+
+def _extruded(profile_yz, half_width=10.0, n=6):
+    """The (y, z) polyline extruded along x over +-half_width (n strips): a surface whose every
+    sagittal cut is the polyline, its facets the polyline's chords."""
+    xs = np.linspace(-half_width, half_width, n + 1)
+    k = len(profile_yz)
+    verts = np.array([[x, y, z] for x in xs for y, z in profile_yz])
+    faces = []
+    for a in range(n):
+        for b in range(k - 1):
+            i, j = a * k + b, (a + 1) * k + b
+            faces += [[i, j, i + 1], [i + 1, j, j + 1]]
+    return TargetSurface(verts, np.array(faces), "extruded")
+
+
+def test_concave_corner_hidden_under_a_chord():
+    """Subnasale-like corner: the columella descends from (120, -27) to the corner (104, -34),
+    the upper lip runs from it to (108, -49); profile points every ~3.3 mm along each side,
+    none on the corner, so that one chord bridges it. The two sides' last chords meet at the
+    corner exactly (straight sides); the skin point closest to it is on the bridging chord."""
+    corner = np.array([104.0, -34.0])
+    col = corner + np.outer(np.linspace(1.0, 0.2, 6), [16.0, 7.0])
+    lip = corner + np.outer(np.linspace(0.25, 1.0, 5), [4.0, -15.0])
+    yz = np.vstack([[[125.0, -20.0]], col, lip])
+    skin = _extruded(yz)
+    p = np.column_stack([np.zeros(len(yz)), yz])
+    found = concave_corner(skin, p, 0, len(p) - 1)
+    bridge_a, bridge_b = col[-1], lip[0]
+    u = bridge_b - bridge_a
+    t = np.clip((corner - bridge_a) @ u / (u @ u), 0.0, 1.0)
+    expected = bridge_a + t * u
+    # exact up to round-off: straight sides, the closest point on a planar facet
+    np.testing.assert_allclose(found, [0.0, *expected], atol=1e-6)
+    # the deepest profile point (a vertex) is farther from the corner
+    k = deepest_under_bitangent(p, 0, len(p) - 1)
+    assert np.linalg.norm(p[k, 1:] - corner) > np.linalg.norm(found[1:] - corner) + 0.5
+
+
+def test_symmetry_plane_of_a_shifted_ridge():
+    """A nose-like ridge y = 10 - (x - 1.7)^2 / 8 - z^2 / 30, mirror-symmetric about x = 1.7,
+    on a 1.5 mm grid that is not symmetric about that plane; the guess (the generic midline,
+    x = 0) 1.7 mm off."""
+    g = np.arange(-15.0, 15.1, 1.5) + 0.4
+    xx, zz = np.meshgrid(g, g, indexing="ij")
+    verts = np.column_stack([xx.ravel(), (10.0 - (xx - 1.7) ** 2 / 8.0 - zz**2 / 30.0).ravel(), zz.ravel()])
+    n = len(g)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    skin = TargetSurface(verts, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]), "ridge")
+    x0 = symmetry_plane(skin, np.array([1.7, 10.0, 0.0]), 0.0)
+    # the reflected vertices miss the facets by the chords' sagitta (1.5^2 / 8 / 4 ~ 0.07 mm
+    # across the ridge), symmetrically about the true plane: the parabola's minimum within
+    # 0.1 mm of it
+    assert abs(x0 - 1.7) < 0.1
 
 
 def _lip_profile(upper_y, lower_y):

@@ -46,13 +46,14 @@ def skin_edge_graph(x: np.ndarray, skin_quads: np.ndarray, skin_ids: np.ndarray)
 def landmark_correction(x: np.ndarray, hexes: np.ndarray, skin_quads: np.ndarray,
                         landmark_nodes: np.ndarray, landmarks: np.ndarray, skin: TargetSurface,
                         movable_skin: np.ndarray, held: np.ndarray, *, sigma_mm: float = 8.0,
-                        max_distance_mm: float = 5.0, max_correction_mm: float = 6.0):
+                        max_distance_mm: float = 5.0, max_correction_mm: float | np.ndarray = 6.0):
     """Move the landmark nodes onto the given landmarks (projected on the skin) with a smooth
     geodesic correction of the skin around them; returns (new nodes, report).
 
     movable_skin: skin node ids on the patient skin (projected back onto it after the
     correction); held: node ids that keep their position (bone-attached nodes). A landmark
-    node is placed on its landmark whether it was on the patient skin before or not."""
+    node is placed on its landmark whether it was on the patient skin before or not.
+    max_correction_mm: one limit, or one per landmark."""
     skin_quads = np.asarray(skin_quads)
     skin_ids = np.unique(skin_quads)
     landmark_nodes = np.asarray(landmark_nodes, dtype=np.int64)
@@ -61,7 +62,7 @@ def landmark_correction(x: np.ndarray, hexes: np.ndarray, skin_quads: np.ndarray
     report = {"landmarks_used": int(use.sum()), "sigma_mm": float(sigma_mm), "nodes": []}
     # a landmark the registered surface misses by more than max_correction_mm contradicts the
     # surfaces (a mislabelled or misplaced point): reported, not followed
-    far = np.linalg.norm(cl.points - x[landmark_nodes], axis=1) > max_correction_mm
+    far = np.linalg.norm(cl.points - x[landmark_nodes], axis=1) > np.asarray(max_correction_mm, float)
     report["landmarks_not_followed"] = [int(i) for i in np.flatnonzero(use & far)]
     use &= ~far
     report["landmarks_used"] = int(use.sum())

@@ -65,6 +65,10 @@ class MatchOptions:
     locate_landmarks: bool = True
     # a landmark the registered skin misses by more than this contradicts the surfaces
     landmark_max_correction_mm: float = 10.0
+    # the same for a located landmark: found by its definition on the scan near the carried
+    # node, it may lie farther from it where the head's shape moves the feature along the
+    # profile (menton 13 mm from the generic's on a short, retruded chin)
+    located_max_correction_mm: float = 15.0
     # skin nodes placed so that the facets, not only the nodes, fit the skin (least squares)
     facet_fit: bool = True
     # lips kept at least this far apart across the mouth slit (registration.lips); 0 disables
@@ -309,6 +313,7 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     lm_given = lm
     lm_names = [k for k in model.landmark_nodes if k in landmarks] if lm is not None else []
     search_report = None
+    located: list[str] = []
     missing = [k for k in model.landmark_nodes if k not in lm_names and k in LOCATED]
     if opt.locate_landmarks and opt.landmark_correction and missing:
         t_s = time.perf_counter()
@@ -320,6 +325,7 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
             search_report["head_frame_rotation_deg"] = head_frame.rotation_deg
         if found:
             add = list(found)
+            located = add
             nodes_add = np.array([model.landmark_nodes[k] for k in add], dtype=np.int64)
             pts_add = np.array([found[k] for k in add])
             lm = (nodes_add, pts_add) if lm is None else (np.r_[lm[0], nodes_add], np.vstack([lm[1], pts_add]))
@@ -336,7 +342,9 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         x, landmark_report = landmark_correction(x, hexes, model.skin_quads, lm[0], lm[1], skin_g,
                                                  snapped["skin"], held, sigma_mm=opt.landmark_sigma_mm,
                                                  max_distance_mm=opt.max_snap_mm,
-                                                 max_correction_mm=opt.landmark_max_correction_mm)
+                                                 max_correction_mm=np.array(
+                                                     [opt.located_max_correction_mm if k in located
+                                                      else opt.landmark_max_correction_mm for k in lm_names]))
         landmark_report["landmarks_not_followed"] = [lm_names[i] for i in landmark_report["landmarks_not_followed"]]
         times["landmarks_s"] = time.perf_counter() - t_l
 

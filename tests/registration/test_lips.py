@@ -94,3 +94,23 @@ def test_registered_lips_are_apart(generic, registered_3):
     q = min_scaled_jacobian(patient.nodes, patient.hexes)
     assert q.min() >= 0.2 and (q > 0).all()
     assert rep["fit"]["skin"]["mean_mm"] < 0.3 and rep["fit"]["skin"]["p95_mm"] < 1.0
+
+
+def test_separation_stops_when_the_pushes_make_no_progress():
+    """The lower lip held entirely (bone-attached) and the upper lip's contact nodes lying on
+    the patient skin, here the contact plane itself: each push is taken back by the skin, the
+    shortfall never shrinks, and the stage ends after `stall_rounds` rounds without progress
+    (not after its 30 rounds), the mesh untouched and the crossing reported as it is."""
+    from registration.surface import TargetSurface
+
+    x, hexes, upper, lower, n_upper = _two_lips(0.4)
+    fixed = np.arange(n_upper, len(x))
+    ids = np.unique(upper)
+    tris = np.searchsorted(ids, np.concatenate([upper[:, [0, 1, 2]], upper[:, [0, 2, 3]]]))
+    skin = TargetSurface(x[ids], tris, "contact plane")
+    y, rep = separate_lips(x, hexes, upper, lower, fixed, skin_nodes=ids, skin=skin, gap=0.1,
+                           stall_rounds=4)
+    assert rep["rounds"] == 5                 # the first round sets the shortfall, 4 repeat it
+    np.testing.assert_allclose(y, x, atol=1e-9)
+    assert rep["after"]["lower_in_upper_mm"] == pytest.approx(0.4, abs=1e-9)
+    assert min_scaled_jacobian(y, hexes).min() >= 0.2 and not rep["undone"]

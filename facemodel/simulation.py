@@ -8,8 +8,15 @@ move with their segment and the lip mucosa cannot enter them (rigid contact); th
 lower lips cannot enter each other (two-pass deformable contact); each muscle label gets the
 active transversely isotropic `solver.constitution.muscle.Muscle` law at its activation
 (fibres from the model); segments named in `sliding` let their deep nodes slide on the moving
-bone surface (bilateral frictionless contact with the segment's "deep_bone" facets) instead of
-being tied. The static equilibrium is solved by `solver.newton.newton_solve`
+bone instead of being tied, and `sliding_nodes` lets chosen attached nodes slide (the tissue a
+genioplasty degloves). A sliding node keeps its displacement along the bone's outward normal n
+(the "deep_bone" facets' area-weighted normal at the node) equal to the bone's, u . n =
+u_bone . n, and is free in the tangent plane (a `solver.bc.LocalFrame` condition, frictionless;
+the linearisation of "stays on the bone surface": the plane translates with the bone but keeps
+its reference orientation, off the exact surface by |u_t|^2 kappa / 2 for a tangential slide
+u_t on a bone of curvature kappa, plus theta |u_t| for a bone rotation theta, e.g. 0.15 mm for a
+3 mm slide on a 30 mm radius). Contact-based sliding (`solver.contact.RigidSurfaceContact`,
+bilateral) is exact on curved bone but its augmented re-solves cycled on the face. The static equilibrium is solved by `solver.newton.newton_solve`
 (Q1/P0 hexahedra, Newton with line search, load stepping, augmented Lagrangian contact).
 """
 from __future__ import annotations
@@ -20,7 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from solver.bc import Prescribed
+from facemodel.attachments import bone_frames, bone_normals
+from solver.bc import LocalFrame, Prescribed
 from solver.constitution import Yeoh
 from solver.constitution.muscle import Muscle
 from solver.contact import RigidSurfaceContact, SurfaceContact, TriangleSurface, ramped_rigid_motion
@@ -126,16 +134,6 @@ def _segment_motion(motions, seg):
     return np.eye(4) if T is None else np.asarray(T, dtype=float)
 
 
-def _bone_facets(model, seg, nodes):
-    """Deep-bone facets whose nodes all belong to the node set `nodes`."""
-    f = np.asarray(model.facet_sets.get("deep_bone", np.zeros((0, 4))), dtype=np.int64)
-    if not len(f):
-        return f
-    inside = np.zeros(len(model.nodes), dtype=bool)
-    inside[nodes] = True
-    return f[np.all(inside[f], axis=1)]
-
-
 def _typical_size(X, facets):
     if not len(facets):
         return 1.0
@@ -167,14 +165,19 @@ def _shear_modulus(mat) -> float:
 
 
 def simulate(model, motions: dict | None = None, activations: dict | None = None, *,
-             contact: bool = True, sliding=(), materials: dict | None = None,
+             contact: bool = True, sliding=(), sliding_nodes: dict | None = None,
+             materials: dict | None = None,
              n_steps: int = 4, log=None, penalty_factor: float = 1.0,
              contact_tolerance: float = 0.05, max_iterations: int = 25) -> SimulationResult:
     """Solve the face for bone `motions` {segment: 4x4} and muscle `activations` {muscle: a}.
 
     contact: lip-lip and lip-teeth contact on/off. sliding: segments whose deep nodes slide
-    on their bone surface instead of being tied. materials: {label name: Material} replacing
-    the defaults (muscle labels may give any material; a `Muscle` gets its activation).
+    on their bone surface instead of being tied. sliding_nodes: {segment: node ids} attached
+    nodes that slide on that segment's bone (normal displacement with the bone, tangential free:
+    a `LocalFrame` in `facemodel.attachments.bone_frames`) while its other nodes stay tied (the
+    tissue a genioplasty degloves, `facemodel.attachments.genioplasty_sliding`).
+    materials: {label name: Material} replacing the defaults (muscle labels may give any
+    material; a `Muscle` gets its activation).
     n_steps: initial number of load steps. log: optional callable receiving one text line per
     Newton iteration. penalty_factor: contact penalty eps = factor * 3 mu / h (mu the
     median shear modulus of the tissue at the contact surface, h its median facet edge). contact_tolerance:
@@ -223,21 +226,21 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     # --- essential conditions: attachments tied to their bone (sliding ones excepted)
     attach = _attachment_sets(model, motions)
     constraints, terms = [], {}
+    sliding_nodes = dict(sliding_nodes or {})
+    for seg in sliding_nodes:
+        if seg not in segments:
+            raise ValueError(f"cannot slide on unknown segment {seg!r}")
+    normals = bone_normals(model) if (sliding or sliding_nodes) else None
     for seg, ids in attach.items():
         T = _segment_motion(motions, seg)
-        tied = ids
+        glide = np.intersect1d(np.asarray(sliding_nodes.get(seg, ()), dtype=np.int64), ids)
         if seg in sliding:
-            bone = _bone_facets(model, seg, ids)
-            if len(bone):
-                on_bone = np.unique(bone)
-                tied = np.setdiff1d(ids, on_bone)
-                h = _typical_size(X, bone)
-                mu = _local_shear_modulus(model, by_label, bone)
-                terms[f"sliding_{seg}"] = RigidSurfaceContact(
-                    X, X, triangulate(bone), slave_nodes=on_bone,
-                    slave_areas=_areas(X, bone, on_bone), motion=T,
-                    penalty=penalty_factor * 3.0 * mu / h, bilateral=True,
-                    tolerance=contact_tolerance, search_radius=max(5.0, 2 * h))
+            # the whole segment: every attached node on its bone surface slides
+            glide = np.union1d(glide, ids[np.linalg.norm(normals[ids], axis=1) > 0.5])
+        tied = np.setdiff1d(ids, glide)
+        if len(glide):
+            constraints.append(LocalFrame(glide, bone_frames(model, glide), fixed=(0,),
+                                          displacement=_rigid_displacement(X[glide], T)))
         if len(tied):
             constraints.append(Prescribed(tied, _rigid_displacement(X[tied], T)))
 
@@ -307,11 +310,6 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
                             load=float(res.load), iterations=int(res.iterations),
                             steps=len(res.steps), time_s=elapsed, info=info, newton=res,
                             terms=terms)
-
-
-def _areas(X, facets, nodes):
-    from solver.contact import nodal_areas
-    return np.maximum(nodal_areas(X, facets)[nodes], 1e-12)
 
 
 def _rigid_displacement(Xs, T):

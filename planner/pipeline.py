@@ -5,7 +5,11 @@ case and the plan -> Mesh-Match-and-Repair of the generic face mesh onto the pat
 input hash, reused on re-runs) -> assignment of the attachment nodes to the patient's bone
 segments (`planner.segments`) -> the plan's rigid segment movements imposed on the attached nodes
 (tied, or sliding on the bone as an option), teeth moved with their segments, muscles at the
-plan's activations, lip contact on -> nonlinear FE solve (`facemodel.simulation.simulate`, load
+plan's activations, lip contact on; for a genioplasty (the chin segment moved on the mandible)
+the tissue the operation degloves slides on its bone instead of being tied
+(`facemodel.attachments.genioplasty_sliding`: the anterior mandible between the vestibule and
+the osteotomy and the chin segment's anterior face; the pedicle on the chin's inferior border
+stays tied) -> nonlinear FE solve (`facemodel.simulation.simulate`, load
 steps with a convergence log) -> outputs written into a temporary folder and moved into place
 only when complete (`planner.atomic`): `prediction.vtu`, `skin_predicted.{stl,ply,vtp}`, renders,
 `report.json` and `report.html`. Solver failures become `SolveError` (exit 3), bad input
@@ -171,12 +175,13 @@ def _sliding_sets(model, segments: tuple[str, ...]) -> tuple[str, ...]:
 
 # --------------------------------------------------------------------------- solve
 
-def _call_simulate(model, motions, *, activations, contact, sliding, materials, progress: Progress):
+def _call_simulate(model, motions, *, activations, contact, sliding, materials, progress: Progress,
+                   sliding_nodes=None):
     """`facemodel.simulation.simulate` with every Newton iteration sent to the progress log."""
     from facemodel.simulation import simulate
 
     return simulate(model, motions, activations, contact=contact, sliding=sliding,
-                    materials=materials, log=progress.say)
+                    sliding_nodes=sliding_nodes, materials=materials, log=progress.say)
 
 
 def _unpack_result(result, model) -> tuple[np.ndarray, np.ndarray | None, dict]:
@@ -251,6 +256,14 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
         if moved:
             progress.say(f"  teeth moved back to start contact clear of the lips (mm): {moved}")
     motions = plan.motions(include_identity=True)
+    # a genioplasty degloves the anterior mandible and chin: that tissue slides on its bone
+    # (segments that slide as a whole, `sliding`, keep their own treatment)
+    from facemodel.attachments import genioplasty_sliding
+
+    degloved = {s: ids for s, ids in genioplasty_sliding(model, motions).items() if s not in sliding}
+    if degloved:
+        progress.say("  genioplasty: degloved tissue slides on the bone ("
+                     + ", ".join(f"{s} {len(ids)} nodes" for s, ids in degloved.items()) + ")")
     moving = {k: m for k, m in motions.items() if not np.allclose(m, np.eye(4), atol=1e-12)}
     if not moving and not any(a > 0 for a in activations.values()):
         # No bone moves, no muscle contracts, no load: the stress-free reference configuration
@@ -264,7 +277,8 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
     with progress.stage("solve"):
         try:
             result = _call_simulate(model, motions, activations=activations, contact=plan.model.contact,
-                                    sliding=sliding, materials=materials, progress=progress)
+                                    sliding=sliding, materials=materials, progress=progress,
+                                    sliding_nodes=degloved)
         except solver_errors.SolveFailed as exc:
             label = ""
             if exc.worst_element is not None and 0 <= exc.worst_element < len(model.labels):
@@ -291,6 +305,7 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
         progress.say(f"  warning: {folded.size} element(s) have a folded corner (corner Jacobian <= 0) "
                      "but are valid at their Gauss points")
     stats["sliding"] = list(sliding)
+    stats["degloved_sliding_nodes"] = {s: int(len(ids)) for s, ids in degloved.items()}
     stats["activations"] = activations
     stats["teeth_clearance_shift_mm"] = {k: round(float(v), 4) for k, v in teeth_shift.items()}
     return Prediction(model, plan, u, stress, stats, bone_vertices, assignment, effects)

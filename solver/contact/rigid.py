@@ -17,7 +17,8 @@ contact), the tangent eps_i n (x) n - p_i d2g/dx2 (Wriggers 2006, ch. 5-6; Laurs
 converged step `end_step` applies the Uzawa update lambda_i <- p_i (Simo & Laursen 1992) until
 the largest penetration (contact) or gap (sliding) is below `tolerance`. After `freeze_after`
 evaluations at one load the active set is frozen (status freezing), and `end_step` asks for
-another solve when the converged state has a different status.
+another solve when the converged state has a different status; such a re-solve re-decides the
+status at its first two evaluations only (`freeze_resolves`).
 With `smooth=True` the faceted gap is replaced by a C2 tricubic-spline signed distance sampled
 once in the surface's frame (`solver.contact._sdf`), with its exact gradient and Hessian in the
 tangent eps_i n (x) n - p_i d2g/dx2. With `tangent="projected"` the curvature part -p_i d2g/dx2
@@ -79,7 +80,8 @@ class RigidSurfaceContact:
                  max_augmentations: int = 10, search_radius: float = 5.0,
                  max_depth: float = np.inf, stick: bool = False,
                  freeze_after: int | None = 4, smooth: bool = False,
-                 grid_spacing: float | None = None, tangent: str = "exact"):
+                 grid_spacing: float | None = None, tangent: str = "exact",
+                 freeze_resolves: bool = True):
         nodes = np.asarray(nodes, dtype=float)
         if tangent not in ("exact", "projected"):
             raise ValueError(f"tangent must be 'exact' or 'projected', got {tangent!r}")
@@ -122,6 +124,7 @@ class RigidSurfaceContact:
         self.anchor = np.full((len(self.slaves), 3), np.nan)     # stick points, surface frame
         self.last = None
         self.freeze_after = freeze_after
+        self.freeze_resolves = bool(freeze_resolves)
         self._evals_load, self._evals = None, 0
         self._active = None
         self._face = None
@@ -216,6 +219,16 @@ class RigidSurfaceContact:
             self._evals_load, self._evals = load, 0
         self._evals += 1
         return self.freeze_after is not None and self._evals > self.freeze_after
+
+    def _freeze_resolve(self, load) -> None:
+        """Another solve of the same step (with `freeze_resolves`) re-decides the status only
+        at its first two evaluations, at the converged state (where `end_step` just made a
+        fresh search) and after the first update (which catches the nodes that the new
+        multipliers push into contact), then freezes it: the status is nearly the one the
+        step needs, so the re-solve does not spend `freeze_after` iterations re-deciding it;
+        a status still wrong after it is caught by the next `end_step`."""
+        if self.freeze_resolves and self.freeze_after is not None:
+            self._evals_load, self._evals = load, max(self.freeze_after - 2, 0)
 
     def _is_frozen(self, load) -> bool:
         return (self.freeze_after is not None and load == self._evals_load
@@ -326,6 +339,7 @@ class RigidSurfaceContact:
         # Uzawa update (also when only the frozen status was wrong: it settles the status)
         if self.augmented:
             self.multipliers = p
+        self._freeze_resolve(load)
         return True
 
     # ------------------------------------------------------------------ results

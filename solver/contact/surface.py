@@ -14,7 +14,9 @@ consistent for a fixed pairing. The pairing and the active set are re-searched a
 evaluation until `freeze_after` evaluations at one load; then they are frozen (status
 freezing) so that Newton converges on a smooth problem, and `end_step` asks for another solve
 if a fresh search at the converged state disagrees. `end_step` updates the multipliers (Uzawa) until the
-deepest penetration is below `tolerance`.
+deepest penetration is below `tolerance`. A re-solve re-decides the status at its first two
+evaluations only, then freezes it (`freeze_resolves`; orbicularis oris on the standard face:
+54 -> 46 Newton iterations).
 """
 from __future__ import annotations
 
@@ -138,7 +140,7 @@ class SurfaceContact:
                  penalty: float = 100.0, augmented: bool = True, tolerance: float = 0.05,
                  max_augmentations: int = 10, search_radius: float = 2.0,
                  max_depth: float = 2.0, freeze_after: int | None = 4,
-                 ignore_initial_penetration: bool = True):
+                 ignore_initial_penetration: bool = True, freeze_resolves: bool = True):
         nodes = np.asarray(nodes, dtype=float)
         if not penalty > 0:
             raise ValueError(f"penalty must be > 0, got {penalty}")
@@ -154,6 +156,7 @@ class SurfaceContact:
         self.max_depth = float(max_depth)
         self.last_error = 0.0
         self.freeze_after = freeze_after
+        self.freeze_resolves = bool(freeze_resolves)
         self._evals_load, self._evals = None, 0
         self._resolve_load, self._resolved = None, []
         self.initial_penetration = 0.0
@@ -184,6 +187,16 @@ class SurfaceContact:
                 ps.active[s] = p > 0
             out.append((ps, s, g, grad, hess, dofs, eps, lam, p))
         return out
+
+    def _freeze_resolve(self, load) -> None:
+        """Another solve of the same step (with `freeze_resolves`) re-decides the status only
+        at its first two evaluations, at the converged state (where `end_step` just made a
+        fresh search) and after the first update (which catches the nodes that the new
+        multipliers push into contact), then freezes it: the status is nearly the one the
+        step needs, so the re-solve does not spend `freeze_after` iterations re-deciding it;
+        a status still wrong after it is caught by the next `end_step`."""
+        if self.freeze_resolves and self.freeze_after is not None:
+            self._evals_load, self._evals = load, max(self.freeze_after - 2, 0)
 
     def _frozen(self, load) -> bool:
         """Count the evaluations at this load; freeze the pairing after `freeze_after`."""
@@ -277,6 +290,7 @@ class SurfaceContact:
         self.last_error = err
         if not self.uzawa.another_solve(load, changed, self.augmented, err, self.tolerance):
             return False
+        self._freeze_resolve(load)
         if not self.augmented:
             return True
         for ps, s, g, grad, hess, dofs, eps, lam, p in ev:

@@ -67,3 +67,31 @@ def test_deepest_penetration_over_passes():
     assert deepest_penetration([np.array([0.2, -0.03]), np.zeros(0), np.array([-0.01])]) == 0.03
     assert deepest_penetration([np.array([0.2]), np.zeros(0)]) == 0.0     # separated: 0
     assert deepest_penetration([]) == 0.0
+
+
+def test_a_resolve_re_decides_the_status_twice_then_freezes_it():
+    # After `end_step` asks for another solve of the same load, the status is searched afresh
+    # at the re-solve's first two evaluations (the converged state, then after the first
+    # update) and frozen from the third (`freeze_resolves`); without it the whole
+    # `freeze_after` free phase is spent again. Checked on the frozen flag both terms use.
+    from solver.contact import RigidSurfaceContact
+
+    for resolves, free in ((True, 2), (False, 4)):
+        term, ps, x, cen = _bent_patch_contact()
+        term.freeze_resolves = resolves
+        ps.previous[0] = np.nonzero(cen[:, 0] > 2.0)[0][0]
+        assert term.end_step(x, 1.0) is True
+        frozen = [term._frozen(1.0) for _ in range(free + 2)]
+        assert frozen == [False] * free + [True, True]
+    # the rigid term: a node 0.2 mm inside a plane, tolerance 0.05 -> augmented re-solve
+    V = np.array([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [5.0, 5.0, 0.0], [-5.0, 5.0, 0.0]])
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    nodes = np.array([[0.0, 0.0, -0.2]])
+    for resolves, free in ((True, 2), (False, 4)):
+        rigid = RigidSurfaceContact(nodes, V, F, slave_nodes=[0], slave_areas=[1.0],
+                                    penalty=10.0, tolerance=0.05, freeze_resolves=resolves)
+        for _ in range(5):
+            rigid.assemble(nodes, 1.0)
+        assert rigid.end_step(nodes, 1.0) is True
+        frozen = [rigid._frozen(1.0) for _ in range(free + 2)]
+        assert frozen == [False] * free + [True, True]

@@ -43,3 +43,39 @@ class UzawaLoop:
 def deepest_penetration(gaps) -> float:
     """Deepest penetration (mm, >= 0) among arrays of signed gaps (negative inside)."""
     return max([0.0] + [float(-g.min()) for g in gaps if len(g)])
+
+
+class StatusFreezing:
+    """Status freezing shared by the contact terms (Wriggers 2006, sec. 10.3): the contact
+    status (active set, pairing) is searched afresh at each of the first `freeze_after`
+    evaluations at one load and kept from then on, so that Newton converges on a smooth
+    problem; `end_step` checks it at the converged state. The term sets `freeze_after`
+    (None: never frozen), `freeze_resolves` and calls `_unfreeze()` in its constructor."""
+
+    freeze_after: int | None = 4
+    freeze_resolves: bool = True
+
+    def _unfreeze(self) -> None:
+        self._evals_load, self._evals = None, 0
+
+    def _frozen(self, load) -> bool:
+        """Count the evaluations at this load; True once the status is to be frozen."""
+        if load != self._evals_load:
+            self._evals_load, self._evals = load, 0
+        self._evals += 1
+        return self._is_frozen(load)
+
+    def _is_frozen(self, load) -> bool:
+        """Whether the last evaluation at `load` had the status frozen (without counting)."""
+        return (self.freeze_after is not None and load == self._evals_load
+                and self._evals > self.freeze_after)
+
+    def _freeze_resolve(self, load) -> None:
+        """Another solve of the same step (with `freeze_resolves`) re-decides the status only
+        at its first two evaluations, at the converged state (where `end_step` just made a
+        fresh search) and after the first update (which catches the nodes that the new
+        multipliers push into contact), then freezes it: the status is nearly the one the
+        step needs, so the re-solve does not spend `freeze_after` iterations re-deciding it;
+        a status still wrong after it is caught by the next `end_step`."""
+        if self.freeze_resolves and self.freeze_after is not None:
+            self._evals_load, self._evals = load, max(self.freeze_after - 2, 0)

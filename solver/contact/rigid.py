@@ -38,7 +38,7 @@ import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
 from solver.contact._sdf import SignedDistanceGrid
-from solver.contact._uzawa import UzawaLoop
+from solver.contact._uzawa import StatusFreezing, UzawaLoop
 from solver.contact._geometry import (EDGE_AB, EDGE_BC, EDGE_CA, FACE, TriangleSurface,
                                       closest_point_on_triangles, nodal_areas, psd_projection)
 
@@ -55,7 +55,7 @@ def ramped_rigid_motion(T, load: float) -> np.ndarray:
     return out
 
 
-class RigidSurfaceContact:
+class RigidSurfaceContact(StatusFreezing):
     """Contact (or bilateral sliding) of slave nodes against a moving rigid surface.
 
     nodes: (n, 3) reference coordinates of the whole mesh (for the slave areas and the dof
@@ -125,7 +125,7 @@ class RigidSurfaceContact:
         self.last = None
         self.freeze_after = freeze_after
         self.freeze_resolves = bool(freeze_resolves)
-        self._evals_load, self._evals = None, 0
+        self._unfreeze()
         self._active = None
         self._face = None
 
@@ -214,26 +214,6 @@ class RigidSurfaceContact:
         p = np.where(active, p, 0.0)
         return p, active
 
-    def _frozen(self, load) -> bool:
-        if load != self._evals_load:
-            self._evals_load, self._evals = load, 0
-        self._evals += 1
-        return self.freeze_after is not None and self._evals > self.freeze_after
-
-    def _freeze_resolve(self, load) -> None:
-        """Another solve of the same step (with `freeze_resolves`) re-decides the status only
-        at its first two evaluations, at the converged state (where `end_step` just made a
-        fresh search) and after the first update (which catches the nodes that the new
-        multipliers push into contact), then freezes it: the status is nearly the one the
-        step needs, so the re-solve does not spend `freeze_after` iterations re-deciding it;
-        a status still wrong after it is caught by the next `end_step`."""
-        if self.freeze_resolves and self.freeze_after is not None:
-            self._evals_load, self._evals = load, max(self.freeze_after - 2, 0)
-
-    def _is_frozen(self, load) -> bool:
-        return (self.freeze_after is not None and load == self._evals_load
-                and self._evals > self.freeze_after)
-
 
     def assemble(self, x, load):
         frozen = self._frozen(load)
@@ -319,7 +299,7 @@ class RigidSurfaceContact:
     def end_step(self, x, load) -> bool:
         frozen_active = self._active.copy() if self._active is not None else None
         was_frozen = self._is_frozen(load)
-        self._evals_load, self._evals = None, 0
+        self._unfreeze()
         g, _, _, _ = self.gaps(x, load)
         p, active = self._pressure(g)
         # a frozen solve whose contact status is wrong at convergence is solved again

@@ -43,7 +43,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from solver.contact._uzawa import UzawaLoop, deepest_penetration
+from solver.contact._uzawa import StatusFreezing, UzawaLoop, deepest_penetration
 
 __all__ = ["SegmentContact", "facet_quadrature"]
 
@@ -383,7 +383,7 @@ class _HalfPass:
         return (3 * nodes[:, :, None] + np.arange(3)).reshape(len(s), -1)
 
 
-class SegmentContact:
+class SegmentContact(StatusFreezing):
     """Frictionless segment-to-segment contact between two deformable facet sets.
 
     nodes: (n, 3) reference coordinates. surface_a, surface_b: (k, 3|4) facets with outward
@@ -436,7 +436,7 @@ class SegmentContact:
         self.max_depth = float(max_depth)
         self.freeze_after = freeze_after
         self.last_error = 0.0
-        self._evals_load, self._evals = None, 0
+        self._unfreeze()
         self._last = None
         self.initial_penetration = 0.0
         if ignore_initial_penetration:
@@ -449,17 +449,6 @@ class SegmentContact:
                                                float(ps.offset.max(initial=0.0)))
 
     # --- pairing and pressures -------------------------------------------------------------
-    def _is_frozen(self, load) -> bool:
-        return self.freeze_after is not None and load == self._evals_load \
-            and self._evals > self.freeze_after
-
-    def _count(self, load) -> bool:
-        """Count the evaluations at this load; True once the pairing is to be frozen."""
-        if load != self._evals_load:
-            self._evals_load, self._evals = load, 0
-        self._evals += 1
-        return self._is_frozen(load)
-
     def _evaluate(self, x, derivatives=True, frozen=False):
         """Per pass: (pass, points, g, n, dg, dn, H, lambda, p, active)."""
         x = np.asarray(x, dtype=float)
@@ -491,7 +480,7 @@ class SegmentContact:
         f = np.zeros(3 * self.n_nodes)
         rows, cols, vals = [], [], []
         eps = self.penalty
-        ev = self._evaluate(x, frozen=self._count(load))
+        ev = self._evaluate(x, frozen=self._frozen(load))
         # the solver asks for the energy at the state it has just assembled: keep it
         self._last = (np.array(x, dtype=float), load, self._evals,
                       [(e[0], e[1], e[7], e[8], e[9]) for e in ev])
@@ -569,7 +558,7 @@ class SegmentContact:
         before = [ps.previous.copy() for ps in self.passes]
         before_active = [ps.active.copy() for ps in self.passes]
         was_frozen = self._is_frozen(load)
-        self._evals_load, self._evals = None, 0
+        self._unfreeze()
         ev = self._evaluate(x, derivatives=False)
         moved = False
         if was_frozen:

@@ -24,7 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from solver.contact._uzawa import UzawaLoop, deepest_penetration
+from solver.contact._uzawa import StatusFreezing, UzawaLoop, deepest_penetration
 from solver.contact._geometry import facet_normals, nodal_areas, plane_gap, triangulate
 
 __all__ = ["SurfaceContact"]
@@ -121,7 +121,7 @@ class _Pass:
         return s, t, g, grad, hess, dofs
 
 
-class SurfaceContact:
+class SurfaceContact(StatusFreezing):
     """Frictionless contact between two deformable facet sets (or a set with itself).
 
     nodes: (n, 3) reference coordinates of the mesh. surface_a, surface_b: (k, 3|4) facets,
@@ -157,7 +157,7 @@ class SurfaceContact:
         self.last_error = 0.0
         self.freeze_after = freeze_after
         self.freeze_resolves = bool(freeze_resolves)
-        self._evals_load, self._evals = None, 0
+        self._unfreeze()
         self._resolve_load, self._resolved = None, []
         self.initial_penetration = 0.0
         if ignore_initial_penetration:
@@ -188,23 +188,6 @@ class SurfaceContact:
             out.append((ps, s, g, grad, hess, dofs, eps, lam, p))
         return out
 
-    def _freeze_resolve(self, load) -> None:
-        """Another solve of the same step (with `freeze_resolves`) re-decides the status only
-        at its first two evaluations, at the converged state (where `end_step` just made a
-        fresh search) and after the first update (which catches the nodes that the new
-        multipliers push into contact), then freezes it: the status is nearly the one the
-        step needs, so the re-solve does not spend `freeze_after` iterations re-deciding it;
-        a status still wrong after it is caught by the next `end_step`."""
-        if self.freeze_resolves and self.freeze_after is not None:
-            self._evals_load, self._evals = load, max(self.freeze_after - 2, 0)
-
-    def _frozen(self, load) -> bool:
-        """Count the evaluations at this load; freeze the pairing after `freeze_after`."""
-        if load != self._evals_load:
-            self._evals_load, self._evals = load, 0
-        self._evals += 1
-        return self.freeze_after is not None and self._evals > self.freeze_after
-
     def assemble(self, x, load):
         f = np.zeros(3 * self.n_nodes)
         rows, cols, vals = [], [], []
@@ -232,8 +215,7 @@ class SurfaceContact:
 
     def energy(self, x, load) -> float:
         e = 0.0
-        frozen = self.freeze_after is not None and load == self._evals_load \
-            and self._evals > self.freeze_after
+        frozen = self._is_frozen(load)
         for ps, s, g, grad, hess, dofs, eps, lam, p in self._evaluate(x, False, frozen):
             e += float(np.sum((p * p - lam * lam) / (2.0 * eps)))
             # multipliers of slaves that lost their pairing contribute -lambda^2 / (2 eps)
@@ -249,8 +231,7 @@ class SurfaceContact:
     def end_step(self, x, load) -> bool:
         before = [ps.previous.copy() for ps in self.passes]
         before_active = [ps.active.copy() for ps in self.passes]
-        was_frozen = self._evals_load == load and self.freeze_after is not None \
-            and self._evals > self.freeze_after
+        was_frozen = self._is_frozen(load)
         frozen_q = []
         if was_frozen:
             # the contact forces of the frozen solve in gap units, (lambda - eps g) / eps, on
@@ -265,7 +246,7 @@ class SurfaceContact:
         if load != self._resolve_load:
             self._resolve_load = load
             self._resolved = [np.zeros(len(ps.slaves), dtype=bool) for ps in self.passes]
-        self._evals_load, self._evals = None, 0
+        self._unfreeze()
         ev = self._evaluate(x, hessian=False)
         changed = False
         for (ps, s, g, grad, hess, dofs, eps, lam, p), q_old, done in zip(ev, frozen_q,

@@ -16,8 +16,9 @@ the linearisation of "stays on the bone surface": the plane translates with the 
 its reference orientation, off the exact surface by |u_t|^2 kappa / 2 for a tangential slide
 u_t on a bone of curvature kappa, plus theta |u_t| for a bone rotation theta, e.g. 0.15 mm for a
 3 mm slide on a 30 mm radius). Contact-based sliding (`solver.contact.RigidSurfaceContact`,
-bilateral) is exact on curved bone but its augmented re-solves cycled on the face. The static equilibrium is solved by `solver.newton.newton_solve`
-(Q1/P0 hexahedra, Newton with line search, load stepping, augmented Lagrangian contact).
+bilateral) is exact on curved bone but its augmented re-solves cycled on the face. The static
+equilibrium is solved by `solver.newton.newton_solve` (Q1/P0 hexahedra, Newton with line
+search, load stepping, augmented Lagrangian contact).
 """
 from __future__ import annotations
 
@@ -297,8 +298,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             "activations": activations, "sliding": list(sliding),
             "cutbacks": res.cutbacks, "timings": res.timings}
     if contact:
-        info["penetration_mm"] = {k: float(_term_penetration(t, x)) for k, t in terms.items()
-                                  if not k.startswith("sliding")}
+        info["penetration_mm"] = {k: float(_term_penetration(t, x)) for k, t in terms.items()}
         if "lip_contact" in terms:
             # lips overlapping before any movement (a registered mesh can have them so) are
             # left as they are; contact acts against further penetration only

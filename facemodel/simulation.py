@@ -287,6 +287,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     res = newton_solve(body, constraints, list(terms.values()), steps=n_steps,
                        max_iterations=max_iterations, max_retries=20, callback=callback,
                        max_increment=max_inc, stall_iterations=8 if terms else None,
+                       shrink_iterations=8,
                        rtol=1e-6, etol=1e-8)
     elapsed = time.perf_counter() - t0
     x = res.x

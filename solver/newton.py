@@ -193,7 +193,8 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
                  lagged_min_dofs: int = 20000, krylov_refactor: int = 8,
                  krylov_precision: str = "single", predictor: str = "auto",
                  max_increment: float | None = None,
-                 stall_iterations: int | None = None) -> NewtonResult:
+                 stall_iterations: int | None = None,
+                 shrink_iterations: int | None = None) -> NewtonResult:
     """Solve the static equilibrium of `body` from load fraction 0 to 1.
 
     body: `solver.mechanics.SolidBody`; constraints: `Prescribed` / `LocalFrame` list;
@@ -235,6 +236,11 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     switches on; near the solution updates are small and the full step is taken).
     stall_iterations: if given, a step whose residual has not fallen below a tenth of its
     first iteration's after that many iterations is cut back at once (no progress).
+    shrink_iterations: if given, a step whose first solve needed more than that many
+    iterations is followed by a step of half its size (iteration-based increment control, as
+    Abaqus' and FEBio's automatic time stepping: a hard step announces a harder next one, and
+    halving it costs less than a failed step's cut-back); the re-solves of a step's
+    augmentation do not count.
     """
     mesh = body.mesh
     X = mesh.nodes
@@ -298,6 +304,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
         x_conv = x.copy()
         mixed_conv = None if not mixed else (body.mixed[0].copy(), body.mixed[1].copy())
         retries = 0
+        first_its = None
         if isinstance(lin, LaggedFactorSolver):
             lin.begin_step()
         x_pred = None
@@ -309,6 +316,8 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
                                           line_search_tol, line_search_growth, step_no,
                                           callback, result, x_pred=x_pred)
             x_pred = None
+            if first_its is None:
+                first_its = info["iterations"]
             if not ok:
                 break
             again = any([bool(t.end_step(x_new, target)) for t in system.terms])
@@ -331,6 +340,8 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
                 step_callback(result)
             if grow and info["iterations"] <= 6:
                 dt = min(dt_max, 1.5 * dt)
+            if shrink_iterations and first_its > shrink_iterations:
+                dt = max(0.5 * dt, min_step)
         else:
             cut += 1
             just_cut = True

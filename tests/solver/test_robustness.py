@@ -133,3 +133,23 @@ def test_three_field_newton_same_solution_fewer_iterations(fused):
         out[mixed] = solver.newton_solve(body, bcs, steps=4, grow=False, mixed=mixed, rtol=1e-10)
     assert np.abs(out[True].u - out[False].u).max() < 1e-8 * 6.0
     assert out[True].iterations < out[False].iterations
+
+
+def test_a_hard_step_halves_the_next_one_and_the_solution_is_unchanged(cube):
+    # Iteration-based increment control. The compression-shear in 4 steps takes 4, 5, 5, 5
+    # Newton iterations. With shrink_iterations = 4 a step that needed 5 halves the next
+    # step after the usual growth (x1.5 after <= 6 iterations, capped at the initial 0.25):
+    # 0.25 (4 its) -> 0.25, 0.5 (5) -> 0.125, 0.625 (4) -> 0.1875, 0.8125 (5) -> 0.125,
+    # 0.9375 (4) -> the rest. Both runs converge to the same state (1e-6 relative: the same
+    # residual tolerance on the same mesh).
+    nodes, hexes, s = cube
+    body = solver.SolidBody(solver.HexMesh(nodes, hexes), solver.Yeoh(2.5, 1.175, 0.3, K=2500.0))
+    bcs = [solver.fix(s["zmin"]), solver.Prescribed(s["zmax"], [0.5, 0.0, -0.5])]
+    plain = solver.newton_solve(body, bcs, steps=4, max_iterations=15, rtol=1e-10)
+    shrunk = solver.newton_solve(body, bcs, steps=4, max_iterations=15, rtol=1e-10,
+                                 shrink_iterations=4)
+    assert [st.iterations for st in plain.steps] == [4, 5, 5, 5]
+    assert plain.cutbacks == 0 and shrunk.cutbacks == 0
+    np.testing.assert_allclose([st.load for st in shrunk.steps],
+                               [0.25, 0.5, 0.625, 0.8125, 0.9375, 1.0])
+    assert np.abs(plain.u - shrunk.u).max() < 1e-6 * np.abs(plain.u).max()

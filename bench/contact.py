@@ -106,6 +106,11 @@ def main(argv=None):
                 term_time += time.perf_counter() - t1
         print(f"contact={contact}: {times[contact]:.2f} s, {res.iterations} Newton iterations, "
               f"{res.steps} steps, penetration {res.info.get('penetration_mm', {})}")
+        tm = res.info["timings"]
+        print(f"  per iteration: {(tm['assembly'] + tm['solve']) / res.iterations:.3f} s "
+              f"(assembly {tm['assembly'] / res.iterations:.3f}, linear solve "
+              f"{tm['solve'] / res.iterations:.3f}); {res.newton.factorizations} factorisations, "
+              f"{res.newton.krylov_iterations / res.iterations:.1f} CG iterations per iteration")
         if contact:
             print(f"  one evaluation of all contact terms: {1e3 * term_time:.1f} ms "
                   f"(x {res.iterations} iterations ~ {term_time * res.iterations:.2f} s)")

@@ -55,6 +55,9 @@ def main() -> int:
     for k, v in timings.items():
         print(f"  {k:16s} {v:8.2f}")
     print(f"elements: {report['soft_tissue']['n_elements']}, nodes: {report['soft_tissue']['n_nodes']}")
+    solver = report.get("solver", {})
+    print(f"Newton iterations: {solver.get('iterations')}, load steps: {solver.get('steps')}, "
+          f"cut-backs: {solver.get('info', {}).get('cutbacks')}")
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     solve = timings.get("solve", float("nan"))
     print(f"solve_s={solve:.2f} total_s={total:.2f} peak_mb={peak_mb:.0f}")

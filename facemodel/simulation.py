@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from facemodel.attachments import bone_frames, bone_normals
+from facemodel.attachments import bone_frames
 from solver.bc import LocalFrame, Prescribed
 from solver.constitution import Yeoh
 from solver.constitution.muscle import Muscle
@@ -231,13 +231,14 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     for seg in sliding_nodes:
         if seg not in segments:
             raise ValueError(f"cannot slide on unknown segment {seg!r}")
-    normals = bone_normals(model) if (sliding or sliding_nodes) else None
+    on_bone = np.zeros(len(X), dtype=bool)          # nodes of the deep facets on the bone
+    on_bone[np.asarray(model.facet_sets.get("deep_bone", np.zeros((0, 4))), dtype=np.int64)] = True
     for seg, ids in attach.items():
         T = _segment_motion(motions, seg)
         glide = np.intersect1d(np.asarray(sliding_nodes.get(seg, ()), dtype=np.int64), ids)
         if seg in sliding:
             # the whole segment: every attached node on its bone surface slides
-            glide = np.union1d(glide, ids[np.linalg.norm(normals[ids], axis=1) > 0.5])
+            glide = np.union1d(glide, ids[on_bone[ids]])
         tied = np.setdiff1d(ids, glide)
         if len(glide):
             constraints.append(LocalFrame(glide, bone_frames(model, glide), fixed=(0,),

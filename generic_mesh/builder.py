@@ -270,8 +270,9 @@ def build(resolution: str = "standard") -> FaceModel:
     dist = np.stack([_segment_distance(n_theta[deep_nodes], n_phi[deep_nodes], sname)
                      for sname in SEGMENTS], -1)
     seg = np.argmin(dist, axis=1)
-    # the tissue a genioplasty degloves stays tied to the mandible here (no other plan frees it);
-    # `facemodel.attachments.release_for_plan` frees it when the chin moves on the mandible
+    # the tissue a genioplasty degloves stays tied to the mandible here (no other plan releases
+    # it); when the chin moves on the mandible `facemodel.attachments.genioplasty_sliding` makes
+    # it slide on the bone (with the chin segment's anterior face)
     released = ~free & (seg == SEGMENTS.index("mandible")) \
         & _genioplasty_release(n_theta[deep_nodes], n_phi[deep_nodes])
     node_sets = {"skin": skin_nodes, "deep_free": deep_nodes[free],

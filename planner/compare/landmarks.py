@@ -6,7 +6,7 @@ the landmark's definition (Farkas, *Anthropometry of the Head and Face*, 1994):
 - profile extremes on the mid-sagittal profile: pronasale (Prn), labrale superius (Ls), labrale
   inferius (Li) and soft-tissue pogonion (Pog) are the most anterior (+y) points, subnasale (Sn)
   the deepest (most posterior) point between columella and upper lip, soft-tissue menton (Me)
-  the lowest point of the chin (measured downwards and slightly forwards);
+  the lowest point of the chin (measured downwards and MENTON_TILT = 35 deg forwards);
 - cheilion (ChR on the patient's right, ChL) is the deepest point of the mouth corner, measured
   against a quadric fitted to its neighbourhood.
 Refinement is sub-vertex: a quadratic height h(x, s) is fitted by least squares to the points
@@ -22,12 +22,16 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from facemodel.head_geometry import MENTON_TILT
+
 __all__ = ["RULES", "locate_landmark", "LandmarkLocator"]
 
 # name -> (kind, direction d in the mid-sagittal (y, z) plane along which the landmark is
-# extreme). Menton's direction is tilted 26.6 degrees anteriorly from straight down, so that a
-# submental contour sloping down into the neck does not carry it away from the chin.
-_ME = (0.0, 1.0 / np.sqrt(5.0), -2.0 / np.sqrt(5.0))
+# extreme). Menton's direction is tilted MENTON_TILT (35) degrees anteriorly from straight down,
+# so that a submental contour sloping down into the neck does not carry it away from the chin:
+# the one convention of the synthetic heads' truth and of registration
+# (`facemodel.head_geometry.MENTON_TILT`, where the choice of angle is justified).
+_ME = (0.0, float(np.sin(np.radians(MENTON_TILT))), float(-np.cos(np.radians(MENTON_TILT))))
 RULES: dict[str, tuple[str, tuple[float, float, float]]] = {
     "Prn": ("profile", (0.0, 1.0, 0.0)),
     "Ls": ("profile", (0.0, 1.0, 0.0)),

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import Delaunay
 
+from planner.compare.landmarks import _ME
+
 __all__ = ["Phantom", "face_phantom", "REGION_NAMES", "UNOPERATED"]
 
 CENTRE = np.array([0.0, 0.0, -10.0])
@@ -143,12 +145,12 @@ def face_phantom(spacing: float = 1.5, jitter: float = 0.0, seed: int = 0,
     landmarks = {k: surface_at(*v).tolist() for k, v in _LANDMARKS.items()}
     # profile landmarks at their analytic extremes on the dense mid-sagittal profile (the
     # definitions planner.compare.landmarks uses): most anterior point of nose, lips and chin,
-    # deepest point below the nose, lowest chin point measured downwards and 26.6 degrees
-    # forwards (menton)
+    # deepest point below the nose, lowest chin point measured downwards and MENTON_TILT
+    # degrees forwards (menton, the convention of planner.compare.landmarks)
     el = np.radians(np.arange(-75.0, 40.0, 0.005))
     prof, _ = _surface(_directions(np.zeros_like(el), el))
     z = prof[:, 2]
-    me = np.array([0.0, 1.0, -2.0]) / np.sqrt(5.0)
+    me = np.array(_ME)
     for name, lo, hi, h in (("Prn", -5, 30, prof[:, 1]), ("Sn", -14, -2, -prof[:, 1]),
                             ("Ls", -28, -12, prof[:, 1]), ("Li", -48, -34, prof[:, 1]),
                             ("Pog", -88, -62, prof[:, 1]), ("Me", -100, -80, prof @ me)):

@@ -84,7 +84,9 @@ def main(argv=None):
             return
     motions, activations = {}, {"orbicularis_oris": 0.1}
     print(f"face '{args.resolution}': {len(model.nodes)} nodes, {len(model.hexes)} hexes")
-    simulate(model, {"mandible": _motion(0.0, 0.5)}, contact=False, n_steps=1)   # JIT warm-up
+    # JIT warm-up of both paths (numba's compiled-code cache is loaded once per process)
+    for contact in (False, True):
+        simulate(model, {"mandible": _motion(0.0, 0.5)}, contact=contact, n_steps=1)
     from solver.errors import SolveFailed
 
     times = {}

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from solver.assembly._extended import ExtendedPattern, rotate_blocks
 from solver.bc import ConstraintSet
 from solver.errors import SolveFailed
 from solver import linalg as _linalg
@@ -77,12 +78,13 @@ class _System:
         self.terms = list(terms)
         self.external = external
         pat = body.pattern
-        self.rows_of_data = np.repeat(np.arange(pat.n_dofs), np.diff(pat.indptr))
-        self.fast = not cons.any_frame
-        if self.fast:
-            cm = cons.mask
-            self.zero_mask = cm[self.rows_of_data] | cm[pat.indices]
-            self.diag_c = pat.diagonal[cons.dofs]
+        # body pattern + the node pairs the terms may couple (contact): term stiffness is
+        # summed into it by position, local frames rotate its blocks in place, and the global
+        # pattern stays fixed once grown
+        pairs = [np.asarray(t.coupling_pairs(), dtype=np.int64).reshape(-1, 2)
+                 for t in self.terms if hasattr(t, "coupling_pairs")]
+        self.pattern = ExtendedPattern(pat, np.vstack(pairs) if pairs else None)
+        self._masks_for = None
         # diagonal entry of the constrained rows (and factor of their right-hand side, the gap):
         # the mean stiffness diagonal at those dofs, fixed at the first tangent, so that the
         # equations du_c = gap are in force units like the others (a Krylov solve's relative
@@ -107,14 +109,14 @@ class _System:
         f_int_norm = _norm(r)
         f_term_norm = 0.0
         energy = ev.energy
-        Kt = None
+        Kt = []
         for term in self.terms:
             f, K = term.assemble(x, load)
             f_term_norm = max(f_term_norm, float(np.linalg.norm(f)))
             r += f
             energy += term.energy(x, load)
             if tangent and K is not None and K.nnz:
-                Kt = K if Kt is None else Kt + K
+                Kt.append(K)
         if self.external is not None:
             r -= load * self.external
             energy -= load * float(self.external @ (x - self.body.mesh.nodes).ravel())
@@ -144,43 +146,24 @@ class _System:
 
     def _matrix(self, data, Kt, gap=None):
         """Constrained upper-triangle matrix and the coupling vector K gap (or None)."""
-        pat = self.body.pattern
         cons = self.cons
         coupling = None
-        if self.fast and Kt is None:
-            if gap is not None:
-                coupling = self._sym_matvec(pat.matrix(data), gap)
-            self._set_constraint_scale(data[self.diag_c])
-            data[self.zero_mask] = 0.0
-            data[self.diag_c] = self.constraint_scale
-            return pat.matrix(data), coupling
-        Ku = pat.matrix(data)
+        ext = self.pattern
+        if Kt or not ext.identity:
+            data = ext.data(data, Kt)
         if cons.any_frame:
-            K = Ku + sp.triu(Ku, k=1, format="csr").T
-            if Kt is not None:
-                K = K + 0.5 * (Kt + Kt.T)
-            n = cons.n_nodes
-            T = sp.block_diag([sp.csr_matrix(R) for R in cons.rot], format="csr") if n < 0 else \
-                sp.bsr_matrix((cons.rot, np.arange(n), np.arange(n + 1)), shape=(3 * n, 3 * n)).tocsr()
-            K = (T @ K @ T.T).tocsr()
-            K = sp.triu(K, format="csr")
-        else:
-            # no rotation: add the upper triangle of the (small) symmetrised term matrix to
-            # the body's upper triangle, without forming the full matrix
-            K = Ku.copy()
-            if Kt is not None:
-                Kt = sp.csr_matrix(Kt)
-                K = (K + sp.triu(0.5 * (Kt + Kt.T), format="csr")).tocsr()
-        K.sum_duplicates()
+            rotate_blocks(ext, data, cons.rot, cons.has_frame)
+        if self._masks_for != ext.nnz:     # (re)build the constraint masks on the pattern
+            cm = cons.mask
+            self.zero_mask = cm[ext.rows] | cm[ext.indices]
+            self.diag_c = ext.diagonal[cons.dofs]
+            self._masks_for = ext.nnz
         if gap is not None:
-            coupling = self._sym_matvec(K, gap)
-        cm = cons.mask
-        self._set_constraint_scale(K.diagonal()[cm])
-        rows = np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))
-        K.data[cm[rows] | cm[K.indices]] = 0.0
-        K = K + sp.diags(self.constraint_scale * cm.astype(float), format="csr")
-        K.sort_indices()
-        return K, coupling
+            coupling = self._sym_matvec(ext.matrix(data), gap)
+        self._set_constraint_scale(data[self.diag_c])
+        data[self.zero_mask] = 0.0
+        data[self.diag_c] = self.constraint_scale
+        return ext.matrix(data), coupling
 
 
 def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 10,

@@ -12,7 +12,8 @@ quadratically, while the facets' corners are rounded over about one grid spacing
 
 Construction: every grid node within `band` of a triangle gets the exact distance to the
 surface (closest point by Ericson's Voronoi-region tests, one numba pass over the triangles and
-the grid nodes of their inflated bounding boxes), signed with the angle-weighted pseudo-normal
+the grid nodes of their inflated bounding boxes, the grid split in slabs between threads and
+nodes culled by their distance to the face's plane), signed with the angle-weighted pseudo-normal
 of its closest feature (Baerentzen & Aanaes 2005); nodes farther away take +-band, the sign of
 each connected far region taken from the band nodes around it. The interpolating spline's
 coefficients come from `scipy.ndimage.spline_filter` (order 3, Unser 1999); evaluation sums the
@@ -30,35 +31,64 @@ from solver.contact._geometry import TriangleSurface, closest_on_triangle, close
 __all__ = ["SignedDistanceGrid"]
 
 
-@nb.njit(cache=True)
-def _narrow_band(vertices, faces, origin, h, shape, band, dist2, best):
-    """Smallest squared distance (and its face) of every grid node within `band` of a face."""
+@nb.njit(cache=True, parallel=True)
+def _narrow_band(vertices, faces, origin, h, shape, band, dist2, best, n_slabs):
+    """Smallest squared distance (and its face) of every grid node within `band` of a face.
+
+    Each thread owns a slab of grid planes i and visits every face's inflated bounding box
+    within it, in face order, so the result does not depend on the number of threads. A node
+    whose distance to the face's plane already exceeds the band or its best distance so far
+    is skipped before the closest-point test (the plane distance bounds the face distance
+    from below)."""
     nx, ny, nz = shape[0], shape[1], shape[2]
     b2 = band * band
-    for f in range(faces.shape[0]):
+    nf = faces.shape[0]
+    lo = np.empty((nf, 3), dtype=np.int64)
+    hi = np.empty((nf, 3), dtype=np.int64)
+    normal = np.zeros((nf, 3))
+    for f in range(nf):
         a = vertices[faces[f, 0]]
         b = vertices[faces[f, 1]]
         c = vertices[faces[f, 2]]
-        lo = np.empty(3, dtype=np.int64)
-        hi = np.empty(3, dtype=np.int64)
         for k in range(3):
             mn = min(a[k], min(b[k], c[k])) - band
             mx = max(a[k], max(b[k], c[k])) + band
-            lo[k] = max(0, int(np.floor((mn - origin[k]) / h)))
-            hi[k] = min(shape[k] - 1, int(np.ceil((mx - origin[k]) / h)))
+            lo[f, k] = max(0, int(np.floor((mn - origin[k]) / h)))
+            hi[f, k] = min(shape[k] - 1, int(np.ceil((mx - origin[k]) / h)))
+        n0 = (b[1] - a[1]) * (c[2] - a[2]) - (b[2] - a[2]) * (c[1] - a[1])
+        n1 = (b[2] - a[2]) * (c[0] - a[0]) - (b[0] - a[0]) * (c[2] - a[2])
+        n2 = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+        length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        if length > 0.0:                    # a degenerate face gets no plane test
+            normal[f, 0], normal[f, 1], normal[f, 2] = n0 / length, n1 / length, n2 / length
+    for t in nb.prange(n_slabs):
+        i0 = t * nx // n_slabs
+        i1 = (t + 1) * nx // n_slabs
         p = np.empty(3)
-        for i in range(lo[0], hi[0] + 1):
-            p[0] = origin[0] + i * h
-            for j in range(lo[1], hi[1] + 1):
-                p[1] = origin[1] + j * h
-                for k in range(lo[2], hi[2] + 1):
-                    p[2] = origin[2] + k * h
-                    qx, qy, qz, _ = closest_on_triangle(p, a, b, c)
-                    d2 = (p[0] - qx) ** 2 + (p[1] - qy) ** 2 + (p[2] - qz) ** 2
-                    idx = (i * ny + j) * nz + k
-                    if d2 < dist2[idx] and d2 <= b2:
-                        dist2[idx] = d2
-                        best[idx] = f
+        for f in range(nf):
+            ilo = max(lo[f, 0], i0)
+            ihi = min(hi[f, 0], i1 - 1)
+            if ilo > ihi:
+                continue
+            a = vertices[faces[f, 0]]
+            b = vertices[faces[f, 1]]
+            c = vertices[faces[f, 2]]
+            for i in range(ilo, ihi + 1):
+                p[0] = origin[0] + i * h
+                for j in range(lo[f, 1], hi[f, 1] + 1):
+                    p[1] = origin[1] + j * h
+                    for k in range(lo[f, 2], hi[f, 2] + 1):
+                        p[2] = origin[2] + k * h
+                        idx = (i * ny + j) * nz + k
+                        dp = ((p[0] - a[0]) * normal[f, 0] + (p[1] - a[1]) * normal[f, 1]
+                              + (p[2] - a[2]) * normal[f, 2])
+                        if dp * dp > b2 or dp * dp > dist2[idx]:
+                            continue
+                        qx, qy, qz, _ = closest_on_triangle(p, a, b, c)
+                        d2 = (p[0] - qx) ** 2 + (p[1] - qy) ** 2 + (p[2] - qz) ** 2
+                        if d2 < dist2[idx] and d2 <= b2:
+                            dist2[idx] = d2
+                            best[idx] = f
     return dist2, best
 
 
@@ -161,7 +191,7 @@ class SignedDistanceGrid:
         self.spacing, self.origin, self.shape, self.band = h, lo, tuple(int(s) for s in shape), band
         n = int(np.prod(shape))
         dist2, best = _narrow_band(V, F, lo, h, shape, band, np.full(n, np.inf),
-                                   np.full(n, -1, dtype=np.int64))
+                                   np.full(n, -1, dtype=np.int64), nb.get_num_threads())
         phi = np.full(n, band)
         near = np.nonzero(best >= 0)[0]
         ijk = np.stack(np.unravel_index(near, shape), axis=1)

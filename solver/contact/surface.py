@@ -145,6 +145,7 @@ class SurfaceContact(StatusFreezing):
         if not penalty > 0:
             raise ValueError(f"penalty must be > 0, got {penalty}")
         self.n_nodes = len(nodes)
+        self._reference = nodes
         self.passes = [_Pass(nodes, surface_a, surface_b)]
         if two_pass:
             self.passes.append(_Pass(nodes, surface_b, surface_a))
@@ -167,6 +168,25 @@ class SurfaceContact(StatusFreezing):
                 ps.previous[:] = -1
                 self.initial_penetration = max(self.initial_penetration,
                                                float(ps.offset.max(initial=0.0)))
+
+    def coupling_pairs(self, reach: float | None = None) -> np.ndarray:
+        """(k, 2) node pairs this term may couple: each slave node with the nodes of the
+        master triangles within `reach` of it in the reference configuration (default: twice
+        the search radius plus the largest depth), so that the global sparsity pattern can be
+        reserved before the solve (`solver.assembly._extended.ExtendedPattern`)."""
+        reach = 2.0 * self.search_radius + self.max_depth if reach is None else float(reach)
+        out = []
+        for ps in self.passes:
+            p = self._reference[ps.master]
+            cen = p.mean(axis=1)
+            rmax = float(np.linalg.norm(p - cen[:, None], axis=2).max(initial=0.0))
+            lists = cKDTree(cen).query_ball_point(self._reference[ps.slaves], reach + rmax)
+            counts = np.fromiter((len(l) for l in lists), dtype=np.int64, count=len(lists))
+            tri = np.fromiter((i for l in lists for i in l), dtype=np.int64, count=counts.sum())
+            slave = np.repeat(ps.slaves, counts)
+            out.append(np.stack([np.repeat(slave, 3), ps.master[tri].ravel()], axis=1))
+        pairs = np.vstack(out) if out else np.zeros((0, 2), dtype=np.int64)
+        return np.unique(np.sort(pairs, axis=1), axis=0)
 
     def _evaluate(self, x, hessian=True, frozen=False):
         out = []

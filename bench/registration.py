@@ -2,7 +2,8 @@
 
 Ten heads: seven drawn by `facemodel.synthetic.random_shape` and three extremes built on
 purpose (strong class III, strong class II, asymmetric lower face), each registered at coarse
-and standard resolution from its skin, bone segments and landmarks. Prints one line per run
+and standard resolution from its skin (a scan-like ~0.8 mm triangulation over the face,
+`synthetic.SCAN_SIZE` / `SCAN_ZOOM`), bone segments and landmarks. Prints one line per run
 (fit errors, quality, repaired elements, landmark errors, time per stage) and a summary with
 the targets; the last line is
     register_s=<t> skin_mean_mm=<x> skin_p95_mm=<x> min_scaled_jacobian=<x>
@@ -55,7 +56,7 @@ def heads(n: int):
     """Up to three extreme shapes (when n > 7) then random synthetic heads, n in all."""
     n_extreme = min(len(EXTREMES), max(0, n - 7))
     for name, shape in list(EXTREMES.items())[:n_extreme]:
-        skin = synthetic.skin_surface(shape)
+        skin = synthetic.skin_surface(shape, synthetic.SCAN_SIZE, zoom=synthetic.SCAN_ZOOM)
         yield name, synthetic.SyntheticHead(
             seed=-1, shape=shape, skin=skin, bones=synthetic.bone_surfaces(shape),
             teeth={}, landmarks=synthetic.landmarks(shape, skin))

@@ -63,7 +63,12 @@ class HeadShape:
     antero-posterior position of the jaws (mm, + anterior; maxilla -, mandible + is a class
     III pattern, the opposite class II); chin_projection (mm); lip_thickness (mm added to both
     lips); soft_tissue: factor on all soft-tissue thickness; nose_projection (mm);
-    asymmetry: lateral shift of the lower face (mm, + to the patient's right).
+    asymmetry: lateral shift of the lower face (mm, + to the patient's right);
+    fissure_fade: azimuth span (deg) over which the oral fissure (the groove along the lips'
+    contact line) fades out before the commissure at THETA_COMMISSURE. A real mouth corner is
+    a sharp feature: the contact line ends in a crease within 1-2 mm (the default, 1 deg ~
+    1.4 mm at the corner: where the fissure's lateral end, the cheilion, is defined); the
+    generic head keeps its 6 deg fade (`GENERIC`: its committed mesh is built from it).
     """
 
     width: float = 1.0
@@ -75,6 +80,7 @@ class HeadShape:
     soft_tissue: float = 1.0
     nose_projection: float = 0.0
     asymmetry: float = 0.0
+    fissure_fade: float = 1.0
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -85,7 +91,7 @@ class HeadShape:
         return cls(**{k: float(v) for k, v in d.items() if k in names})
 
 
-GENERIC = HeadShape()
+GENERIC = HeadShape(fissure_fade=6.0)
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -169,6 +175,13 @@ def _side(phi, side):
 def slit_taper(theta) -> np.ndarray:
     """1 between the commissures (where upper and lower lips may differ), 0 outside."""
     return 1.0 - smoothstep(THETA_COMMISSURE - 6.0, THETA_COMMISSURE, np.abs(theta))
+
+
+def fissure_taper(theta, shape: HeadShape = GENERIC) -> np.ndarray:
+    """1 along the oral fissure, 0 beyond the commissures: the groove of the lips' contact
+    line ends at THETA_COMMISSURE, fading over the shape's `fissure_fade` deg (the generic
+    head's 6 deg: `slit_taper`)."""
+    return 1.0 - smoothstep(THETA_COMMISSURE - shape.fissure_fade, THETA_COMMISSURE, np.abs(theta))
 
 
 def _upper_weight(theta, phi, side):
@@ -255,8 +268,9 @@ def soft_tissue_thickness(theta, phi, shape: HeadShape = GENERIC) -> np.ndarray:
     mid = mid + shape.lip_thickness * (_gauss(phi + 14.0, 3.5) + _gauss(phi + 23.0, 3.5)) * lips
     w_lip = np.exp(-((th / 24.0) ** 4))
     t = (1.0 - w_lip) * t + w_lip * mid
-    # Mouth line: a shallow groove between the lips, between the commissures.
-    t = t - 1.5 * _gauss(phi - PHI_STOMION, 1.0) * slit_taper(theta)
+    # Mouth line: a shallow groove between the lips (the oral fissure), ending at the
+    # commissures.
+    t = t - 1.5 * _gauss(phi - PHI_STOMION, 1.0) * fissure_taper(theta, shape)
     # Nose.
     tn = _T_NOSE(np.clip(phi, -12.0, 45.0)) + shape.nose_projection * _gauss(phi - 1.0, 8.0)
     wn = nose_weight(theta, phi)
@@ -552,8 +566,9 @@ def anatomical_landmarks(shape: HeadShape = GENERIC) -> dict:
            point below pogonion farthest along the direction MENTON_TILT deg in front of
            straight down (where the chin's curve turns into the submental contour, its tangent
            at MENTON_TILT deg);
-      ChL / ChR  cheilion: the mouth corners, the lateral ends of the mouth slit
-           (theta = +-THETA_COMMISSURE on the mouth line, where the lips' offset ends)."""
+      ChL / ChR  cheilion: the mouth corners, the lateral ends of the oral fissure
+           (theta = +-THETA_COMMISSURE on the mouth line, where its groove and the lips'
+           offset end; `HeadShape.fissure_fade`)."""
     phi, pts, side = midline_profile(shape)
     yz = pts[:, 1:]
     upper = np.flatnonzero(phi >= PHI_STOMION + STOMION_INSET)

@@ -1,13 +1,16 @@
 """Synthetic patients: random plausible heads from the parametric head geometry.
 
 A seed draws shape parameters (`head_geometry.HeadShape`: face width and height, class II /
-III jaw positions, chin projection, lip and soft-tissue thickness, nose, mild asymmetry) in
+III jaw positions, chin projection, lip and soft-tissue thickness, nose, mild asymmetry; the
+mouth corners are anatomical ones, the oral fissure ending in a crease, `fissure_fade`) in
 ranges of adult orthognathic patients (jaw discrepancies of a few mm to ~8 mm, the range of
 cephalometric norms +-2 SD, e.g. McNamara J.A., Am J Orthod 86:449-469, 1984), with a
 guaranteed difference from the generic head so that registration has real work (RMS skin
 difference over the face of at least MIN_DIFFERENCE mm). The skin is the zero set of the
 radial implicit function |q - C| - R_skin(theta, phi); it is meshed either by projecting a
-geodesic sphere along the rays (default: watertight by construction and bit-reproducible)
+geodesic sphere along the rays (default: watertight by construction and bit-reproducible;
+graded by a conformal Moebius zoom so that the face has facets of ~0.8-1 mm as a CT-derived
+skin would, 41k vertices in all)
 or by CGAL's restricted-Delaunay surface mesher through pygalmesh (facet angle, size and
 distance criteria, Boissonnat & Oudot, Graph Models 67:405-451, 2005; the implicit function
 is tabulated on a (theta, phi) grid and evaluated by a numba kernel, so that the mesher's
@@ -28,6 +31,12 @@ import numpy as np
 from facemodel import head_geometry as hg
 
 MIN_DIFFERENCE = 3.0     # mm RMS skin difference from the generic head
+# The patient skin as a scan: a CT-derived skin (marching cubes on 0.5-1 mm voxels) has
+# vertices every 0.5-1 mm; the synthetic scan has facets of SCAN_SIZE mm over the face (the
+# geodesic sphere graded by SCAN_ZOOM towards FACE_CENTRE, `face_zoom`), coarser at the back
+FACE_CENTRE = (0.0, -15.0)   # (theta, phi) deg: between the nose and the chin
+SCAN_SIZE = 0.8              # mm (measured: median edge 0.8-0.95 mm on lips, nose, chin, cheeks)
+SCAN_ZOOM = 2.5
 
 
 # (low, high) ranges of the shape parameters drawn for a synthetic patient
@@ -107,13 +116,39 @@ def skin_table(shape: hg.HeadShape, step: float = 0.25):
     return np.ascontiguousarray(hg.skin_radius(T, P, shape)), float(t[0]), float(p[0]), float(step)
 
 
+def face_zoom(d: np.ndarray, zoom: float, centre=FACE_CENTRE) -> np.ndarray:
+    """Unit directions d (n, 3) moved towards the face's centre direction (theta, phi) =
+    `centre` by the Moebius zoom of the sphere: stereographic projection from the opposite
+    pole, the plane scaled by 1 / zoom, projected back. The map is conformal (triangles keep
+    their angles); it scales spacings at angle a from the centre by
+    sec^2(a/2) / (zoom (1 + tan^2(a/2) / zoom^2)): 1 / zoom at the centre, 2 zoom / (1 + zoom^2)
+    at 90 deg, zoom at the opposite pole (the back of the head). zoom = 1 is the identity."""
+    d = np.asarray(d, dtype=float)
+    if zoom == 1.0:
+        return d
+    c = hg.direction(*centre)
+    e1 = np.array([1.0, 0.0, 0.0])                     # c has no x component
+    e2 = np.cross(c, e1)
+    local = d @ np.stack([e1, e2, c], axis=1)          # (n, 3) with c as the pole
+    w = local[:, :2] / (1.0 + local[:, 2:3]) / zoom    # the opposite pole maps to infinity
+    w = np.where(np.isfinite(w), w, 0.0)
+    r2 = np.sum(w * w, axis=1, keepdims=True)
+    z = (1.0 - r2) / (1.0 + r2)
+    back = np.column_stack([2.0 * w / (1.0 + r2), z])
+    far = local[:, 2] <= -1.0 + 1e-12                  # the opposite pole stays where it is
+    back[far] = (0.0, 0.0, -1.0)
+    return back @ np.stack([e1, e2, c], axis=0)
+
+
 def skin_surface(shape: hg.HeadShape, size: float = 3.0, distance: float = 0.25, seed: int = 0,
-                 table_step: float = 0.25, mesher: str = "sphere"):
+                 table_step: float = 0.25, mesher: str = "sphere", zoom: float = 1.0):
     """The closed skin of a head shape (trimesh).
 
     mesher "sphere" (default): a geodesic sphere (icosahedron subdivided to edges of about
-    `size` mm on the face) projected on the star-shaped skin along its rays: watertight by
-    construction and bit-identical for a seed. mesher "pygalmesh": CGAL's restricted Delaunay
+    `size` mm on the face), graded by `face_zoom` (zoom > 1: the face's facets `zoom` times
+    denser than a uniform sphere of the same level would have them, the back of the head's
+    coarser), projected on the star-shaped skin along its rays: watertight by construction and
+    bit-identical for a seed. mesher "pygalmesh": CGAL's restricted Delaunay
     surface mesher on the implicit function (facets of at most `size` mm, within `distance`
     mm of the surface, angles >= 25 deg): better-shaped triangles, but CGAL orders its
     refinement by memory address, so the triangulation (not the surface) varies between
@@ -121,9 +156,11 @@ def skin_surface(shape: hg.HeadShape, size: float = 3.0, distance: float = 0.25,
     import trimesh
 
     if mesher == "sphere":
-        level = int(np.clip(np.round(np.log2(105.0 / size)), 3, 7))
+        # a geodesic sphere of level L has edges of about 105 / 2^L mm on the face (radius
+        # ~95 mm from C); the zoom divides them by `zoom` there
+        level = int(np.clip(np.round(np.log2(105.0 / (size * zoom))), 3, 7))
         ico = trimesh.creation.icosphere(subdivisions=level, radius=1.0)
-        d = np.asarray(ico.vertices)
+        d = face_zoom(np.asarray(ico.vertices), zoom)
         theta = np.degrees(np.arctan2(d[:, 0], d[:, 1]))
         phi = np.degrees(np.arcsin(np.clip(d[:, 2], -1.0, 1.0)))
         verts = hg.to_cartesian(theta, phi, hg.skin_radius(theta, phi, shape), shape)
@@ -212,7 +249,8 @@ def landmarks(shape: hg.HeadShape, skin=None) -> dict:
     picks on the scanned surface: a triangulation with ~3 mm edges cuts convex tips
     (pronasale ~0.5 mm) and bridges the step between the lips (in a strong class III the
     upper lip ends up to ~2.3 mm behind the triangles that join it to the protruding lower
-    lip), and a true landmark lies on the skin the patient data show."""
+    lip; on the default ~0.8 mm scan, a fraction of a mm), and a true landmark lies on the
+    skin the patient data show."""
     out = hg.anatomical_landmarks(shape)
     if skin is not None:
         import trimesh
@@ -223,13 +261,15 @@ def landmarks(shape: hg.HeadShape, skin=None) -> dict:
     return out
 
 
-def synthetic_head(seed: int, size: float = 3.0, distance: float = 0.25,
-                   table_step: float = 0.25, mesher: str = "sphere") -> SyntheticHead:
-    """Patient `seed`: shape, skin, bone segments, teeth and landmarks (deterministic)."""
+def synthetic_head(seed: int, size: float = SCAN_SIZE, distance: float = 0.25,
+                   table_step: float = 0.25, mesher: str = "sphere",
+                   zoom: float = SCAN_ZOOM) -> SyntheticHead:
+    """Patient `seed`: shape, skin, bone segments, teeth and landmarks (deterministic). The
+    skin by default as a scan (SCAN_SIZE mm facets over the face, SCAN_ZOOM grading)."""
     shape = random_shape(seed)
     teeth = {"upper": (*hg.teeth_arch("upper", shape), "maxilla"),
              "lower": (*hg.teeth_arch("lower", shape), "mandible")}
     skin = skin_surface(shape, size, distance, seed=int(seed) % 2**31, table_step=table_step,
-                        mesher=mesher)
+                        mesher=mesher, zoom=zoom)
     return SyntheticHead(seed=int(seed), shape=shape, skin=skin, bones=bone_surfaces(shape),
                          teeth=teeth, landmarks=landmarks(shape, skin))

@@ -116,7 +116,7 @@ class IcpResult:
 def trimmed_icp(source: TargetSurface, target: TargetSurface, init: Similarity, *,
                 n_points: int = 800, iterations: int = 30, keep: float = 0.9,
                 inlier_mm: float = 5.0, scale_bounds=(0.6, 1.6), tol: float = 1e-4,
-                seed: int = 0) -> IcpResult:
+                seed: int = 0, extra=()) -> IcpResult:
     """Symmetric trimmed ICP between two triangulated surfaces (similarity, point-to-plane).
 
     Forward pairs: source samples -> closest point on the target; reverse pairs: target samples
@@ -124,7 +124,10 @@ def trimmed_icp(source: TargetSurface, target: TargetSurface, init: Similarity, 
     Pairs whose closest point is on an open border of the other surface or whose normals face
     away from each other are dropped (partial overlap), then the worst (1 - keep) of each set
     (noise); a linearised point-to-plane similarity step on what remains, both directions
-    weighted equally."""
+    weighted equally. `extra`: further (points (k, 3) of the source, target surface) pairs, e.g.
+    the model's bone attachment nodes and the patient's bone segment they belong to, matched
+    forwards like the samples (trimmed, point-to-plane) and weighted as much as the skin's
+    forward pairs together; their truncated error enters the score likewise."""
     rng = np.random.default_rng(seed)
     src, src_n = _samples(source, n_points, rng)
     tgt, tgt_n = _samples(target, n_points, rng)
@@ -149,10 +152,24 @@ def trimmed_icp(source: TargetSurface, target: TargetSurface, init: Similarity, 
         # point-to-plane step (Chen & Medioni 1992) for a similarity, linearised about the
         # current pose: moved point m, partner q, normal n; unknowns small rotation w, scale
         # increment d, translation t: (m + w x m + d m + t - q) . n = 0
-        m = np.concatenate([moved[ok_f], tf.apply(cr.points[ok_r])])
-        q = np.concatenate([cf.points[ok_f], tgt[ok_r]])
-        n = np.concatenate([cf.normal[ok_f], tgt_n[ok_r]])
-        w = np.concatenate([np.full(ok_f.sum(), 0.5 / ok_f.sum()), np.full(ok_r.sum(), 0.5 / ok_r.sum())])
+        m = [moved[ok_f], tf.apply(cr.points[ok_r])]
+        q = [cf.points[ok_f], tgt[ok_r]]
+        n = [cf.normal[ok_f], tgt_n[ok_r]]
+        w = [np.full(ok_f.sum(), 0.5 / ok_f.sum()), np.full(ok_r.sum(), 0.5 / ok_r.sum())]
+        extra_score = []
+        for pts, surf in extra:
+            mp = tf.apply(pts)
+            ce = surf.closest(mp)
+            extra_score.append(float(np.mean(np.minimum(ce.distance, inlier_mm) ** 2)))
+            ok = ~ce.on_boundary
+            if ok.sum() < 3:
+                continue
+            ok &= ce.distance <= np.quantile(ce.distance[ok], keep)
+            m.append(mp[ok]); q.append(ce.points[ok]); n.append(ce.normal[ok])
+            w.append(np.full(ok.sum(), 0.5 / (len(extra) * ok.sum())))
+        if extra_score:
+            score = 0.5 * (score + float(np.mean(extra_score)))
+        m, q, n, w = (np.concatenate(a) for a in (m, q, n, w))
         rms = float(np.sqrt(0.5 * np.mean(d_f[ok_f] ** 2) + 0.5 * np.mean(d_r[ok_r] ** 2)))
         inl = 0.5 * (np.mean(ok_f & (d_f < inlier_mm)) + np.mean(ok_r & (d_r < inlier_mm)))
         centre = w @ m / w.sum()
@@ -176,7 +193,7 @@ def trimmed_icp(source: TargetSurface, target: TargetSurface, init: Similarity, 
 
 
 def align_surfaces(source: TargetSurface, target: TargetSurface, *, good_rms_mm: float = 3.0,
-                   seed: int = 0) -> IcpResult:
+                   seed: int = 0, extra=()) -> IcpResult:
     """Similarity taking the generic skin `source` onto the patient skin `target`.
 
     The identity (both surfaces are in patient RAS and mm) is tried first and kept when its
@@ -186,7 +203,11 @@ def align_surfaces(source: TargetSurface, target: TargetSurface, *, good_rms_mm:
     centroids, each refined by a short trimmed ICP on few points; the three with the lowest
     truncated quadratic error (a pair farther than the inlier distance, or without a valid
     closest point, costs the inlier distance squared: the robust score of partial matching)
-    are refined on more points and the best is returned."""
+    are refined on more points and the best is returned. `extra` (see `trimmed_icp`): the bones,
+    matched along with the skin by the candidates: a face fitted upside down on the patient's
+    face matches the skin almost as well as the right pose (truncated scores within ~5 % on
+    some heads) and the skin alone leaves a right candidate stuck 10-20 deg off, but the bones
+    under the face tell them apart (`registration.mesh_match`)."""
     first = trimmed_icp(source, target, Similarity.identity(), n_points=400, iterations=20, seed=seed)
     if first.rms_mm < good_rms_mm and first.inliers >= 0.5:
         return trimmed_icp(source, target, first.similarity, n_points=1500, iterations=30, seed=seed + 1)
@@ -197,10 +218,16 @@ def align_surfaces(source: TargetSurface, target: TargetSurface, *, good_rms_mm:
     ct, ft = _principal_frame(pt)
     rotations = [np.eye(3)] + [ft @ p @ fs.T for p in _proper_signed_permutations()]
     inits = [Similarity(1.0, r, ct - r @ cs) for r in rotations]
-    trials = [first] + [trimmed_icp(source, target, init, n_points=150, iterations=30, seed=seed)
-                        for init in inits]
+    if extra:   # the identity's result again, now with the bones
+        first = trimmed_icp(source, target, first.similarity, n_points=400, iterations=20, seed=seed,
+                            extra=extra)
+    trials = [first] + [trimmed_icp(source, target, init, n_points=150, iterations=30, seed=seed,
+                                    extra=extra) for init in inits]
     trials.sort(key=lambda t: t.score)
-    refined = [trimmed_icp(source, target, t.similarity, n_points=1500, iterations=40, seed=seed + 1)
-               for t in trials[:3]]
+    refined = [trimmed_icp(source, target, t.similarity, n_points=1500, iterations=40, seed=seed + 1,
+                           extra=extra) for t in trials[:3]]
     refined.sort(key=lambda t: t.score)
+    if extra:   # the bones chose the pose; the skin alone finishes it, as from the identity
+        return trimmed_icp(source, target, refined[0].similarity, n_points=1500, iterations=30,
+                           seed=seed + 1)
     return refined[0]

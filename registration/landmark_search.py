@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.ndimage import median_filter
 from scipy.spatial import cKDTree
 
 from registration.alignment import Similarity
@@ -62,12 +63,36 @@ REFINE_HALF_WIDTH = 3.0  # mm of profile arc either side of a maximum fitted by 
 # mm: skin vertices around a maximum fitted by a surface, about the size of the feature
 SUMMIT_RADIUS = {"Prn": 8.0, "Li": 8.0, "Pog": 10.0}
 BRIDGE_MIN_MM = 2.0      # mm: the shortest facet step between the lips taken as the mouth slit
+# A densely sampled scan (profile segments of at most DENSE_PROFILE_MM, as a CT-derived skin's
+# 0.5-1 mm) samples the lips' ends themselves: the step between offset lips is one segment at
+# least STEP_MIN_MM long and STEP_RATIO times any other near the mouth (the scan's own
+# segments there are 0.2-1.2 mm, a 1 mm lip offset bridged by a 1.4 mm one); flush lips meet at
+# the bottom of their groove, and each stomion is taken STOMION_INSET_MM inside its own lip,
+# the convention of the synthetic truth (`facemodel.head_geometry.STOMION_INSET`, 0.3 deg at
+# ~95 mm from the head's centre)
+DENSE_PROFILE_MM = 1.5
+STEP_MIN_MM = 1.0
+STEP_RATIO = 1.5
+STOMION_INSET_MM = 0.5
+# Cheilion (`fissure_end`): cuts every FISSURE_STEP_MM from FISSURE_BEFORE_MM medial to
+# FISSURE_AFTER_MM lateral of the carried cheilion (the registration carries it within ~4 mm);
+# the groove's depth behind a chord of +-FISSURE_CHORD_MM (the groove is ~3 mm wide); its end
+# where the depth has fallen to FISSURE_END_LEVEL of its drop above the background (a fissure
+# ends where its depth vanishes; 10 % keeps the level above the background's scatter, ~0.05
+# mm from cut to cut); a drop under FISSURE_MIN_DROP_MM is no fissure end
+FISSURE_STEP_MM = 0.25
+FISSURE_BEFORE_MM = 10.0
+FISSURE_AFTER_MM = 8.0
+FISSURE_CHORD_MM = 3.0
+FISSURE_BAND_MM = 5.0    # mm: the groove sought within this height of the mouth's centre
+FISSURE_END_LEVEL = 0.1
+FISSURE_MIN_DROP_MM = 0.3
 MENTON_REACH = 25.0      # mm of profile beyond the carried menton searched for it
 # deg in front of straight down: menton is the chin's extreme along that direction (the chin's
 # inferior border taken as a line descending this much backwards: module docstring); the same
 # convention as the synthetic heads' truth (facemodel.head_geometry.MENTON_TILT)
 MENTON_TILT = 35.0
-LOCATED = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "Pog", "Me")
+LOCATED = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "ChL", "ChR", "Pog", "Me")
 
 
 def mirror_pairs(nodes: np.ndarray, ids: np.ndarray, tol: float = 1e-3) -> np.ndarray:
@@ -403,6 +428,181 @@ def mouth_slit(p: np.ndarray, centre: np.ndarray, reach: float = 7.0):
     return a.copy(), b.copy()
 
 
+def lips_meeting(p: np.ndarray, centre: np.ndarray, reach: float = 7.0):
+    """(Stms, Stmi) on a densely sampled profile (segments of ~1 mm or less; module
+    docstring) near `centre`, or None when the profile has too few points there. Where the
+    lips' ends are offset from each other, the scan bridges the step with a strip of long
+    facets, which the profile crosses as one to three consecutive segments each at least twice
+    the profile's median segment near the mouth and, as the lips themselves run mostly
+    vertically, steeper in y than in z (|dy| >= 0.8 |dz|, all the same way); the run of them
+    that spans the most (at least
+    STEP_MIN_MM, and STEP_RATIO times any other segment within `reach`) is the step: its upper
+    end is the upper lip's lowest point, its lower end the lower lip's highest (whichever lip
+    overhangs). Where the lips meet flush, the contact line
+    is the bottom of the groove between them, the deepest point under the profile's anterior
+    bitangent within `reach`; each stomion is then STOMION_INSET_MM of profile inside its own
+    lip from that bottom."""
+    q = _thin(p, 0.2)
+    if len(q) < 4:
+        return None
+    seg = np.linalg.norm(np.diff(q, axis=0), axis=1)
+    mid = 0.5 * (q[1:] + q[:-1])
+    win = np.flatnonzero(np.linalg.norm(mid - centre, axis=1) < reach)
+    if len(win) < 3:
+        return None
+    d = np.diff(q, axis=0)
+    long_ = np.zeros(len(seg), bool)
+    long_[win] = (seg[win] >= 2.0 * np.median(seg[win])) & (np.abs(d[win, 1]) >= 0.8 * np.abs(d[win, 2]))
+    sign = np.sign(d[:, 1])
+    best, best_len = None, 0.0
+    k = 0
+    while k < len(seg):
+        if not long_[k]:
+            k += 1
+            continue
+        j = k
+        while j + 1 < len(seg) and long_[j + 1] and sign[j + 1] == sign[k]:
+            j += 1
+        span = float(np.linalg.norm(q[j + 1] - q[k]))
+        if span > best_len:
+            best, best_len = (k, j + 1), span
+        k = j + 1
+    if best is not None:
+        i0, i1 = best
+        rest = seg[win[(win < i0) | (win >= i1)]]
+        if best_len >= STEP_MIN_MM and (len(rest) == 0 or best_len >= STEP_RATIO * rest.max()):
+            return q[i0].copy(), q[i1].copy()
+    lo, hi = int(win[0]), int(win[-1]) + 1
+    k = deepest_under_bitangent(q, lo, hi)
+    s = _arc_length(q)
+    return _at(q, s, s[k] - STOMION_INSET_MM), _at(q, s, s[k] + STOMION_INSET_MM)
+
+
+def _dense(p: np.ndarray, centre: np.ndarray, reach: float = 7.0) -> bool:
+    """Whether the profile is sampled densely near `centre` (median segment at most
+    DENSE_PROFILE_MM once near-coincident cut points are merged), as a CT-derived skin is."""
+    q = _thin(p, 0.2)
+    if len(q) < 4:
+        return False
+    seg = np.linalg.norm(np.diff(q, axis=0), axis=1)
+    near = np.linalg.norm(0.5 * (q[1:] + q[:-1]) - centre, axis=1) < reach
+    return bool(near.sum() >= 3 and np.median(seg[near]) <= DENSE_PROFILE_MM)
+
+
+def _chord_depth(q: np.ndarray, idx: np.ndarray, half: float = FISSURE_CHORD_MM) -> np.ndarray:
+    """Depth (mm) of the profile vertices q[idx] ((k, 3) in a frame where the profile lies in
+    the (y, z) plane, y outward) behind the chord joining the profile points `half` mm of arc
+    before and after each; -inf where the profile does not reach that far."""
+    s = _arc_length(q)
+    out = np.full(len(idx), -np.inf)
+    ok = (s[idx] - half >= 0.0) & (s[idx] + half <= s[-1])
+    if not ok.any():
+        return out
+    i = idx[ok]
+    a = np.column_stack([np.interp(s[i] - half, s, q[:, k]) for k in (1, 2)])
+    b = np.column_stack([np.interp(s[i] + half, s, q[:, k]) for k in (1, 2)])
+    ch = b - a
+    n = np.column_stack([-ch[:, 1], ch[:, 0]]) / np.linalg.norm(ch, axis=1, keepdims=True)
+    n = np.where(n[:, :1] > 0, -n, n)          # inward: away from the outward y
+    out[ok] = np.einsum("ij,ij->i", q[i, 1:] - a, n)
+    return out
+
+
+def fissure_end(skin: TargetSurface, carried: np.ndarray, mouth: np.ndarray,
+                step: float = FISSURE_STEP_MM):
+    """Cheilion: the lateral end of the oral fissure (the groove along the lips' contact line)
+    on a densely sampled scan, near the `carried` cheilion, `mouth` the stomia's midpoint.
+
+    The skin is cut by vertical planes across the mouth line (normal t: the horizontal
+    direction from the mouth's centre to the carried cheilion) every `step` mm from
+    FISSURE_BEFORE_MM medial to FISSURE_AFTER_MM lateral of the carried point. In each cut the
+    groove is the profile point deepest behind the chord of +-FISSURE_CHORD_MM of arc (a
+    feature ~3 mm wide; the lips' own curvature leaves a shallow background depth) on the
+    profile within 12 mm of arc and FISSURE_BAND_MM in height of the mouth's centre (the
+    carried cheilion can be 5 mm too high or low in a strong class II). The
+    groove's depth d(s) (median of 5 cuts: a cut that misses the groove is a lone outlier)
+    runs at its full value along the fissure and falls to the background
+    of the lips' junction over its last 1-2 mm: the fall is the steepest drop of d over 1.5 mm;
+    D the largest depth in the 1-2.5 mm before it and b the depth 1.5 mm after it. The fissure
+    ends where d has fallen to b + FISSURE_END_LEVEL (D - b) (of several falls at least half as
+    steep as the steepest, the lateral-most); the cheilion is the groove point
+    there, projected onto the skin. Returns (point, report) or (None, reason) when the cuts
+    show no fissure ending (a drop of less than FISSURE_MIN_DROP_MM) or miss the skin."""
+    t = np.asarray(carried, float) - np.asarray(mouth, float)
+    t[2] = 0.0
+    if np.linalg.norm(t) < 1e-6:
+        return None, "cheilion on the mid-sagittal plane"
+    t /= np.linalg.norm(t)
+    n = np.cross([0.0, 0.0, 1.0], t)
+    n = n if n[1] > 0 else -n
+    rot = np.stack([t, n, [0.0, 0.0, 1.0]], axis=1)    # columns: across-plane, outward, up
+    v, f = skin.vertices, skin.faces
+    reach = max(FISSURE_BEFORE_MM, FISSURE_AFTER_MM) + 12.0
+    near_f = f[np.all(np.linalg.norm(v[f] - carried, axis=2) < reach, axis=1)]
+    used = np.unique(near_f)
+    remap = np.full(len(v), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    v, f = v[used], remap[near_f]
+    offsets = np.arange(-FISSURE_BEFORE_MM, FISSURE_AFTER_MM + step / 2, step)
+    depth = np.full(len(offsets), -np.inf)
+    groove = np.zeros((len(offsets), 3))
+    guess = carried - FISSURE_BEFORE_MM * t
+    guess[2] = mouth[2]
+    for k, o in enumerate(offsets):
+        origin = carried + o * t
+        local = (v - origin) @ rot
+        g = (guess - origin) @ rot
+        best, best_d, i0 = None, np.inf, 0
+        for chain in plane_cut(local, f, 0.0):
+            dist = np.linalg.norm(chain - g, axis=1)
+            i = int(np.argmin(dist))
+            if dist[i] < best_d:
+                best, best_d, i0 = chain, dist[i], i
+        if best is None or best_d > 5.0:
+            return None, "the cuts across the mouth line miss the skin"
+        # the profile within 12 mm of arc (a scan's bridge over offset lips can be ~10 mm)
+        arc = _arc_length(best)
+        q = best[np.abs(arc - arc[i0]) < 12.0]
+        win = np.flatnonzero(np.abs(q[:, 2] - g[2]) < FISSURE_BAND_MM)
+        if len(win) == 0:
+            return None, "the cuts across the mouth line miss the skin"
+        d = _chord_depth(q, win)
+        j = int(np.argmax(d))
+        depth[k] = d[j]
+        groove[k] = origin + rot @ q[win[j]]
+        guess = guess + step * t
+    if not np.all(np.isfinite(depth)):
+        return None, "the cuts across the mouth line are too short"
+    # a cut that misses the groove (a facet's corner on the plane) is a lone outlier
+    depth = median_filter(depth, size=5, mode="nearest")
+    h = int(round(0.75 / step))
+    drop = np.full(len(offsets), -np.inf)
+    drop[h:-h] = depth[:-2 * h] - depth[2 * h:]
+    drop[:int(round(2.5 / step))] = -np.inf     # a plateau before it is needed
+    # the fissure's end is its lateral-most steep fall (medially, where the lips' offset is
+    # large, a cut can lose the groove for a few mm)
+    strong = np.flatnonzero(drop >= 0.5 * drop.max())
+    j = int(strong[-1])
+    while j > 0 and drop[j - 1] > drop[j]:     # the peak of that fall
+        j -= 1
+    before = depth[max(0, j - int(round(2.5 / step))):max(1, j - int(round(1.0 / step)) + 1)]
+    full = float(before.max())
+    base = float(depth[min(len(depth) - 1, j + int(round(1.5 / step)))])
+    if full - base < FISSURE_MIN_DROP_MM:
+        return None, "no end of the oral fissure near the carried cheilion"
+    level = base + FISSURE_END_LEVEL * (full - base)
+    k = j
+    while k < len(depth) - 1 and depth[k + 1] > level:
+        k += 1
+    if k == len(depth) - 1:
+        return None, "no end of the oral fissure near the carried cheilion"
+    frac = float(np.clip((depth[k] - level) / max(depth[k] - depth[k + 1], 1e-12), 0.0, 1.0))
+    end = groove[k] + frac * (groove[k + 1] - groove[k])
+    point = skin.closest(end[None]).points[0]
+    return point, {"fissure_depth_mm": full, "background_mm": base,
+                   "offset_mm": float(offsets[k] + frac * step)}
+
+
 def _menton(p: np.ndarray, i_pog: int) -> np.ndarray | None:
     """Menton on the profile p (ordered downwards) below pogonion (vertex i_pog): the extreme
     along the direction MENTON_TILT deg in front of straight down (module docstring); None
@@ -448,6 +648,7 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
         return {}, {"located": {}, "not_found": []}
     # pronasale and the mouth slit anchor the rest
     prn, stms, stmi = c.get("Prn"), c.get("Stms"), c.get("Stmi")
+    dense = False
     if prn is not None:
         p = profile(prn, 12.0)
         if len(p) >= 3:
@@ -457,7 +658,8 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
     if stms is not None and stmi is not None:
         mouth = 0.5 * (stms + stmi)
         p = profile(mouth, 16.0)
-        slit = mouth_slit(p, mouth)
+        dense = _dense(p, mouth)
+        slit = lips_meeting(p, mouth) if dense else mouth_slit(p, mouth)
         if slit is not None:
             stms, stmi = slit
             found["Stms"], found["Stmi"] = stms, stmi
@@ -484,7 +686,20 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
                 i_fold = deepest_under_bitangent(p, i0, i1)
                 li, pog = most_anterior(p, i0, i_fold), most_anterior(p, _valley_end(p, i_fold, i1), i1)
                 z_fold = p[i_fold, 2]
-                found["Li"] = anterior_summit(skin, li, (z_fold, p[i0, 2] - 0.5), SUMMIT_RADIUS["Li"])
+                if dense:
+                    # the scan samples the lip: its summit on the lip's own mid-sagittal plane
+                    q = profile(li, SUMMIT_RADIUS["Li"])
+                    found["Li"] = li
+                    if len(q) >= 3:  # the arc around li between the fold and the stomion
+                        a = b = _nearest_index(q, li)
+                        while a > 0 and q[a - 1, 2] < p[i0, 2] - 0.5:
+                            a -= 1
+                        while b < len(q) - 1 and q[b + 1, 2] > z_fold:
+                            b += 1
+                        if b - a >= 2:
+                            found["Li"] = most_anterior(q, a, b)
+                else:
+                    found["Li"] = anterior_summit(skin, li, (z_fold, p[i0, 2] - 0.5), SUMMIT_RADIUS["Li"])
                 found["Pog"] = anterior_summit(skin, pog, (p[i1, 2], z_fold), SUMMIT_RADIUS["Pog"])
                 if "Me" in wanted:
                     me = _menton(p, _nearest_index(p, pog))
@@ -492,6 +707,14 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
                         q = profile(me, MENTON_REACH)
                         me2 = _menton(q, _nearest_index(q, found["Pog"])) if len(q) >= 4 else None
                         found["Me"] = me if me2 is None else me2
+    # the cheilia: the lateral ends of the oral fissure, on a scan that samples it densely
+    if dense and stms is not None and stmi is not None:
+        mouth = 0.5 * (stms + stmi)
+        for k in ("ChL", "ChR"):
+            if k in wanted:
+                point, info = fissure_end(skin, c[k], mouth)
+                if point is not None:
+                    found[k] = point
     out = {}
     for k in wanted:
         if k in found:

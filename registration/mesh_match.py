@@ -143,9 +143,23 @@ def check_units(name: str, vertices: np.ndarray, reference_extent: float, file: 
         f"{reference_extent:.0f} mm; faceplan expects surfaces in mm", file=file, field="units")
 
 
+def _bone_pairs(model: MatchInput, bones: dict | None, n_max: int = 200) -> list:
+    """For the surface alignment (`align_surfaces`' extra pairs): per segment the patient gives
+    a bone surface for, up to n_max of the model's attachment nodes of that segment and that
+    surface."""
+    out = []
+    for seg, ids in model.bone_node_sets.items():
+        ids = np.asarray(ids, dtype=np.int64)
+        if bones and seg in bones and len(ids):
+            step = max(1, len(ids) // n_max)
+            out.append((np.asarray(model.nodes, float)[ids[::step]], bones[seg]))
+    return out
+
+
 def initial_alignment(model: MatchInput, skin: TargetSurface, landmarks: dict | None,
-                      options: MatchOptions) -> tuple[Similarity, dict]:
-    """Similarity generic -> patient, and how it was found."""
+                      options: MatchOptions, bones: dict | None = None) -> tuple[Similarity, dict]:
+    """Similarity generic -> patient, and how it was found (`bones`: the patient's bone
+    surfaces by segment, which disambiguate a pose found from the surfaces)."""
     info: dict = {}
     if landmarks and options.use_landmarks:
         common = [k for k in model.landmark_nodes if k in landmarks]
@@ -169,7 +183,7 @@ def initial_alignment(model: MatchInput, skin: TargetSurface, landmarks: dict | 
         info["landmarks_ignored"] = f"only {len(common)} landmark(s) in common with the model (4 needed)"
     q = np.asarray(model.skin_quads)
     generic_skin = TargetSurface(model.nodes, np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]]), "generic skin")
-    icp = align_surfaces(generic_skin, skin, seed=options.seed)
+    icp = align_surfaces(generic_skin, skin, seed=options.seed, extra=_bone_pairs(model, bones))
     sim = icp.similarity
     info.update(method="surfaces", trimmed_rms_mm=icp.rms_mm, inlier_fraction=icp.inliers,
                 scale=sim.scale, rotation_deg=sim.rotation_deg)
@@ -261,7 +275,7 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
             if not np.all(np.isfinite(np.asarray(p, float))):
                 raise RegistrationInputError(f"landmark {name} is not a finite point", field=name)
 
-    sim, align_info = initial_alignment(model, skin, landmarks, opt)
+    sim, align_info = initial_alignment(model, skin, landmarks, opt, bones)
     # bones in the same units as the skin (checked after alignment: bones must sit under the skin)
     skin_box = np.array([skin.vertices.min(0), skin.vertices.max(0)])
     for name, b in bones.items():
@@ -397,25 +411,39 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         attached = np.concatenate([np.asarray(i, np.int64) for i in model.bone_node_sets.values()]
                                   or [np.zeros(0, np.int64)])
         # landmark nodes placed on given landmarks stay there (the other lip moves instead)
-        attached = np.union1d(attached, np.asarray(landmark_report["nodes"] if landmark_report else [], np.int64))
         up, low = model.lip_quads
+        held_lm = np.asarray(landmark_report["nodes"] if landmark_report else [], np.int64)
+        # (the nodes of one lip's contact surface only: the slit's closed ends stay)
+        lip_nodes = np.setxor1d(np.unique(up), np.unique(low))
         lip_before = lip_overlap(x, up, low)
         passes = []
         movable = np.setdiff1d(np.arange(len(x)), keep) if placed else None
-        for _ in range(6):
-            x, rep_l = separate_lips(x, hexes, up, low, attached, skin_nodes=skin_ids, skin=skin,
-                                     gap=opt.lip_gap_mm, threshold=opt.threshold,
-                                     arches=arches if placed else None,
-                                     teeth_clearance=opt.teeth_clearance_mm)
-            passes.append(rep_l)
-            if not placed or union_distance(arches, x[movable], opt.teeth_clearance_mm + 1.0)[0].min() \
-                    >= opt.teeth_clearance_mm - 1e-6:
-                break  # lips apart and every movable node clear of the teeth
-            # lip nodes pushed out of the teeth preferably not back into the other lip
-            x, again = clear_teeth(x, hexes, arches, keep, clearance=opt.teeth_clearance_mm,
-                                   threshold=opt.threshold, away=_lip_away(model, x))
-            clearance_report.setdefault("after_lip_separation", []).append(again)
+        released = []
+        # the stomia of a lip overhanging the other can cross each other's lip as given (the
+        # upper lip's lowest point below the lower lip's highest, hidden behind it): where the
+        # lips still cross with them held, both lips make room, those landmark nodes released
+        for held in (held_lm, np.setdiff1d(held_lm, lip_nodes)):
+            if passes and (lip_overlap(x, up, low)["min_gap_mm"] >= opt.lip_gap_mm - 1e-3
+                           or len(held) == len(held_lm)):
+                break
+            if passes:
+                released = [int(i) for i in np.intersect1d(held_lm, lip_nodes)]
+            fixed = np.union1d(attached, held)
+            for _ in range(6):
+                x, rep_l = separate_lips(x, hexes, up, low, fixed, skin_nodes=skin_ids, skin=skin,
+                                         gap=opt.lip_gap_mm, threshold=opt.threshold,
+                                         arches=arches if placed else None,
+                                         teeth_clearance=opt.teeth_clearance_mm)
+                passes.append(rep_l)
+                if not placed or union_distance(arches, x[movable], opt.teeth_clearance_mm + 1.0)[0].min() \
+                        >= opt.teeth_clearance_mm - 1e-6:
+                    break  # lips apart and every movable node clear of the teeth
+                # lip nodes pushed out of the teeth preferably not back into the other lip
+                x, again = clear_teeth(x, hexes, arches, keep, clearance=opt.teeth_clearance_mm,
+                                       threshold=opt.threshold, away=_lip_away(model, x))
+                clearance_report.setdefault("after_lip_separation", []).append(again)
         lip_report = {"gap_mm": opt.lip_gap_mm, "before": lip_before, "after": lip_overlap(x, up, low),
+                      "landmark_nodes_released": released,
                       "nodes_pushed": int(sum(p["nodes_pushed"] for p in passes)),
                       "elements_repaired": int(sum(p["elements_repaired"] for p in passes)),
                       "passes": passes}

@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 
 from registration import MatchOptions, mesh_match_and_repair
-from registration.landmark_search import (MENTON_TILT, _menton, anterior_summit, concave_corner,
-                                          deepest_under_bitangent, locate_landmarks, mirror_pairs,
-                                          most_anterior, mouth_slit, plane_cut, sagittal_profile,
-                                          symmetry_plane)
+from registration.landmark_search import (FISSURE_END_LEVEL, MENTON_TILT, STOMION_INSET_MM, _dense,
+                                          _menton, anterior_summit, concave_corner,
+                                          deepest_under_bitangent, fissure_end, lips_meeting,
+                                          locate_landmarks, mirror_pairs, most_anterior, mouth_slit,
+                                          plane_cut, sagittal_profile, symmetry_plane)
 from registration.surface import TargetSurface
 
 trimesh = pytest.importorskip("trimesh")
@@ -191,6 +192,97 @@ def test_mouth_slit_on_a_bridged_step():
     assert mouth_slit(_lip_profile(8.0, 7.0), np.array([0.0, 7.5, -9.5])) is None
 
 
+def _dense_lips(upper_y, lower_y, split=False, step=0.4):
+    """A densely sampled profile (0.4 mm): the upper lip vertical at y = upper_y from z = 0 to
+    -9, the scan's bridge to the lower lip at (lower_y, -10) (cut in two collinear segments when
+    `split`: the plane crossed two of the bridging facets), the lower lip down to z = -19."""
+    n = int(round(9.0 / step)) + 1
+    up = [[0.0, upper_y, z] for z in np.linspace(0.0, -9.0, n)]
+    low = [[0.0, lower_y, z] for z in np.linspace(-10.0, -19.0, n)]
+    mid = [[0.0, 0.5 * (upper_y + lower_y), -9.5]] if split else []
+    return np.array(up + mid + low)
+
+
+def test_lips_meeting_on_a_densely_sampled_step():
+    centre = np.array([0.0, 9.0, -9.5])
+    for upper_y, lower_y in ((12.0, 6.0), (6.0, 12.0), (9.0, 7.6)):
+        for split in (False, True):
+            p = _dense_lips(upper_y, lower_y, split)
+            assert _dense(p, centre)
+            stms, stmi = lips_meeting(p, centre)
+            # the bridge's ends are the lips' ends, exactly (profile vertices), whichever lip
+            # overhangs, the bridge in one piece or two; a 1.4 mm offset is still a step
+            np.testing.assert_allclose(stms, [0.0, upper_y, -9.0], atol=1e-12)
+            np.testing.assert_allclose(stmi, [0.0, lower_y, -10.0], atol=1e-12)
+    # a sparse (3 mm) profile is not dense: the bridged-facet rule (mouth_slit) applies there
+    assert not _dense(_lip_profile(12.0, 6.0), centre)
+
+
+def test_lips_meeting_flush_lips_at_the_groove():
+    """Flush lips (y = 10) with a groove 1.5 mm deep and ~1.4 mm wide along their contact
+    line at z = -9.5, sampled every 0.25 mm: the stomia are the groove's bottom moved
+    STOMION_INSET_MM of profile up and down."""
+    z = np.arange(0.0, -19.0 - 1e-9, -0.25)
+    y = 10.0 - 1.5 * np.exp(-((z + 9.5) / 1.4) ** 2)
+    p = np.column_stack([np.zeros_like(z), y, z])
+    stms, stmi = lips_meeting(p, np.array([0.0, 9.0, -9.0]))
+    # the bottom is a vertex (z = -9.5); the arc from it to each stomion is STOMION_INSET_MM,
+    # so each lies within that of the bottom and above / below it
+    bottom = np.array([0.0, 8.5, -9.5])
+    for q, sgn in ((stms, 1.0), (stmi, -1.0)):
+        assert np.linalg.norm(q - bottom) <= STOMION_INSET_MM + 1e-9
+        assert np.linalg.norm(q - bottom) > 0.8 * STOMION_INSET_MM   # the groove's curvature
+        assert sgn * (q[2] - bottom[2]) > 0.3
+
+
+def _grooved_sheet(x_end, fade, depth=1.5, h=0.5):
+    """A surface y = 100 - z^2 / 60 (the lips' vertical curvature, 30 mm radius) over
+    x in [-20, 20], z in [-12, 12], with a groove along z = 0 of depth `depth` (gaussian, 1.4 mm
+    wide) that runs full for x < x_end - fade and fades out by a smoothstep over `fade` mm,
+    ending at x = x_end; triangulated on an h-mm grid offset from the groove's end."""
+    g_x = np.arange(-20.0, 20.0 + 1e-9, h) + 0.13
+    g_z = np.arange(-12.0, 12.0 + 1e-9, h) + 0.07
+    xx, zz = np.meshgrid(g_x, g_z, indexing="ij")
+    u = np.clip((xx - (x_end - fade)) / fade, 0.0, 1.0)
+    taper = 1.0 - u * u * (3.0 - 2.0 * u)
+    yy = 100.0 - zz**2 / 60.0 - depth * taper * np.exp(-(zz / 1.4) ** 2)
+    verts = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+    nx, nz = len(g_x), len(g_z)
+    idx = np.arange(nx * nz).reshape(nx, nz)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, c, b], 1), np.stack([a, d, c], 1)])
+    return TargetSurface(verts, faces, "grooved sheet")
+
+
+@pytest.mark.parametrize("carried_dx", [-4.0, 0.0, 3.5])
+def test_fissure_end_on_a_grooved_sheet(carried_dx):
+    """The groove's depth falls to FISSURE_END_LEVEL of its drop where the smoothstep taper is
+    FISSURE_END_LEVEL (u = 0.804 for 0.1): 0.196 fade before its end. The cheilion is found
+    there from a carried point up to 4 mm off along the mouth line and 1.2 mm off in height."""
+    x_end, fade = 5.0, 1.5
+    skin = _grooved_sheet(x_end, fade)
+    from scipy.optimize import brentq
+
+    u = brentq(lambda v: v * v * (3.0 - 2.0 * v) - (1.0 - FISSURE_END_LEVEL), 0.0, 1.0)
+    expected_x = x_end - fade * (1.0 - u)
+    carried = np.array([x_end + carried_dx, 100.0, 1.2])
+    point, info = fissure_end(skin, carried, np.array([-20.0, 100.0, 0.0]))
+    assert point is not None, info
+    # the depth is sampled every FISSURE_STEP_MM (0.25) on 0.5 mm facets and the chord depth
+    # blurs the taper by the groove's width: 0.3 mm along x; on the groove's line in height to
+    # half a facet (the groove's bottom is a profile vertex, 0.5 mm apart, and only 10 % of
+    # the groove's depth is left there): 0.3 mm
+    assert abs(point[0] - expected_x) < 0.3, (point, expected_x)
+    assert abs(point[2]) < 0.3
+    assert info["fissure_depth_mm"] == pytest.approx(1.5, abs=0.25)
+
+
+def test_fissure_end_needs_a_fissure():
+    point, reason = fissure_end(_grooved_sheet(5.0, 1.5, depth=0.0), np.array([5.0, 100.0, 0.0]),
+                                np.array([-20.0, 100.0, 0.0]))
+    assert point is None and "fissure" in reason
+
+
 def test_mirror_pairs_of_a_symmetric_point_set():
     pts = np.array([[-3.0, 1, 2], [3.0, 1, 2], [0.0, 5, 5], [2.0, 7, 7], [-2.0, 7, 7.5]])
     pairs = mirror_pairs(pts, np.arange(5))
@@ -206,7 +298,7 @@ def head():
     synthetic = pytest.importorskip("facemodel.synthetic")
     hg = pytest.importorskip("facemodel.head_geometry")
     shape = hg.HeadShape(maxilla_ap=-4.0, mandible_ap=7.0, chin_projection=2.0)
-    skin = synthetic.skin_surface(shape)
+    skin = synthetic.skin_surface(shape, synthetic.SCAN_SIZE, zoom=synthetic.SCAN_ZOOM)
     return synthetic.SyntheticHead(seed=-1, shape=shape, skin=skin, bones=synthetic.bone_surfaces(shape),
                                    teeth={}, landmarks=synthetic.landmarks(shape, skin))
 
@@ -219,7 +311,7 @@ def without_landmarks(generic, head):
     return searched, carried
 
 
-LOCATED_HERE = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "Pog", "Me")
+LOCATED_HERE = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "ChL", "ChR", "Pog", "Me")
 
 
 def test_located_landmarks_are_the_true_ones(generic, head, without_landmarks):

@@ -2,7 +2,7 @@
 
 Ten heads: seven drawn by `facemodel.synthetic.random_shape` and three extremes built on
 purpose (strong class III, strong class II, asymmetric lower face), each registered at coarse
-and standard resolution from its skin (a scan-like ~0.8 mm triangulation over the face,
+and standard resolution from its skin (a scan-like ~1 mm triangulation over the face,
 `synthetic.SCAN_SIZE` / `SCAN_ZOOM`), bone segments and landmarks. Prints one line per run
 (fit errors, quality, repaired elements, landmark errors, time per stage) and a summary with
 the targets; the last line is

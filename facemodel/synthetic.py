@@ -9,7 +9,7 @@ guaranteed difference from the generic head so that registration has real work (
 difference over the face of at least MIN_DIFFERENCE mm). The skin is the zero set of the
 radial implicit function |q - C| - R_skin(theta, phi); it is meshed either by projecting a
 geodesic sphere along the rays (default: watertight by construction and bit-reproducible;
-graded by a conformal Moebius zoom so that the face has facets of ~0.8-1 mm as a CT-derived
+graded by a conformal Moebius zoom so that the face has facets of ~0.75-1 mm as a CT-derived
 skin would, 41k vertices in all)
 or by CGAL's restricted-Delaunay surface mesher through pygalmesh (facet angle, size and
 distance criteria, Boissonnat & Oudot, Graph Models 67:405-451, 2005; the implicit function
@@ -35,7 +35,7 @@ MIN_DIFFERENCE = 3.0     # mm RMS skin difference from the generic head
 # vertices every 0.5-1 mm; the synthetic scan has facets of SCAN_SIZE mm over the face (the
 # geodesic sphere graded by SCAN_ZOOM towards FACE_CENTRE, `face_zoom`), coarser at the back
 FACE_CENTRE = (0.0, -15.0)   # (theta, phi) deg: between the nose and the chin
-SCAN_SIZE = 0.8              # mm (measured: median edge 0.8-0.95 mm on lips, nose, chin, cheeks)
+SCAN_SIZE = 1.0              # mm (measured median edges: lips 0.74, nose 0.97, chin 1.02 mm)
 SCAN_ZOOM = 2.5
 
 
@@ -157,8 +157,9 @@ def skin_surface(shape: hg.HeadShape, size: float = 3.0, distance: float = 0.25,
 
     if mesher == "sphere":
         # a geodesic sphere of level L has edges of about 105 / 2^L mm on the face (radius
-        # ~95 mm from C); the zoom divides them by `zoom` there
-        level = int(np.clip(np.round(np.log2(105.0 / (size * zoom))), 3, 7))
+        # ~95 mm from C); the zoom divides them by `zoom` there. The level rounds log2 up from
+        # a quarter (not a half) so that facets are at most ~20 % over `size`
+        level = int(np.clip(np.ceil(np.log2(105.0 / (size * zoom)) - 0.25), 3, 7))
         ico = trimesh.creation.icosphere(subdivisions=level, radius=1.0)
         d = face_zoom(np.asarray(ico.vertices), zoom)
         theta = np.degrees(np.arctan2(d[:, 0], d[:, 1]))
@@ -249,7 +250,7 @@ def landmarks(shape: hg.HeadShape, skin=None) -> dict:
     picks on the scanned surface: a triangulation with ~3 mm edges cuts convex tips
     (pronasale ~0.5 mm) and bridges the step between the lips (in a strong class III the
     upper lip ends up to ~2.3 mm behind the triangles that join it to the protruding lower
-    lip; on the default ~0.8 mm scan, a fraction of a mm), and a true landmark lies on the
+    lip; on the default ~1 mm scan, a fraction of a mm), and a true landmark lies on the
     skin the patient data show."""
     out = hg.anatomical_landmarks(shape)
     if skin is not None:

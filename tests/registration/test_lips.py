@@ -82,7 +82,7 @@ def test_registered_lips_are_apart(generic, registered_3):
     patient, rep = registered_3
     lips = rep["lip_separation"]
     # the reproducer: the lips crossed before the stage (0.52 mm on this head when measured
-    # on the 3 mm scan, 0.047 mm on the ~0.8 mm scan of `synthetic_head` now; 0.02 mm keeps
+    # on the 3 mm scan, 0.047 mm on the ~1 mm scan of `synthetic_head` now; 0.02 mm keeps
     # the test meaningful: the stage had a crossing to undo)
     assert max(lips["before"]["lower_in_upper_mm"], lips["before"]["upper_in_lower_mm"]) > 0.02
     # independent check (facemodel.simulation: pseudo-normal sign on its own triangle

@@ -24,7 +24,7 @@ def registered(request, generic):
     import registration.mesh_match as mm
 
     seed, own = request.param
-    # the 3 mm geodesic-sphere skin these figures were measured on (the default ~0.8 mm scan
+    # the 3 mm geodesic-sphere skin these figures were measured on (the default ~1 mm scan
     # leaves this head's lips crossing by 0.4 mm after the lip separation: README, known
     # limitations)
     head = synthetic.synthetic_head(seed, size=3.0, zoom=1.0)

@@ -26,7 +26,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 
 from solver.assembly._extended import ExtendedPattern, rotate_blocks
 from solver.bc import ConstraintSet

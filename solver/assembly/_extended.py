@@ -28,8 +28,9 @@ __all__ = ["ExtendedPattern", "rotate_blocks"]
 
 
 def _csr_keys(indptr, indices, n):
+    """Entry keys row * n + column of a CSR pattern (ascending for sorted rows)."""
     rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr))
-    return rows * n + indices.astype(np.int64), rows
+    return rows * n + indices.astype(np.int64)
 
 
 class ExtendedPattern:
@@ -42,7 +43,7 @@ class ExtendedPattern:
 
     def __init__(self, body, node_pairs=None):
         self.n_dofs = int(body.n_dofs)
-        self._body_keys, _ = _csr_keys(body.indptr, body.indices, self.n_dofs)
+        self._body_keys = _csr_keys(body.indptr, body.indices, self.n_dofs)
         self.grown = 0
         self._set_keys(self._body_keys)
         nodes = np.arange(self.n_dofs // 3)
@@ -89,8 +90,6 @@ class ExtendedPattern:
         entries outside it."""
         coos = [K.tocoo() for K in term_matrices if K is not None and K.nnz]
         if not coos:
-            if self.identity:
-                return body_data.copy()
             out = np.zeros(self.nnz)
             out[self.body_positions] = body_data
             return out

@@ -387,6 +387,21 @@ def _closest_on_segment(a: np.ndarray, b: np.ndarray, q: np.ndarray) -> np.ndarr
     return a + t * ab
 
 
+def _runs(flag: np.ndarray, sign: np.ndarray):
+    """(start, end) point indices of the maximal runs of consecutive flagged profile segments
+    whose y steps all have the same sign (segments start..end-1)."""
+    k = 0
+    while k < len(flag):
+        if not flag[k]:
+            k += 1
+            continue
+        j = k
+        while j + 1 < len(flag) and flag[j + 1] and sign[j + 1] == sign[k]:
+            j += 1
+        yield k, j + 1
+        k = j + 1
+
+
 def mouth_slit(p: np.ndarray, centre: np.ndarray, reach: float = 7.0):
     """(Stms, Stmi) on the profile near `centre` from the facets bridging the lips' step (module
     docstring), or None when the profile shows no such step. The bridge is the run of
@@ -400,18 +415,10 @@ def mouth_slit(p: np.ndarray, centre: np.ndarray, reach: float = 7.0):
     flat = np.abs(d[:, 1]) >= 0.8 * np.abs(d[:, 2])
     sign = np.sign(d[:, 1])
     best, best_dy = None, BRIDGE_MIN_MM
-    k = 0
-    while k < len(d):
-        if not flat[k]:
-            k += 1
-            continue
-        j = k
-        while j + 1 < len(d) and flat[j + 1] and sign[j + 1] == sign[k]:
-            j += 1
-        dy = abs(p[j + 1, 1] - p[k, 1])
-        if dy >= best_dy and np.min(np.linalg.norm(mid[k:j + 1] - centre, axis=1)) < reach:
-            best, best_dy = (k, j + 1), dy
-        k = j + 1
+    for k, e in _runs(flat, sign):
+        dy = abs(p[e, 1] - p[k, 1])
+        if dy >= best_dy and np.min(np.linalg.norm(mid[k:e] - centre, axis=1)) < reach:
+            best, best_dy = (k, e), dy
     if best is None:
         return None
     ia, ib = best
@@ -455,18 +462,10 @@ def lips_meeting(p: np.ndarray, centre: np.ndarray, reach: float = 7.0):
     long_[win] = (seg[win] >= 2.0 * np.median(seg[win])) & (np.abs(d[win, 1]) >= 0.8 * np.abs(d[win, 2]))
     sign = np.sign(d[:, 1])
     best, best_len = None, 0.0
-    k = 0
-    while k < len(seg):
-        if not long_[k]:
-            k += 1
-            continue
-        j = k
-        while j + 1 < len(seg) and long_[j + 1] and sign[j + 1] == sign[k]:
-            j += 1
-        span = float(np.linalg.norm(q[j + 1] - q[k]))
+    for k, e in _runs(long_, sign):
+        span = float(np.linalg.norm(q[e] - q[k]))
         if span > best_len:
-            best, best_len = (k, j + 1), span
-        k = j + 1
+            best, best_len = (k, e), span
     if best is not None:
         i0, i1 = best
         rest = seg[win[(win < i0) | (win >= i1)]]

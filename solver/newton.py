@@ -90,6 +90,9 @@ class _System:
         # residual then weighs them alike; a direct solve is unaffected)
         self.constraint_scale = None
         self.timing = {"assembly": 0.0, "solve": 0.0}
+        # the terms' potential is only read by the line search (a contact term's energy is
+        # another search and gap evaluation): without it `ev.energy` is the body's alone
+        self.need_energy = True
 
     def _set_constraint_scale(self, diag_c):
         if self.constraint_scale is None:
@@ -113,7 +116,8 @@ class _System:
             f, K = term.assemble(x, load)
             f_term_norm = max(f_term_norm, float(np.linalg.norm(f)))
             r += f
-            energy += term.energy(x, load)
+            if self.need_energy:
+                energy += term.energy(x, load)
             if tangent and K is not None and K.nnz:
                 Kt.append(K)
         if self.external is not None:
@@ -236,6 +240,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
             raise ValueError(f"external must have shape ({3 * n},), got {external.shape}")
     system = _System(body, cons, terms, external)
     system.max_increment = None if max_increment is None else float(max_increment)
+    system.need_energy = bool(line_search)
     system.stall_iterations = None if not stall_iterations else int(stall_iterations)
     held = np.zeros(n, dtype=bool)
     held[np.asarray(cons.dofs, dtype=np.int64) // 3] = True

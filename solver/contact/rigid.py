@@ -67,7 +67,8 @@ class RigidSurfaceContact(StatusFreezing):
     constraint (the nodes stay on the surface, free tangentially) instead of contact.
     search_radius: nodes farther than this from the surface are ignored (mm); max_depth:
     contact is only detected up to this penetration (for open surfaces). tolerance: largest
-    penetration/gap accepted at convergence (mm); max_augmentations bounds the Uzawa loop.
+    penetration/gap accepted at convergence (mm); max_augmentations bounds the Uzawa loop;
+    uzawa_schedule how load steps are augmented (`solver.contact._uzawa.UzawaLoop`).
     smooth: use the C2 spline signed distance of `solver.contact._sdf.SignedDistanceGrid`
     (grid step `grid_spacing`) instead of the faceted surface: no gradient jumps across facet
     edges, so nodes pressed onto convex edges do not make Newton cycle (the facets' corners
@@ -81,7 +82,7 @@ class RigidSurfaceContact(StatusFreezing):
                  max_depth: float = np.inf, stick: bool = False,
                  freeze_after: int | None = 4, smooth: bool = False,
                  grid_spacing: float | None = None, tangent: str = "exact",
-                 freeze_resolves: bool = True):
+                 freeze_resolves: bool = True, uzawa_schedule: str = "carried"):
         nodes = np.asarray(nodes, dtype=float)
         if tangent not in ("exact", "projected"):
             raise ValueError(f"tangent must be 'exact' or 'projected', got {tangent!r}")
@@ -116,7 +117,7 @@ class RigidSurfaceContact(StatusFreezing):
         self.bilateral = bool(bilateral)
         self.augmented = bool(augmented)
         self.tolerance = float(tolerance)
-        self.uzawa = UzawaLoop(max_augmentations)
+        self.uzawa = UzawaLoop(max_augmentations, uzawa_schedule)
         self.search_radius = float(search_radius)
         self.max_depth = float(max_depth)
         self.stick = bool(stick)
@@ -314,13 +315,17 @@ class RigidSurfaceContact(StatusFreezing):
         else:
             err = float(np.max(-g[p > 0], initial=0.0))
         self.last_error = err
-        if not self.uzawa.another_solve(load, changed, self.augmented, err, self.tolerance):
-            return False
-        # Uzawa update (also when only the frozen status was wrong: it settles the status)
-        if self.augmented:
+        again = self.uzawa.another_solve(load, changed, self.augmented, err, self.tolerance)
+        # Uzawa update (also when only the frozen status was wrong: it settles the status;
+        # and on an intermediate step the "carried" schedule takes to the next load)
+        if self.augmented and (again or self.uzawa.carry):
             self.multipliers = p
-        self._freeze_resolve(load)
-        return True
+        if again:
+            self._freeze_resolve(load)
+        return again
+
+    def _scale_multipliers(self, factor: float) -> None:
+        self.multipliers = self.multipliers * factor
 
     # ------------------------------------------------------------------ results
     def contact_forces(self, x, load) -> np.ndarray:

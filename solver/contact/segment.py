@@ -401,8 +401,8 @@ class SegmentContact(StatusFreezing):
     (`tolerance` bounds the weighted gaps, which average penetrating and open points: on the
     coarse face's lips, whose contact band is one or two facets wide, the points then
     penetrate 0.26 mm against 0.05 mm with point multipliers; in the patch test 0.4 %
-    against 0.1 %). search_radius, max_depth, max_augmentations, freeze_after and
-    ignore_initial_penetration as in `SurfaceContact`.
+    against 0.1 %). search_radius, max_depth, max_augmentations, freeze_after,
+    ignore_initial_penetration and uzawa_schedule as in `SurfaceContact`.
     Results: `penetration(x)`, `contact_pressure(x)` (per surface: node ids, kPa),
     `contact_forces(x)` ((n, 3) mN on the nodes), `initial_penetration`, `last_error`.
     """
@@ -412,7 +412,7 @@ class SegmentContact(StatusFreezing):
                  search_radius: float = 2.0, max_depth: float = 2.0, quadrature: int = 2,
                  subdivisions: int = 2, rule: str = "gauss", nodal_multipliers: bool = False,
                  formulation: str = "symmetric", freeze_after: int | None = 4,
-                 ignore_initial_penetration: bool = True):
+                 ignore_initial_penetration: bool = True, uzawa_schedule: str = "carried"):
         nodes = np.asarray(nodes, dtype=float)
         if not penalty > 0:
             raise ValueError(f"penalty must be > 0, got {penalty}")
@@ -431,7 +431,7 @@ class SegmentContact(StatusFreezing):
         self.penalty = float(penalty)
         self.augmented = bool(augmented)
         self.tolerance = float(tolerance)
-        self.uzawa = UzawaLoop(max_augmentations)
+        self.uzawa = UzawaLoop(max_augmentations, uzawa_schedule)
         self.search_radius = float(search_radius)
         self.max_depth = float(max_depth)
         self.freeze_after = freeze_after
@@ -596,16 +596,20 @@ class SegmentContact(StatusFreezing):
                 new[s] = p
                 updates.append(new)
         self.last_error = err
-        if not self.uzawa.another_solve(load, moved, self.augmented, err, self.tolerance):
-            return False
-        if not self.augmented:
-            return True
-        for ps, new in zip(self.passes, updates):
+        again = self.uzawa.another_solve(load, moved, self.augmented, err, self.tolerance)
+        if self.augmented and (again or self.uzawa.carry):    # Uzawa update
+            for ps, new in zip(self.passes, updates):
+                if self.nodal_multipliers:
+                    ps.node_multipliers = new
+                    new = np.einsum("ka,ka->k", ps.N, new[ps.point_nodes])
+                ps.multipliers = new
+        return again
+
+    def _scale_multipliers(self, factor: float) -> None:
+        for ps in self.passes:
+            ps.multipliers = ps.multipliers * factor
             if self.nodal_multipliers:
-                ps.node_multipliers = new
-                new = np.einsum("ka,ka->k", ps.N, new[ps.point_nodes])
-            ps.multipliers = new
-        return True
+                ps.node_multipliers = ps.node_multipliers * factor
 
     # --- results ---------------------------------------------------------------------------
     def penetration(self, x) -> float:

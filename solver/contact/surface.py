@@ -133,14 +133,16 @@ class SurfaceContact(StatusFreezing):
     (e.g. lips of a registered mesh) are not pushed apart: each slave node's initial
     penetration is added to its gap as a fixed offset (LS-DYNA's "ignore initial
     penetrations"), so contact acts only against further penetration; the largest offset is
-    `initial_penetration` (mm).
+    `initial_penetration` (mm). uzawa_schedule: how the load steps are augmented, "carried"
+    (default), "every_step" or "final_only" (`solver.contact._uzawa.UzawaLoop`).
     """
 
     def __init__(self, nodes, surface_a, surface_b, *, two_pass: bool = True,
                  penalty: float = 100.0, augmented: bool = True, tolerance: float = 0.05,
                  max_augmentations: int = 10, search_radius: float = 2.0,
                  max_depth: float = 2.0, freeze_after: int | None = 4,
-                 ignore_initial_penetration: bool = True, freeze_resolves: bool = True):
+                 ignore_initial_penetration: bool = True, freeze_resolves: bool = True,
+                 uzawa_schedule: str = "carried"):
         nodes = np.asarray(nodes, dtype=float)
         if not penalty > 0:
             raise ValueError(f"penalty must be > 0, got {penalty}")
@@ -152,7 +154,7 @@ class SurfaceContact(StatusFreezing):
         self.penalty = float(penalty)
         self.augmented = bool(augmented)
         self.tolerance = float(tolerance)
-        self.uzawa = UzawaLoop(max_augmentations)
+        self.uzawa = UzawaLoop(max_augmentations, uzawa_schedule)
         self.search_radius = float(search_radius)
         self.max_depth = float(max_depth)
         self.last_error = 0.0
@@ -289,16 +291,19 @@ class SurfaceContact(StatusFreezing):
             if np.any(p > 0):
                 err = max(err, float(-g[p > 0].min()))
         self.last_error = err
-        if not self.uzawa.another_solve(load, changed, self.augmented, err, self.tolerance):
-            return False
-        self._freeze_resolve(load)
-        if not self.augmented:
-            return True
-        for ps, s, g, grad, hess, dofs, eps, lam, p in ev:
-            new = np.zeros_like(ps.multipliers)
-            new[s] = p
-            ps.multipliers = new
-        return True
+        again = self.uzawa.another_solve(load, changed, self.augmented, err, self.tolerance)
+        if again:
+            self._freeze_resolve(load)
+        if self.augmented and (again or self.uzawa.carry):    # Uzawa update
+            for ps, s, g, grad, hess, dofs, eps, lam, p in ev:
+                new = np.zeros_like(ps.multipliers)
+                new[s] = p
+                ps.multipliers = new
+        return again
+
+    def _scale_multipliers(self, factor: float) -> None:
+        for ps in self.passes:
+            ps.multipliers = ps.multipliers * factor
 
     def contact_pressure(self, x):
         """Per pass: (slave node ids, pressure kPa) at coordinates x."""

@@ -1,17 +1,71 @@
 """Augmented-Lagrangian bookkeeping: the bounded Uzawa loop."""
 import numpy as np
+import pytest
 
 from solver.contact import SurfaceContact
 from solver.contact._uzawa import UzawaLoop, deepest_penetration
 
 
 def test_uzawa_loop_is_bounded_and_restarts_at_every_load():
-    loop = UzawaLoop(max_augmentations=2)
+    loop = UzawaLoop(max_augmentations=2, schedule="every_step")
     assert loop.another_solve(0.5, False, True, error=1.0, tolerance=0.1)
     assert loop.another_solve(0.5, False, True, error=1.0, tolerance=0.1)
     assert not loop.another_solve(0.5, False, True, error=1.0, tolerance=0.1)   # bounded
     assert loop.another_solve(1.0, False, True, error=1.0, tolerance=0.1)       # new load
     assert not loop.another_solve(1.0, False, True, error=0.05, tolerance=0.1)  # converged
+
+
+def test_carried_schedule_updates_intermediate_steps_without_a_resolve():
+    # "carried": an intermediate load step whose penetration exceeds the tolerance is not
+    # solved again but asks for a multiplier update (carry); a wrong status still re-solves;
+    # the final load is augmented down to the tolerance as with "every_step"
+    loop = UzawaLoop(max_augmentations=3)
+    assert loop.schedule == "carried"
+    assert not loop.another_solve(0.5, False, True, error=1.0, tolerance=0.1) and loop.carry
+    assert not loop.another_solve(0.5, False, True, error=0.05, tolerance=0.1) and not loop.carry
+    assert loop.another_solve(0.75, True, True, error=0.05, tolerance=0.1)      # status
+    assert not loop.another_solve(0.75, False, False, error=1.0, tolerance=0.1) and not loop.carry
+    assert loop.another_solve(1.0, False, True, error=1.0, tolerance=0.1) and not loop.carry
+    assert not loop.another_solve(1.0, False, True, error=0.05, tolerance=0.1)
+    final = UzawaLoop(max_augmentations=3, schedule="final_only")
+    assert not final.another_solve(0.5, False, True, error=1.0, tolerance=0.1)
+    assert not final.carry
+    with pytest.raises(ValueError, match="schedule"):
+        UzawaLoop(3, schedule="sometimes")
+
+
+def test_carried_multipliers_follow_the_load_ratio():
+    # the multipliers carried to a new load are scaled by new / previous load, at its first
+    # evaluation only; a cut-back (a smaller load after a larger one) scales them back
+    loop = UzawaLoop(3)
+    assert loop.load_factor(0.25) == 1.0                     # nothing carried yet
+    assert loop.load_factor(0.25) == 1.0
+    assert loop.load_factor(0.5) == pytest.approx(2.0)
+    assert loop.load_factor(0.5) == 1.0
+    assert loop.load_factor(0.375) == pytest.approx(0.75)    # cut back from 0.5
+    assert UzawaLoop(3, schedule="every_step").load_factor(0.25) == 1.0
+    every = UzawaLoop(3, schedule="every_step")
+    every.load_factor(0.25)
+    assert every.load_factor(0.5) == 1.0
+
+
+def test_a_rigid_contact_term_carries_its_multipliers_to_the_next_load():
+    # A node 0.2 mm inside a plane (tolerance 0.05): at the intermediate load 0.5 the term
+    # asks for no re-solve but takes the Uzawa update lambda = eps g A; at load 1 the first
+    # evaluation doubles it, and the final load is augmented (re-solve asked)
+    from solver.contact import RigidSurfaceContact
+
+    V = np.array([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [5.0, 5.0, 0.0], [-5.0, 5.0, 0.0]])
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    nodes = np.array([[0.0, 0.0, -0.2]])
+    term = RigidSurfaceContact(nodes, V, F, slave_nodes=[0], slave_areas=[1.0], penalty=10.0,
+                               tolerance=0.05)
+    term.assemble(nodes, 0.5)
+    assert term.end_step(nodes, 0.5) is False
+    assert term.multipliers[0] == pytest.approx(10.0 * 0.2)         # eps * depth * area
+    term.assemble(nodes, 1.0)
+    assert term.multipliers[0] == pytest.approx(2.0 * 10.0 * 0.2)
+    assert term.end_step(nodes, 1.0) is True
 
 
 def _bent_patch_contact():

@@ -35,7 +35,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 __all__ = ["SymmetricSolver", "LaggedFactorSolver", "PardisoError", "available_backends",
-           "preconditioned_cg", "sym_matvec"]
+           "preconditioned_cg", "preconditioned_gmres", "sym_matvec"]
 
 
 def available_backends() -> list[str]:
@@ -447,31 +447,163 @@ def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, precondition, rtol: float
     return x, it, status, float(np.sqrt(_dot(res, res))) / bn
 
 
+@nb.njit(cache=True)
+def _arnoldi_step(V, j, w, h):
+    """Modified Gram-Schmidt: w -= sum_i h_i V_i over the basis vectors V[0..j], h_i = V_i.w
+    taken as w is updated (Saad 2003, alg. 6.2); h[j + 1] = |w| afterwards, returned."""
+    n = w.shape[0]
+    for i in range(j + 1):
+        s = 0.0
+        for k in range(n):
+            s += V[i, k] * w[k]
+        h[i] = s
+        for k in range(n):
+            w[k] -= s * V[i, k]
+    s = 0.0
+    for k in range(n):
+        s += w[k] * w[k]
+    h[j + 1] = np.sqrt(s)
+    return h[j + 1]
+
+
+@nb.njit(cache=True)
+def _givens_update(h, j, cs, sn, g):
+    """Apply the earlier plane rotations to the new Hessenberg column h[0..j+1], make and apply
+    the rotation that zeroes h[j+1], rotate the right side g; returns |g[j+1]|, the residual
+    norm of the least-squares problem (that of the true residual, in exact arithmetic)."""
+    for i in range(j):
+        t = cs[i] * h[i] + sn[i] * h[i + 1]
+        h[i + 1] = -sn[i] * h[i] + cs[i] * h[i + 1]
+        h[i] = t
+    rho = np.hypot(h[j], h[j + 1])
+    if rho == 0.0:
+        cs[j], sn[j] = 1.0, 0.0
+    else:
+        cs[j], sn[j] = h[j] / rho, h[j + 1] / rho
+    h[j] = rho
+    h[j + 1] = 0.0
+    g[j + 1] = -sn[j] * g[j]
+    g[j] = cs[j] * g[j]
+    return abs(g[j + 1])
+
+
+@nb.njit(cache=True)
+def _add_combination(x, Z, y, m):
+    """x += sum_i y_i Z_i over the first m rows of Z."""
+    for i in range(m):
+        yi = y[i]
+        for k in range(x.shape[0]):
+            x[k] += yi * Z[i, k]
+
+
+def preconditioned_gmres(A: sp.csr_matrix, b: np.ndarray, precondition, rtol: float,
+                         maxiter: int, x0: np.ndarray | None = None,
+                         history: list | None = None):
+    """Right-preconditioned GMRES (Saad & Schultz 1986; Saad 2003, alg. 9.5, with the
+    preconditioned basis kept as in FGMRES, alg. 9.6, so that no substitution is spent on the
+    update) on the symmetric matrix given by its upper triangle, to |b - A x| <= rtol |b|.
+
+    Valid for a symmetric indefinite matrix with an indefinite preconditioner (e.g. the
+    Bunch-Kaufman LDL^T factor of an earlier tangent), where CG and MINRES are not. With right
+    preconditioning the residual GMRES minimises is the true, unpreconditioned one, so the
+    stopping test is on the caller's residual; the true residual is recomputed at the end (one
+    product) and reported. One cycle of at most `maxiter` iterations, no restart (the caller
+    refactorises instead). Returns (x, iterations, status, relative residual) as
+    `preconditioned_cg`, status "converged", "maxiter" or "breakdown" (not finite);
+    `history`, if given, receives the relative residual estimate of each iteration.
+    """
+    indptr, indices, data = A.indptr, A.indices, A.data
+    n = b.shape[0]
+    bn = float(np.sqrt(_dot(b, b)))
+    if bn == 0.0:
+        return np.zeros_like(b), 0, "converged", 0.0
+    w = np.empty_like(b)
+    if x0 is None:
+        x = np.zeros_like(b)
+        r = b.copy()
+    else:
+        x = np.array(x0, dtype=float)
+        _sym_upper_matvec(indptr, indices, data, x, w)
+        r = b - w
+    beta = float(np.sqrt(_dot(r, r)))
+    goal = rtol * bn
+    if beta <= goal:
+        return x, 0, "converged", beta / bn
+    m = max(int(maxiter), 1)
+    V = np.empty((m + 1, n))
+    Z = np.empty((m, n))
+    H = np.zeros((m + 1, m))
+    h = np.zeros(m + 1)
+    cs = np.zeros(m)
+    sn = np.zeros(m)
+    g = np.zeros(m + 1)
+    g[0] = beta
+    V[0] = r / beta
+    status = "maxiter"
+    it = 0
+    for j in range(m):
+        Z[j] = precondition(V[j])
+        _sym_upper_matvec(indptr, indices, data, Z[j], w)
+        hn = _arnoldi_step(V, j, w, h)
+        res = _givens_update(h, j, cs, sn, g)
+        H[: j + 1, j] = h[: j + 1]
+        it = j + 1
+        if history is not None:
+            history.append(res / bn)
+        if not np.isfinite(res):
+            status = "breakdown"
+            break
+        if res <= goal or hn == 0.0:     # hn = 0: the Krylov space holds the solution
+            status = "converged"
+            break
+        V[j + 1] = w / hn
+    if status != "breakdown":
+        y = np.linalg.solve(np.triu(H[:it, :it]), g[:it]) if it > 1 else g[:1] / H[0, 0]
+        _add_combination(x, Z, y, it)
+    _sym_upper_matvec(indptr, indices, data, x, w)
+    res = b - w
+    rel = float(np.sqrt(_dot(res, res))) / bn
+    if not np.isfinite(rel):
+        status = "breakdown"
+    return x, it, status, rel
+
+
 class LaggedFactorSolver:
-    """Newton systems K_k du = b_k solved by CG preconditioned with the factor of an earlier K.
+    """Newton systems K_k du = b_k solved by a Krylov method preconditioned with the factor of
+    an earlier K.
 
     A factor of some tangent K_j (j <= k) is kept, across Newton iterations and load steps, and
-    each new system, assembled with the fresh tangent K_k, is solved by preconditioned
-    conjugate gradients (`preconditioned_cg`) to the relative residual asked by the caller:
-    the inexact Newton method of Dembo, Eisenstat & Steihaug (1982), whose forcing terms the
-    caller chooses (Eisenstat & Walker 1996). The Newton residual is always the exact one, so
-    the converged solution is that of exact Newton; only the cost per iteration drops, a
-    factorisation (seconds at 30k unknowns) being replaced by a few substitutions (hundredths).
+    each new system, assembled with the fresh tangent K_k, is solved by a preconditioned Krylov
+    method to the relative residual asked by the caller: the inexact Newton method of Dembo,
+    Eisenstat & Steihaug (1982), whose forcing terms the caller chooses (Eisenstat & Walker
+    1996). The Newton residual is always the exact one, so the converged solution is that of
+    exact Newton; only the cost per iteration drops, a factorisation (seconds at 30k unknowns)
+    being replaced by a few substitutions (hundredths).
 
-    The preconditioner factor is a Cholesky factor (PARDISO mtype 2), in single precision by
-    default (`precision="single"`: about twice as fast to compute, and a factor accurate to
-    ~1e-4 is as good a preconditioner as an exact one). It is refreshed ("refactorisation")
-    when CG does not converge within `maxiter` iterations, or before the next solve when the
-    last one needed more than `refactor_iterations` (the factor is going stale). A tangent that
-    is not positive definite (Cholesky fails, or CG meets a direction of non-positive curvature)
-    is solved directly with the symmetric indefinite LDL^T factorisation (`SymmetricSolver`,
-    double precision), and so are the following systems until `begin_step` is called: Newton's
-    method is then exact. Without PARDISO the back end's double-precision factor (CHOLMOD /
-    SuperLU) serves both roles.
+    Positive definite tangents: conjugate gradients (`preconditioned_cg`) with a Cholesky factor
+    (PARDISO mtype 2), in single precision by default (`precision="single"`: about twice as
+    fast to compute, and a factor accurate to ~1e-4 is as good a preconditioner as an exact
+    one). It is refreshed ("refactorisation") when CG does not converge within `maxiter`
+    iterations, or before the next solve when the last one needed more than
+    `refactor_iterations` (the factor is going stale).
 
-    `last` holds the statistics of the last solve (Krylov iterations, whether it factorised,
-    relative residual reached, whether it fell back to a direct solve); `krylov_iterations`
-    and `factorizations` count over the solver's life.
+    Indefinite tangents (Cholesky fails, or CG meets a direction of non-positive curvature):
+    the solver switches to its indefinite mode until `begin_step` is called. There the
+    preconditioner is the Bunch-Kaufman LDL^T factor (PARDISO mtype -2, same precision) of an
+    earlier indefinite tangent, and the Krylov method is right-preconditioned GMRES
+    (`preconditioned_gmres`), valid for an indefinite matrix with an indefinite preconditioner
+    (CG and MINRES are not) and stopping on the true residual; the LDL^T factor is renewed
+    under the same rules as the Cholesky one. A system that GMRES does not solve even with the
+    fresh factor (a nearly singular tangent, where the single-precision factor is too
+    perturbed) is solved by the double-precision LDL^T factorisation with iterative refinement
+    (`SymmetricSolver`), as is every system when `maxiter` <= 0. Without PARDISO the back
+    end's double-precision factor (CHOLMOD / SuperLU) serves all roles.
+
+    `last` holds the statistics of the last solve: Krylov iterations, "refactorized" (a
+    factor was computed for this system), "direct" (it was an LDL^T factorisation, of the
+    indefinite mode or the double-precision fallback), "krylov" ("cg", "gmres" or "" for a
+    direct solve), the relative residual reached; `krylov_iterations` and `factorizations`
+    count over the solver's life, `ldlt_factorizations` the LDL^T ones among them.
     """
 
     def __init__(self, backend: str = "auto", rtol: float = 1e-8, maxiter: int = 10,
@@ -483,8 +615,10 @@ class LaggedFactorSolver:
         self.backend = self.direct.backend
         if self.backend == "pardiso":
             self._precond = _Pardiso(mtype=2, single=precision == "single")
+            self._ldl = _Pardiso(mtype=-2, single=precision == "single")
         else:
             self._precond = None            # the direct solver's factor
+            self._ldl = None
         self.precision = precision if self.backend == "pardiso" else "double"
         self.rtol = float(rtol)
         self.maxiter = int(maxiter)
@@ -492,10 +626,13 @@ class LaggedFactorSolver:
         self.refactor_iterations = int(refactor_iterations)
         self.has_factor = False
         self.stale = False
-        self.direct_mode = False
+        self.indefinite = False             # indefinite mode: LDL^T preconditioner, GMRES
+        self._ldl_factor = False
+        self._ldl_stale = False
         self._step_refactorizations = 0     # factors renewed (not the first one) in this step
         self.krylov_iterations = 0
         self._factorizations = 0
+        self.ldlt_factorizations = 0
         self.last = {}
 
     @property
@@ -503,21 +640,30 @@ class LaggedFactorSolver:
         return self._factorizations + self.direct.factorizations
 
     def reset(self) -> None:
-        """Forget the factor: the next solve factorises."""
+        """Forget the factors: the next solve factorises."""
         self.has_factor = False
         self.stale = False
+        self._ldl_factor = False
+        self._ldl_stale = False
 
     def begin_step(self) -> None:
-        """A new load step: try the preconditioned CG path again after direct solves, and
+        """A new load step: try the preconditioned CG path again after indefinite systems, and
         refactorise at once if the factor had to be renewed during the previous step (not its
         first): a load increment changes the tangent most, and a factor that went stale within
         the last step would make CG fail on the new step's first system, in vain."""
-        if self.direct_mode:            # back to CG: free the LDL^T factor's memory
-            self.direct.release_factor()
-        self.direct_mode = False
+        if self.indefinite:             # back to CG: free the LDL^T factor's memory
+            self._release_ldl()
+        self.indefinite = False
         if self._step_refactorizations > 0:
             self.stale = True
         self._step_refactorizations = 0
+
+    def _release_ldl(self) -> None:
+        if self._ldl is not None:
+            self._ldl.release_factor()
+        self.direct.release_factor()
+        self._ldl_factor = False
+        self._ldl_stale = False
 
     def _factorize_preconditioner(self, A) -> bool:
         try:
@@ -540,15 +686,72 @@ class LaggedFactorSolver:
             return self._precond.apply(v, refine=False)
         return self.direct.apply(v, refine=False)
 
-    def _direct(self, A, b, its, stats_factored):
-        if not self.direct_mode and self._precond is not None and self.has_factor:
+    def _apply_ldl(self, v):
+        if self._ldl is not None:
+            return self._ldl.apply(v, refine=False)
+        return self.direct.apply(v, refine=False)
+
+    def _factorize_ldl(self, A) -> None:
+        """Factorise the indefinite tangent (LDL^T); a singular one raises, as a direct solve."""
+        self._ldl_factor = False
+        if self._ldl is not None:
+            self._ldl.factorize(A)
+            self._factorizations += 1
+        else:
+            self.direct.factorize(A)
+        self._step_refactorizations += 1
+        self.ldlt_factorizations += 1
+        self._ldl_factor = True
+        self._ldl_stale = False
+
+    def _enter_indefinite(self) -> None:
+        if not self.indefinite and self._precond is not None and self.has_factor:
             self._precond.release_factor()  # one factor in memory at a time
-        self.direct_mode = True
+        self.indefinite = True
         self.has_factor = False
+
+    def _direct(self, A, b, its):
+        """The double-precision LDL^T solve with iterative refinement (backward stable)."""
+        self._enter_indefinite()
+        if self._ldl is not None and self._ldl_factor:
+            self._ldl.release_factor()
+        self._ldl_factor = False
         x = self.direct.solve(A, b)
+        self.ldlt_factorizations += 1
+        if self._ldl is None:               # the direct solver's factor is the preconditioner
+            self._ldl_factor = True
+            self._ldl_stale = False
         self.last = {"krylov_iterations": its, "refactorized": True, "krylov_residual": 0.0,
-                     "direct": True}
+                     "direct": True, "krylov": ""}
         return x
+
+    def _solve_indefinite(self, A, b, rtol, its):
+        """GMRES preconditioned with the lagged LDL^T factor; refactorised when it stalls."""
+        self._enter_indefinite()
+        x = None
+        if self._ldl_factor and not self._ldl_stale:
+            x, k, status, rel = preconditioned_gmres(A, b, self._apply_ldl, rtol, self.maxiter)
+            self.krylov_iterations += k
+            its += k
+            if rel <= rtol:
+                self._ldl_stale = k > self.refactor_iterations
+                self.last = {"krylov_iterations": its, "refactorized": False,
+                             "krylov_residual": rel, "direct": False, "krylov": "gmres"}
+                return x
+            if not np.all(np.isfinite(x)):
+                x = None
+        self._factorize_ldl(A)
+        # with the fresh factor GMRES converges in one iteration (a double-precision factor)
+        # or a few (single precision: each one gains ~1e-4)
+        x, k, status, rel = preconditioned_gmres(A, b, self._apply_ldl, rtol,
+                                                 max(self.maxiter, 10), x0=x)
+        self.krylov_iterations += k
+        its += k
+        if rel <= rtol:
+            self.last = {"krylov_iterations": its, "refactorized": True,
+                         "krylov_residual": rel, "direct": True, "krylov": "gmres"}
+            return x
+        return self._direct(A, b, its)
 
     def solve(self, A: sp.csr_matrix, b: np.ndarray, rtol: float | None = None) -> np.ndarray:
         """Solve A x = b to the relative residual `rtol` (default: the solver's)."""
@@ -556,8 +759,10 @@ class LaggedFactorSolver:
         if not A.has_sorted_indices:
             A.sort_indices()
         b = np.ascontiguousarray(b, dtype=float)
-        if self.direct_mode or self.maxiter <= 0:
-            return self._direct(A, b, 0, True)
+        if self.maxiter <= 0:
+            return self._direct(A, b, 0)
+        if self.indefinite:
+            return self._solve_indefinite(A, b, rtol, 0)
         its = 0
         x = None
         if self.has_factor and not self.stale:
@@ -566,20 +771,20 @@ class LaggedFactorSolver:
             if status == "converged" or rel <= rtol:
                 self.stale = its > self.refactor_iterations
                 self.last = {"krylov_iterations": its, "refactorized": False,
-                             "krylov_residual": rel, "direct": False}
+                             "krylov_residual": rel, "direct": False, "krylov": "cg"}
                 return x
             if status == "breakdown":
-                return self._direct(A, b, its, False)
+                return self._solve_indefinite(A, b, rtol, its)
             if not np.all(np.isfinite(x)):
                 x = None
         if not self._factorize_preconditioner(A):
-            return self._direct(A, b, its, False)
+            return self._solve_indefinite(A, b, rtol, its)
         # with the fresh factor CG converges in a few iterations (one for an exact factor)
         x, its2, status, rel = preconditioned_cg(A, b, self._apply, rtol,
                                                  max(self.maxiter, 10), x0=x)
         self.krylov_iterations += its2
         if status != "converged" and not rel <= rtol:
-            return self._direct(A, b, its + its2, True)
+            return self._solve_indefinite(A, b, rtol, its + its2)
         self.last = {"krylov_iterations": its + its2, "refactorized": True,
-                     "krylov_residual": rel, "direct": False}
+                     "krylov_residual": rel, "direct": False, "krylov": "cg"}
         return x

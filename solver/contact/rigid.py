@@ -109,7 +109,7 @@ class RigidSurfaceContact(StatusFreezing):
             # exact distances wherever a gap can be used: search radius outside, depth inside
             depth = max_depth if np.isfinite(max_depth) else search_radius
             band = min(search_radius + depth, 100.0)
-            self.grid = SignedDistanceGrid(self.surface, band=band, spacing=grid_spacing)
+            self.grid = SignedDistanceGrid.shared(self.surface, band=band, spacing=grid_spacing)
         self._hess = None
         self.motion = motion
         self.penalty = float(penalty)

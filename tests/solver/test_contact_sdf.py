@@ -136,3 +136,19 @@ def test_narrow_band_does_not_depend_on_the_thread_count():
         assert np.array_equal(d, out[0][0]) and np.array_equal(b, out[0][1])
     near = np.isfinite(out[0][0])
     assert near.sum() > 1000
+
+
+def test_shared_grids_are_built_once_per_surface_and_parameters():
+    # the same surface and parameters give the same grid object (built once per process);
+    # another band, or a moved vertex, gives another grid with its own distances
+    from solver.contact._sdf import SignedDistanceGrid
+
+    V, F = _box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    a = SignedDistanceGrid.shared(V, F, band=1.0, spacing=0.3)
+    assert SignedDistanceGrid.shared(V.copy(), F.copy(), band=1.0, spacing=0.3) is a
+    b = SignedDistanceGrid.shared(V, F, band=1.5, spacing=0.3)
+    assert b is not a
+    W = V.copy()
+    W[0] += 0.1
+    c = SignedDistanceGrid.shared(W, F, band=1.0, spacing=0.3)
+    assert c is not a and not np.array_equal(c.coefficients, a.coefficients)

@@ -18,8 +18,10 @@ A pattern that changes between calls is factorised inside the union of the patte
 the analysis is repeated only while that union grows. `LaggedFactorSolver` solves a sequence of
 Newton systems by conjugate gradients (`preconditioned_cg`, numba kernels) preconditioned with a
 single-precision Cholesky factor (mtype 2, iparm[27] = 1) of an earlier tangent, refactorising
-only when CG stalls, and falls back to the LDL^T direct solve for indefinite tangents (fewer,
-cheaper factorisations for the same converged Newton solution).
+only when CG stalls; indefinite tangents by right-preconditioned GMRES (`preconditioned_gmres`,
+Saad & Schultz 1986) with the lagged single-precision LDL^T factor of an earlier indefinite
+tangent, refactorised likewise (fewer, cheaper factorisations for the same converged Newton
+solution).
 """
 from __future__ import annotations
 

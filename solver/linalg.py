@@ -742,7 +742,10 @@ class LaggedFactorSolver:
                 return x
             if not np.all(np.isfinite(x)):
                 x = None
-        self._factorize_ldl(A)
+        try:
+            self._factorize_ldl(A)
+        except PardisoError:                # singular in single precision: the double solve
+            return self._direct(A, b, its)
         # with the fresh factor GMRES converges in one iteration (a double-precision factor)
         # or a few (single precision: each one gains ~1e-4)
         x, k, status, rel = preconditioned_gmres(A, b, self._apply_ldl, rtol,

@@ -149,3 +149,21 @@ def test_without_krylov_iterations_every_system_is_a_direct_solve():
         assert lin.last["direct"] and lin.last["krylov"] == ""
         assert np.linalg.norm(K @ x - b) <= 1e-10 * np.linalg.norm(b)
     assert lin.factorizations == 2
+
+
+def test_scipy_backend_lagged_lu_factor_on_indefinite_systems():
+    # without PARDISO the back end's double-precision factor (SuperLU) serves both roles: an
+    # LU factor does not fail on an indefinite matrix, so CG may solve the first system on its
+    # exact factor; CG on a lagged factor then meets negative curvature, the system gets a
+    # fresh factor and GMRES, and the next ones GMRES on that lagged factor: 2 factorisations
+    # for 5 systems, each to the asked 1e-9 on the true residual
+    lin = LaggedFactorSolver("scipy", rtol=1e-9)
+    rng = np.random.default_rng(7)
+    for k in range(5):
+        K = _indefinite(DELTA * k / 4, seed=k)
+        b = rng.standard_normal(N ** 3)
+        x = lin.solve(_upper(K), b)
+        assert np.linalg.norm(K @ x - b) <= 1e-9 * np.linalg.norm(b)
+        if k >= 2:
+            assert lin.last["krylov"] == "gmres" and not lin.last["refactorized"]
+    assert lin.factorizations == 2

@@ -69,6 +69,30 @@ def test_preconditioned_cg_matches_direct():
     assert np.abs(x - xd).max() <= 1e-6 * np.abs(xd).max()
 
 
+def test_cg_gives_up_early_when_its_rate_cannot_reach_the_tolerance():
+    # Unpreconditioned CG on the Laplacian (cond ~ 1e3) converges by a factor far above
+    # 0.1 per iteration: asked 1e-8 within 10 iterations it is hopeless, and with
+    # predict_from=3 it stops after 3 ("slow") instead of 10 ("maxiter"); the same system with
+    # an exact factor as preconditioner converges at once, the rate check never fires. The
+    # iterate returned is the same CG iterate (its residual is the true one).
+    from solver.linalg import _Pardiso, preconditioned_cg
+
+    K = _spd(8)
+    U = _upper(K)
+    b = np.random.default_rng(5).standard_normal(K.shape[0])
+    ident = lambda r: r.copy()
+    x10, its10, status10, rel10 = preconditioned_cg(U, b, ident, 1e-8, 10)
+    x3, its3, status3, rel3 = preconditioned_cg(U, b, ident, 1e-8, 10, predict_from=3)
+    assert (status10, its10) == ("maxiter", 10) and (status3, its3) == ("slow", 3)
+    x3ref, *_ = preconditioned_cg(U, b, ident, 1e-8, 3)
+    assert np.array_equal(x3, x3ref) and rel3 > rel10 > 1e-8
+    p = _Pardiso(mtype=2)
+    p.factorize(U)
+    x, its, status, rel = preconditioned_cg(U, b, lambda r: p.apply(r, refine=False), 1e-8, 10,
+                                            predict_from=1)
+    assert status == "converged" and rel <= 1e-8
+
+
 def test_single_precision_factor_is_a_preconditioner_not_a_solver():
     # a single-precision Cholesky factor alone solves to ~1e-4..1e-6 relative (float32 round-off
     # times the condition number); as a CG preconditioner it reaches 1e-10 in a few iterations

@@ -394,6 +394,16 @@ def sym_matvec(A: sp.csr_matrix, x: np.ndarray) -> np.ndarray:
     return y
 
 
+def _start(A, b, x0, work):
+    """Initial iterate and residual of a Krylov solve: (0, b), or (x0, b - A x0) with the
+    product written into `work`."""
+    if x0 is None:
+        return np.zeros_like(b), b.copy()
+    x = np.array(x0, dtype=float)
+    _sym_upper_matvec(A.indptr, A.indices, A.data, x, work)
+    return x, b - work
+
+
 def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, precondition, rtol: float,
                       maxiter: int, x0: np.ndarray | None = None, predict_from: int = 0):
     """Preconditioned conjugate gradients (Hestenes & Stiefel 1952; Saad 2003, alg. 9.1) on the
@@ -412,13 +422,7 @@ def preconditioned_cg(A: sp.csr_matrix, b: np.ndarray, precondition, rtol: float
     if bn == 0.0:
         return np.zeros_like(b), 0, "converged", 0.0
     Ap = np.empty_like(b)
-    if x0 is None:
-        x = np.zeros_like(b)
-        r = b.copy()
-    else:
-        x = np.array(x0, dtype=float)
-        _sym_upper_matvec(indptr, indices, data, x, Ap)
-        r = b - Ap
+    x, r = _start(A, b, x0, Ap)
     rr = _dot(r, r)
     goal = (rtol * bn) ** 2
     if rr <= goal:
@@ -530,13 +534,7 @@ def preconditioned_gmres(A: sp.csr_matrix, b: np.ndarray, precondition, rtol: fl
     if bn == 0.0:
         return np.zeros_like(b), 0, "converged", 0.0
     w = np.empty_like(b)
-    if x0 is None:
-        x = np.zeros_like(b)
-        r = b.copy()
-    else:
-        x = np.array(x0, dtype=float)
-        _sym_upper_matvec(indptr, indices, data, x, w)
-        r = b - w
+    x, r = _start(A, b, x0, w)
     beta = float(np.sqrt(_dot(r, r)))
     goal = rtol * bn
     if beta <= goal:

@@ -9,8 +9,11 @@
    (a = 0.1: the lips purse and press onto each other and the teeth) on the generic face
    with `facemodel.simulation.simulate`.
 Each is solved once with lip-lip and lip-teeth contact and once without, in this process
-(both paths' compiled code warmed up first), and the script prints the wall-clock times,
-Newton iterations, the per-iteration cost and the relative overhead of contact.
+(both paths' compiled code warmed up first; the warm-up also builds the generic teeth's
+signed-distance grids, which later solves of the process share, `SignedDistanceGrid.shared`,
+while the registered head's teeth are built within the surgical solve), and the script prints
+the wall-clock times, Newton iterations, the per-iteration cost and the relative overhead of
+contact.
 With --images DIR it also renders the orbicularis oris activation (lips pursed and
 protruded, pressed on each other and the teeth) as profile and frontal views of the skin with
 the displacement magnitude. (The 8 mm mandible closure has its own script, `bench/closure.py`:

@@ -179,6 +179,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
                  lagged_min_dofs: int = 20000, krylov_refactor: int = 8,
                  krylov_precision: str = "single", predictor: str = "auto",
                  max_increment: float | None = None,
+                 increment_nodes=None,
                  stall_iterations: int | None = None,
                  shrink_iterations: int | None = None) -> NewtonResult:
     """Solve the static equilibrium of `body` from load fraction 0 to 1.
@@ -220,6 +221,9 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     max_increment: if given (mm), a Newton update that would move some free node farther is
     scaled down to that length (damped Newton far from the solution, e.g. when contact
     switches on; near the solution updates are small and the full step is taken).
+    increment_nodes: the nodes `max_increment` watches (default: every free node), e.g. the
+    nodes of the contact surfaces, so that the rest of the body may follow large prescribed
+    motions in one update.
     stall_iterations: if given, a step whose residual has not fallen below a tenth of its
     first iteration's after that many iterations is cut back at once (no progress).
     shrink_iterations: if given, a step whose first solve needed more than that many
@@ -245,6 +249,9 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     held = np.zeros(n, dtype=bool)
     held[np.asarray(cons.dofs, dtype=np.int64) // 3] = True
     system.free_nodes = np.nonzero(~held)[0]
+    if increment_nodes is not None:
+        system.free_nodes = np.intersect1d(system.free_nodes,
+                                           np.asarray(increment_nodes, dtype=np.int64))
     if linear_strategy not in ("auto", "exact", "lagged"):
         raise ValueError(f"linear_strategy must be 'auto', 'exact' or 'lagged', got {linear_strategy!r}")
     if linear_strategy == "auto":

@@ -698,6 +698,12 @@ class LaggedFactorSolver:
         self.stale = False
         return True
 
+    def _record(self, x, its, refactorized, rel, direct, krylov):
+        """Keep the statistics of this solve in `last` and return its solution x."""
+        self.last = {"krylov_iterations": its, "refactorized": refactorized,
+                     "krylov_residual": rel, "direct": direct, "krylov": krylov}
+        return x
+
     def _apply(self, v):
         if self._precond is not None:
             return self._precond.apply(v, refine=False)
@@ -738,9 +744,7 @@ class LaggedFactorSolver:
         if self._ldl is None:               # the direct solver's factor is the preconditioner
             self._ldl_factor = True
             self._ldl_stale = False
-        self.last = {"krylov_iterations": its, "refactorized": True, "krylov_residual": 0.0,
-                     "direct": True, "krylov": ""}
-        return x
+        return self._record(x, its, True, 0.0, True, "")
 
     def _solve_indefinite(self, A, b, rtol, its):
         """GMRES preconditioned with the lagged LDL^T factor; refactorised when it stalls."""
@@ -752,9 +756,7 @@ class LaggedFactorSolver:
             its += k
             if rel <= rtol:
                 self._ldl_stale = k > self.refactor_iterations
-                self.last = {"krylov_iterations": its, "refactorized": False,
-                             "krylov_residual": rel, "direct": False, "krylov": "gmres"}
-                return x
+                return self._record(x, its, False, rel, False, "gmres")
             if not np.all(np.isfinite(x)):
                 x = None
         try:
@@ -768,9 +770,7 @@ class LaggedFactorSolver:
         self.krylov_iterations += k
         its += k
         if rel <= rtol:
-            self.last = {"krylov_iterations": its, "refactorized": True,
-                         "krylov_residual": rel, "direct": True, "krylov": "gmres"}
-            return x
+            return self._record(x, its, True, rel, True, "gmres")
         return self._direct(A, b, its)
 
     def solve(self, A: sp.csr_matrix, b: np.ndarray, rtol: float | None = None) -> np.ndarray:
@@ -791,9 +791,7 @@ class LaggedFactorSolver:
             self.krylov_iterations += its
             if status == "converged" or rel <= rtol:
                 self.stale = its > self.refactor_iterations
-                self.last = {"krylov_iterations": its, "refactorized": False,
-                             "krylov_residual": rel, "direct": False, "krylov": "cg"}
-                return x
+                return self._record(x, its, False, rel, False, "cg")
             if status == "breakdown":
                 return self._solve_indefinite(A, b, rtol, its)
             if not np.all(np.isfinite(x)):
@@ -806,6 +804,4 @@ class LaggedFactorSolver:
         self.krylov_iterations += its2
         if status != "converged" and not rel <= rtol:
             return self._solve_indefinite(A, b, rtol, its + its2)
-        self.last = {"krylov_iterations": its + its2, "refactorized": True,
-                     "krylov_residual": rel, "direct": False, "krylov": "cg"}
-        return x
+        return self._record(x, its + its2, True, rel, False, "cg")

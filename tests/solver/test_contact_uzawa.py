@@ -149,3 +149,35 @@ def test_a_resolve_re_decides_the_status_twice_then_freezes_it():
         assert rigid.end_step(nodes, 1.0) is True
         frozen = [rigid._frozen(1.0) for _ in range(free + 2)]
         assert frozen == [False] * free + [True, True]
+
+
+@pytest.mark.parametrize("kind", ["surface", "segment", "segment_nodal"])
+def test_deformable_terms_scale_their_carried_multipliers_with_the_load(kind):
+    # The carried multipliers of both passes (and the nodal field of mortar-like multipliers)
+    # follow the load ratio at a new load's first evaluation: x1.5 from 0.5 to 0.75, and a
+    # cut-back to 0.625 scales them by 0.625 / 0.75; further evaluations at the same load
+    # leave them alone. With "every_step" they are never scaled.
+    from solver.contact import SegmentContact
+    from tests.solver.test_contact_segment import _wavy_patches
+
+    x, a, b = _wavy_patches()
+    for schedule, factors in (("carried", (1.5, 1.5, 1.25)), ("every_step", (1.0, 1.0, 1.0))):
+        if kind == "surface":
+            term = SurfaceContact(x, a, b, penalty=50.0, search_radius=1.0,
+                                  uzawa_schedule=schedule)
+        else:
+            term = SegmentContact(x, a, b, penalty=50.0, search_radius=1.0,
+                                  nodal_multipliers=kind == "segment_nodal",
+                                  uzawa_schedule=schedule)
+        term.assemble(x, 0.5)
+        arrays = lambda: [ps.multipliers for ps in term.passes] + (
+            [ps.node_multipliers for ps in term.passes] if kind == "segment_nodal" else [])
+        for ps in term.passes:
+            ps.multipliers = np.linspace(1.0, 2.0, len(ps.multipliers))
+            if kind == "segment_nodal":
+                ps.node_multipliers = np.linspace(1.0, 2.0, len(ps.node_multipliers))
+        before = [m.copy() for m in arrays()]
+        for load, scale in zip((0.75, 0.75, 0.625), factors):     # scale: from load 0.5
+            term.assemble(x, load)
+            for m0, m in zip(before, arrays()):
+                assert np.allclose(m, scale * m0, rtol=1e-12)

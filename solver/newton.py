@@ -114,7 +114,10 @@ class _System:
         Kt = []
         for term in self.terms:
             f, K = term.assemble(x, load)
-            f_term_norm = max(f_term_norm, float(np.linalg.norm(f)))
+            # `_norm`, not np.linalg.norm: a BLAS dot wakes OpenBLAS's threads, which then spin
+            # on the second core while PARDISO and the numba kernels want it (orbicularis oris
+            # worst case, standard face: 0.30 -> 0.26 s per Newton iteration with contact)
+            f_term_norm = max(f_term_norm, _norm(f))
             r += f
             if self.need_energy:
                 energy += term.energy(x, load)
@@ -124,7 +127,7 @@ class _System:
             r -= load * self.external
             energy -= load * float(self.external @ (x - self.body.mesh.nodes).ravel())
         ev.energy = energy
-        ev.force_scale = max(f_int_norm, f_term_norm, np.linalg.norm(self.external) * load
+        ev.force_scale = max(f_int_norm, f_term_norm, _norm(self.external) * load
                              if self.external is not None else 0.0)
         rhat = self.cons.to_local(r)
         A = None

@@ -189,3 +189,35 @@ def test_projected_rigid_tangent_is_positive_semidefinite_with_the_same_forces()
         exact.assemble(x, 1.0)
         _, Kf = proj.assemble(x, 1.0)
     assert np.allclose(Kf.toarray(), exact.assemble(x, 1.0)[1].toarray(), rtol=0, atol=1e-12)
+
+
+def _ridge_pairing(hysteresis, shifts):
+    """Triangle of the ridge (convex crease along y between two master triangles, T0 on the
+    x < 0 side, T1 on x > 0) that a slave node slightly inside it is paired with, after each
+    lateral shift of the slave facet (one search per position, as at Newton iterations)."""
+    master = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.5, -0.3], [1.0, 0.5, -0.3]])
+    tris = np.array([[0, 1, 2], [0, 3, 1]])                 # normals (-0.3, 0, 1), (0.3, 0, 1)
+    slave = np.array([[-0.02, 0.5, -0.02], [-0.02, 0.8, -0.02], [0.28, 0.5, -0.02]])
+    x = np.vstack([master, slave])
+    term = SurfaceContact(x, np.array([[4, 5, 6]]), tris, two_pass=False, penalty=10.0,
+                          search_radius=0.5, ignore_initial_penetration=False,
+                          pair_hysteresis=hysteresis)
+    ps = term.passes[0]
+    out = []
+    for dx in shifts:
+        y = x.copy()
+        y[4:, 0] += dx
+        ps.pairs(y, term.search_radius, term.max_depth, hessian=False)
+        out.append(int(ps.previous[ps.slave_pos[4]]))
+    return out
+
+
+def test_pairing_hysteresis_keeps_the_triangle_across_a_crease_within_the_band():
+    """A node just across the ridge (barycentric 0.01 outside its triangle) keeps it with the
+    0.05 band, switches at once without it, and switches with the band too once it is well
+    over the other side (0.28 outside): the band only stops the flip-flop of a node on the
+    crease, it does not pin a node to a triangle it has left."""
+    assert _ridge_pairing(0.05, [0.0, 0.03, 0.3]) == [0, 0, 1]
+    assert _ridge_pairing(0.0, [0.0, 0.03, 0.3]) == [0, 1, 1]
+    with pytest.raises(ValueError, match="pair_hysteresis"):
+        _ridge_pairing(0.7, [0.0])

@@ -125,7 +125,7 @@ class _System:
                 Kt.append(K)
         if self.external is not None:
             r -= load * self.external
-            energy -= load * float(self.external @ (x - self.body.mesh.nodes).ravel())
+            energy -= load * _dot(self.external, np.ascontiguousarray((x - self.body.mesh.nodes).ravel()))
         ev.energy = energy
         ev.force_scale = max(f_int_norm, f_term_norm, _norm(self.external) * load
                              if self.external is not None else 0.0)

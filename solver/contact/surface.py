@@ -5,7 +5,8 @@ as master segments (Hallquist, Goudreau & Benson 1985; two-pass symmetric treatm
 Taylor & Papadopoulos 1991, which passes the contact patch test). For a slave node x_s the
 search (a KD-tree on the current master centroids, rebuilt at every evaluation) collects the
 triangles whose plane projection falls inside the triangle and whose normal opposes the
-slave's own surface normal; the nearest one gives the gap g = (x_s - x_1) . n, signed
+slave's own surface normal; the nearest one (the triangle of the last search kept while the
+projection stays within `pair_hysteresis` outside it) gives the gap g = (x_s - x_1) . n, signed
 distance to the triangle's plane (`plane_gap`, exact gradient and Hessian in the 12 nodal
 coordinates). The potential, force and tangent are those of `rigid`:
 E = (<lambda - eps A_s g>^2 - lambda^2) / (2 eps A_s), f = -p dg/dx,
@@ -33,7 +34,7 @@ __all__ = ["SurfaceContact"]
 class _Pass:
     """One slave node set against one master triangle set."""
 
-    def __init__(self, nodes, slave_facets, master_facets, hysteresis=0.05):
+    def __init__(self, nodes, slave_facets, master_facets, hysteresis):
         n = len(nodes)
         self.hysteresis = float(hysteresis)
         areas = nodal_areas(nodes, slave_facets, n)

@@ -35,6 +35,7 @@ import numba as nb
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.linalg import solve_triangular
 
 __all__ = ["SymmetricSolver", "LaggedFactorSolver", "PardisoError", "available_backends",
            "preconditioned_cg", "preconditioned_gmres", "sym_matvec"]
@@ -568,7 +569,7 @@ def preconditioned_gmres(A: sp.csr_matrix, b: np.ndarray, precondition, rtol: fl
             break
         V[j + 1] = w / hn
     if status != "breakdown":
-        y = np.linalg.solve(np.triu(H[:it, :it]), g[:it]) if it > 1 else g[:1] / H[0, 0]
+        y = solve_triangular(H[:it, :it], g[:it])      # the rotated, upper Hessenberg
         _add_combination(x, Z, y, it)
     _sym_upper_matvec(indptr, indices, data, x, w)
     res = b - w

@@ -125,7 +125,8 @@ class _System:
                 Kt.append(K)
         if self.external is not None:
             r -= load * self.external
-            energy -= load * _dot(self.external, np.ascontiguousarray((x - self.body.mesh.nodes).ravel()))
+            u = np.ascontiguousarray((x - self.body.mesh.nodes).ravel())
+            energy -= load * _dot(self.external, u)
         ev.energy = energy
         ev.force_scale = max(f_int_norm, f_term_norm, _norm(self.external) * load
                              if self.external is not None else 0.0)
@@ -251,10 +252,10 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     system.stall_iterations = None if not stall_iterations else int(stall_iterations)
     held = np.zeros(n, dtype=bool)
     held[np.asarray(cons.dofs, dtype=np.int64) // 3] = True
-    system.free_nodes = np.nonzero(~held)[0]
+    system.watched_nodes = np.nonzero(~held)[0]        # the nodes `max_increment` limits
     if increment_nodes is not None:
-        system.free_nodes = np.intersect1d(system.free_nodes,
-                                           np.asarray(increment_nodes, dtype=np.int64))
+        system.watched_nodes = np.intersect1d(system.watched_nodes,
+                                              np.asarray(increment_nodes, dtype=np.int64))
     if linear_strategy not in ("auto", "exact", "lagged"):
         raise ValueError(f"linear_strategy must be 'auto', 'exact' or 'lagged', got {linear_strategy!r}")
     if linear_strategy == "auto":
@@ -485,7 +486,7 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
             # step-length limiter: no node moves more than max_increment in one iteration
             # (a damped Newton step far from the solution; near it the full step is taken)
             # (measured on the free nodes: prescribed increments are part of the load)
-            d2 = np.einsum("ij,ij->i", du, du)[system.free_nodes]
+            d2 = np.einsum("ij,ij->i", du, du)[system.watched_nodes]
             biggest = float(np.sqrt(np.max(d2, initial=0.0)))
             if biggest > system.max_increment:
                 s = system.max_increment / biggest

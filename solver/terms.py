@@ -19,7 +19,8 @@ class Term(Protocol):
     def assemble(self, x, load):
         """x: (n, 3) current nodal coordinates; load: load fraction in [0, 1].
 
-        Returns (f (3n,), K scipy.sparse (3n, 3n)), K = df/du (symmetric where possible).
+        Returns (f (3n,), K scipy.sparse (3n, 3n)), K = df/du (symmetric where possible; any
+        format, COO the cheapest: the solver sums its entries into its pattern by position).
         """
 
     def energy(self, x, load) -> float:

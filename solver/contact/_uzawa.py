@@ -45,11 +45,15 @@ class UzawaLoop:
         self.schedule = schedule
         self.count = 0
         self.carry = False      # the last `another_solve` asks for an update without re-solve
+        self.update = False     # ... asks for a multiplier update (re-solve or carried)
         self._load = None
         self._multiplier_load = None
 
     def another_solve(self, load: float, status_changed: bool, augmented: bool,
                       error: float, tolerance: float) -> bool:
+        """Whether the converged step at `load` is solved again; sets `carry` (an update of
+        the multipliers without a re-solve) and `update` (the term updates its multipliers,
+        lambda <- <lambda - eps g>: for a re-solve or carried, with augmentation only)."""
         if load != self._load:                      # a new step: restart the count
             self._load = load
             self.count = 0
@@ -60,8 +64,10 @@ class UzawaLoop:
             self.count = 0
             self.carry = (self.schedule == "carried" and intermediate and augmented
                           and error > tolerance)
+            self.update = self.carry
             return False
         self.count += 1
+        self.update = augmented
         return True
 
     def load_factor(self, load: float) -> float:

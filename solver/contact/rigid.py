@@ -249,7 +249,7 @@ class RigidSurfaceContact(StatusFreezing):
             Kb += Ks
         rows = np.repeat(dofs, 3, axis=1).ravel()
         cols = np.tile(dofs, (1, 3)).ravel()
-        K = sp.csr_matrix((Kb.ravel(), (rows, cols)), shape=(3 * self.n_nodes,) * 2)
+        K = sp.coo_matrix((Kb.ravel(), (rows, cols)), shape=(3 * self.n_nodes,) * 2)
         self.last = dict(gap=g, pressure=p, normal=n, active=active)
         return f, K
 
@@ -318,7 +318,7 @@ class RigidSurfaceContact(StatusFreezing):
         again = self.uzawa.another_solve(load, changed, self.augmented, err, self.tolerance)
         # Uzawa update (also when only the frozen status was wrong: it settles the status;
         # and on an intermediate step the "carried" schedule takes to the next load)
-        if self.augmented and (again or self.uzawa.carry):
+        if self.uzawa.update:
             self.multipliers = p
         if again:
             self._freeze_resolve(load)

@@ -530,11 +530,11 @@ class SegmentContact(StatusFreezing):
             vals.append(Ke.ravel())
         n_dofs = 3 * self.n_nodes
         if rows:
-            K = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows),
+            K = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows),
                                                       np.concatenate(cols))),
                               shape=(n_dofs, n_dofs))
         else:
-            K = sp.csr_matrix((n_dofs, n_dofs))
+            K = sp.coo_matrix((n_dofs, n_dofs))
         return f, K
 
     def energy(self, x, load) -> float:
@@ -597,7 +597,7 @@ class SegmentContact(StatusFreezing):
                 updates.append(new)
         self.last_error = err
         again = self.uzawa.another_solve(load, moved, self.augmented, err, self.tolerance)
-        if self.augmented and (again or self.uzawa.carry):    # Uzawa update
+        if self.uzawa.update:                               # Uzawa update
             for ps, new in zip(self.passes, updates):
                 if self.nodal_multipliers:
                     ps.node_multipliers = new

@@ -31,6 +31,18 @@ from solver.contact._geometry import facet_normals, nodal_areas, plane_gap, tria
 __all__ = ["SurfaceContact"]
 
 
+def _near_triangles(tri_points, points, radius):
+    """Candidate (triangle, point) pairs: every triangle (k, 3, 3) whose centroid lies within
+    `radius` plus the triangles' largest centroid-to-vertex distance of a point (one KD-tree
+    query on the centroids). Returns (triangle ids, point ids, that largest distance rmax)."""
+    cen = tri_points.mean(axis=1)
+    rmax = float(np.linalg.norm(tri_points - cen[:, None], axis=2).max(initial=0.0))
+    lists = cKDTree(cen).query_ball_point(points, radius + rmax)
+    counts = np.fromiter((len(l) for l in lists), dtype=np.int64, count=len(lists))
+    cand = np.fromiter((i for l in lists for i in l), dtype=np.int64, count=counts.sum())
+    return cand, np.repeat(np.arange(len(points)), counts), rmax
+
+
 class _Pass:
     """One slave node set against one master triangle set."""
 
@@ -63,14 +75,8 @@ class _Pass:
         """Contact pairs: (slave positions (k,), master triangle (k,), g, grad, hess, dofs)."""
         tri = self.master
         p = x[tri]
-        cen = p.mean(axis=1)
-        rmax = float(np.linalg.norm(p - cen[:, None], axis=2).max())
-        tree = cKDTree(cen)
         xs = x[self.slaves]
-        lists = tree.query_ball_point(xs, radius + rmax)
-        counts = np.fromiter((len(l) for l in lists), dtype=np.int64, count=len(lists))
-        cand = np.fromiter((i for l in lists for i in l), dtype=np.int64, count=counts.sum())
-        owner = np.repeat(np.arange(len(xs)), counts)
+        cand, owner, rmax = _near_triangles(p, xs, radius)
         # a node is never in contact with a triangle it belongs to
         own = np.any(tri[cand] == self.slaves[owner][:, None], axis=1)
         cand, owner = cand[~own], owner[~own]
@@ -191,14 +197,9 @@ class SurfaceContact(StatusFreezing):
         reach = 2.0 * self.search_radius + self.max_depth if reach is None else float(reach)
         out = []
         for ps in self.passes:
-            p = self._reference[ps.master]
-            cen = p.mean(axis=1)
-            rmax = float(np.linalg.norm(p - cen[:, None], axis=2).max(initial=0.0))
-            lists = cKDTree(cen).query_ball_point(self._reference[ps.slaves], reach + rmax)
-            counts = np.fromiter((len(l) for l in lists), dtype=np.int64, count=len(lists))
-            tri = np.fromiter((i for l in lists for i in l), dtype=np.int64, count=counts.sum())
-            slave = np.repeat(ps.slaves, counts)
-            out.append(np.stack([np.repeat(slave, 3), ps.master[tri].ravel()], axis=1))
+            tri, owner, _ = _near_triangles(self._reference[ps.master],
+                                            self._reference[ps.slaves], reach)
+            out.append(np.stack([np.repeat(ps.slaves[owner], 3), ps.master[tri].ravel()], axis=1))
         pairs = np.vstack(out) if out else np.zeros((0, 2), dtype=np.int64)
         return np.unique(np.sort(pairs, axis=1), axis=0)
 
@@ -240,10 +241,10 @@ class SurfaceContact(StatusFreezing):
             vals.append(Ke.ravel())
         n = 3 * self.n_nodes
         if rows:
-            K = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows),
+            K = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows),
                                                       np.concatenate(cols))), shape=(n, n))
         else:
-            K = sp.csr_matrix((n, n))
+            K = sp.coo_matrix((n, n))
         return f, K
 
 
@@ -306,7 +307,7 @@ class SurfaceContact(StatusFreezing):
         again = self.uzawa.another_solve(load, changed, self.augmented, err, self.tolerance)
         if again:
             self._freeze_resolve(load)
-        if self.augmented and (again or self.uzawa.carry):    # Uzawa update
+        if self.uzawa.update:                               # Uzawa update
             for ps, s, g, grad, hess, dofs, eps, lam, p in ev:
                 new = np.zeros_like(ps.multipliers)
                 new[s] = p

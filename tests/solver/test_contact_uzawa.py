@@ -181,3 +181,14 @@ def test_deformable_terms_scale_their_carried_multipliers_with_the_load(kind):
             term.assemble(x, load)
             for m0, m in zip(before, arrays()):
                 assert np.allclose(m, scale * m0, rtol=1e-12)
+
+
+def test_update_flag_is_set_for_a_resolve_or_a_carried_update_with_augmentation_only():
+    # `update` tells a term to set its multipliers to <lambda - eps g>: on a re-solve when
+    # augmented (not for a status-only re-solve of a pure penalty term), and on a carried step
+    loop = UzawaLoop(max_augmentations=3)
+    assert not loop.another_solve(0.5, False, True, error=1.0, tolerance=0.1) and loop.update
+    assert not loop.another_solve(0.5, False, True, error=0.05, tolerance=0.1)
+    assert not loop.update
+    assert loop.another_solve(0.75, True, False, error=0.05, tolerance=0.1) and not loop.update
+    assert loop.another_solve(1.0, False, True, error=1.0, tolerance=0.1) and loop.update

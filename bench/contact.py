@@ -8,8 +8,9 @@
 2. The worst case for contact (`--case orbicularis`): an orbicularis oris activation
    (a = 0.1: the lips purse and press onto each other and the teeth) on the generic face
    with `facemodel.simulation.simulate`.
-Each is solved once with lip-lip and lip-teeth contact and once without, in this process
-(both paths' compiled code warmed up first; the warm-up also builds the generic teeth's
+Each is solved with lip-lip and lip-teeth contact and without, in this process (the
+surgical case once, the orbicularis case `--repeat` times alternately, default 5, the median
+time counting: on a shared machine single timings move by 10-20 %; both paths' compiled code warmed up first; the warm-up also builds the generic teeth's
 signed-distance grids, which later solves of the process share, `SignedDistanceGrid.shared`,
 while the registered head's teeth are built within the surgical solve), and the script prints
 the wall-clock times, Newton iterations, the per-iteration cost and the relative overhead of
@@ -18,7 +19,8 @@ With --images DIR it also renders the orbicularis oris activation (lips pursed a
 protruded, pressed on each other and the teeth) as profile and frontal views of the skin with
 the displacement magnitude. (The 8 mm mandible closure has its own script, `bench/closure.py`:
 the generic face is in occlusion, so it closes from the mouth opened about the hinge axis.)
-Usage: python bench/contact.py [--resolution standard|coarse|fine] [--case both|surgical|orbicularis] [--images DIR]
+Usage: python bench/contact.py [--resolution standard|coarse|fine] [--case both|surgical|orbicularis]
+       [--repeat N] [--images DIR]
 Lines: surgical_contact_overhead_pct=<x>, then last contact_overhead_pct=<x> (orbicularis, the
 worst case).
 """
@@ -144,6 +146,8 @@ def main(argv=None):
     ap.add_argument("--images", default=None, help="folder for the face images (optional)")
     ap.add_argument("--images-only", action="store_true", help="only render the face checks")
     ap.add_argument("--case", default="both", choices=("both", "surgical", "orbicularis"))
+    ap.add_argument("--repeat", type=int, default=5,
+                    help="orbicularis solves per variant (median time; default 5)")
     args = ap.parse_args(argv)
     import generic_mesh
     from facemodel.simulation import simulate
@@ -164,16 +168,23 @@ def main(argv=None):
             return 0
     from solver.errors import SolveFailed
 
-    times = {}
+    times = {False: [], True: []}
+    results = {}
+    for _ in range(max(args.repeat, 1)):      # alternately, so that a busy spell hits both
+        for contact in (False, True):
+            t0 = time.perf_counter()
+            try:
+                results[contact] = simulate(model, motions, activations, contact=contact)
+            except SolveFailed as exc:
+                print(f"contact={contact}: not solved after {time.perf_counter() - t0:.1f} s "
+                      f"({exc})")
+                print("contact_overhead_pct=nan")
+                return 3
+            times[contact].append(time.perf_counter() - t0)
+    runs = {c: ", ".join(f"{t:.2f}" for t in ts) for c, ts in times.items()}
+    times = {c: float(np.median(ts)) for c, ts in times.items()}
     for contact in (False, True):
-        t0 = time.perf_counter()
-        try:
-            res = simulate(model, motions, activations, contact=contact)
-        except SolveFailed as exc:
-            print(f"contact={contact}: not solved after {time.perf_counter() - t0:.1f} s ({exc})")
-            print("contact_overhead_pct=nan")
-            return 3
-        times[contact] = time.perf_counter() - t0
+        res = results[contact]
         term_time = 0.0
         if contact:
             x = res.x
@@ -181,8 +192,9 @@ def main(argv=None):
                 t1 = time.perf_counter()
                 term.assemble(x, 1.0)
                 term_time += time.perf_counter() - t1
-        print(f"orbicularis, contact={contact}: {times[contact]:.2f} s, {res.iterations} Newton "
-              f"iterations, {res.steps} steps, penetration {res.info.get('penetration_mm', {})}")
+        print(f"orbicularis, contact={contact}: {times[contact]:.2f} s (median of "
+              f"{runs[contact]}), {res.iterations} Newton iterations, {res.steps} steps, "
+              f"penetration { {k: round(v, 3) for k, v in res.info.get('penetration_mm', {}).items()} }")
         print(_per_iteration(res))
         if contact:
             print(f"  one evaluation of all contact terms: {1e3 * term_time:.1f} ms "

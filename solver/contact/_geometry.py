@@ -227,61 +227,146 @@ class TriangleSurface:
         return near[owner[best]], q[best], cand[best], region[best], dist[best]
 
 
+# node -> variable coefficients of the map (x_s, x_1, x_2, x_3) -> (u, a, b) =
+# (x_s - x_1, x_2 - x_1, x_3 - x_1)
+_C = np.array([[1.0, 0.0, 0.0], [-1.0, -1.0, -1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+@nb.njit(cache=True)
+def _cross(p, q, out):
+    out[0] = p[1] * q[2] - p[2] * q[1]
+    out[1] = p[2] * q[0] - p[0] * q[2]
+    out[2] = p[0] * q[1] - p[1] * q[0]
+
+
+@nb.njit(cache=True)
+def _skew_into(v, S, r0, c0, sign):
+    """Add sign * [v]_x to S[r0:r0+3, c0:c0+3]."""
+    S[r0 + 0, c0 + 1] += -sign * v[2]
+    S[r0 + 0, c0 + 2] += sign * v[1]
+    S[r0 + 1, c0 + 0] += sign * v[2]
+    S[r0 + 1, c0 + 2] += -sign * v[0]
+    S[r0 + 2, c0 + 0] += -sign * v[1]
+    S[r0 + 2, c0 + 1] += sign * v[0]
+
+
+@nb.njit(cache=True)
+def _plane_gap_kernel(xs, x1, x2, x3, C, hessian, g, grad, hess, nrm, bc):
+    """Per row: g = V / A, its gradient and Hessian in z = (u, a, b) (V = u . w, w = a x b,
+    A = |w|: dV = (w, b x u, u x a), dA = (0, b x n, n x a), HA = Jw^T (I - n n^T) Jw / A +
+    the (a, b) coupling of -[n]_x, Jw = dw/dz), mapped to the 12 nodal coordinates by C."""
+    k = xs.shape[0]
+    u, a, b, w, n, t = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    dV, dA, gz = np.empty(9), np.empty(9), np.empty(9)
+    HV, HA, Hz, Hn = np.empty((9, 9)), np.empty((9, 9)), np.empty((9, 9)), np.empty((9, 9))
+    Jw, PJ = np.empty((3, 9)), np.empty((3, 9))
+    for e in range(k):
+        for i in range(3):
+            u[i] = xs[e, i] - x1[e, i]
+            a[i] = x2[e, i] - x1[e, i]
+            b[i] = x3[e, i] - x1[e, i]
+        _cross(a, b, w)
+        A = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+        for i in range(3):
+            n[i] = w[i] / A
+        V = u[0] * w[0] + u[1] * w[1] + u[2] * w[2]
+        gg = V / A
+        g[e] = gg
+        # projection xs - g n = x1 + xi a + eta b
+        aa = a[0] * a[0] + a[1] * a[1] + a[2] * a[2]
+        ab = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+        bb = b[0] * b[0] + b[1] * b[1] + b[2] * b[2]
+        ra = 0.0
+        rb = 0.0
+        for i in range(3):
+            r = u[i] - gg * n[i]
+            ra += r * a[i]
+            rb += r * b[i]
+        det = aa * bb - ab * ab
+        bc[e, 0] = (bb * ra - ab * rb) / det
+        bc[e, 1] = (aa * rb - ab * ra) / det
+        for i in range(3):
+            nrm[e, i] = n[i]
+        # derivatives in z = (u, a, b)
+        for i in range(3):
+            dV[i] = w[i]
+            dA[i] = 0.0
+        _cross(b, u, t)
+        dV[3:6] = t
+        _cross(u, a, t)
+        dV[6:9] = t
+        _cross(b, n, t)
+        dA[3:6] = t
+        _cross(n, a, t)
+        dA[6:9] = t
+        for i in range(9):
+            gz[i] = dV[i] / A - V / (A * A) * dA[i]
+        for p in range(4):
+            for i in range(3):
+                s = 0.0
+                for al in range(3):
+                    s += C[p, al] * gz[3 * al + i]
+                grad[e, 3 * p + i] = s
+        if not hessian:
+            continue
+        HV[:, :] = 0.0
+        _skew_into(b, HV, 0, 3, -1.0)
+        _skew_into(a, HV, 0, 6, 1.0)
+        _skew_into(u, HV, 3, 6, -1.0)
+        for i in range(9):
+            for j in range(i):
+                HV[i, j] = HV[j, i]
+        Jw[:, :] = 0.0
+        _skew_into(b, Jw, 0, 3, -1.0)
+        _skew_into(a, Jw, 0, 6, 1.0)
+        # HA = Jw^T (I - n n^T) Jw / A + Hn
+        for j in range(9):
+            s = n[0] * Jw[0, j] + n[1] * Jw[1, j] + n[2] * Jw[2, j]
+            for i in range(3):
+                PJ[i, j] = Jw[i, j] - n[i] * s
+        for i in range(9):
+            for j in range(9):
+                HA[i, j] = (Jw[0, i] * PJ[0, j] + Jw[1, i] * PJ[1, j] + Jw[2, i] * PJ[2, j]) / A
+        Hn[:, :] = 0.0
+        _skew_into(n, Hn, 3, 6, -1.0)
+        for i in range(9):
+            for j in range(9):
+                HA[i, j] += Hn[i, j] + Hn[j, i]
+        for i in range(9):
+            for j in range(9):
+                Hz[i, j] = (HV[i, j] / A
+                            - (dV[i] * dA[j] + dA[i] * dV[j]) / (A * A)
+                            + 2.0 * V / (A * A * A) * dA[i] * dA[j]
+                            - V / (A * A) * HA[i, j])
+        for p in range(4):
+            for q in range(4):
+                for i in range(3):
+                    for j in range(3):
+                        s = 0.0
+                        for al in range(3):
+                            cp = C[p, al]
+                            if cp == 0.0:
+                                continue
+                            for be in range(3):
+                                cq = C[q, be]
+                                if cq != 0.0:
+                                    s += cp * cq * Hz[3 * al + i, 3 * be + j]
+                        hess[e, 3 * p + i, 3 * q + j] = s
+
+
+
 def plane_gap(xs, x1, x2, x3, hessian: bool = True):
     """Signed distance of nodes xs to the planes of triangles (x1, x2, x3), all (k, 3).
 
     Returns (g (k,), grad (k, 12), hess (k, 12, 12) or None, n (k, 3) unit normal,
     (xi, eta) (k, 2) barycentric coordinates of the projection) with the dof order
-    (xs, x1, x2, x3).
+    (xs, x1, x2, x3). (A numba kernel, `_plane_gap_kernel`: the NumPy version of the same
+    formulas took 5 ms for 400 rows with the Hessian, the kernel 0.4 ms.)
     """
-    u, a, b = xs - x1, x2 - x1, x3 - x1
-    w = np.cross(a, b)
-    A = np.linalg.norm(w, axis=1)
-    n = w / A[:, None]
-    V = _dot(u, w)
-    g = V / A
-    # projection: xs - g n = x1 + xi a + eta b
-    r = u - g[:, None] * n
-    aa, ab_, bb = _dot(a, a), _dot(a, b), _dot(b, b)
-    ra, rb = _dot(r, a), _dot(r, b)
-    det = aa * bb - ab_ * ab_
-    xi = (bb * ra - ab_ * rb) / det
-    eta = (aa * rb - ab_ * ra) / det
-    # derivatives in the variables z = (u, a, b), then chain through the linear map T
-    dV = np.concatenate([w, np.cross(b, u), np.cross(u, a)], axis=1)           # (k, 9)
-    dA = np.concatenate([np.zeros_like(n), np.cross(b, n), np.cross(n, a)], axis=1)
-    grad_z = dV / A[:, None] - (V / A ** 2)[:, None] * dA
-    T = np.zeros((12, 9))
-    eye = np.eye(3)
-    T[0:3, 0:3] = eye
-    T[3:6, 0:3] = -eye
-    T[3:6, 3:6] = -eye
-    T[3:6, 6:9] = -eye
-    T[6:9, 3:6] = eye
-    T[9:12, 6:9] = eye
-    grad = grad_z @ T.T
-    hess = None
-    if hessian:
-        k = len(g)
-        Sa, Sb, Su, Sn = skew(a), skew(b), skew(u), skew(n)
-        HV = np.zeros((k, 9, 9))
-        HV[:, 0:3, 3:6] = -Sb
-        HV[:, 0:3, 6:9] = Sa
-        HV[:, 3:6, 6:9] = -Su
-        HV = HV + np.swapaxes(HV, 1, 2)
-        Jw = np.zeros((k, 3, 9))
-        Jw[:, :, 3:6] = -Sb
-        Jw[:, :, 6:9] = Sa
-        P = np.eye(3) - n[:, :, None] * n[:, None, :]
-        HA = np.einsum("kai,kab,kbj->kij", Jw, P, Jw) / A[:, None, None]
-        Hn = np.zeros((k, 9, 9))
-        Hn[:, 3:6, 6:9] = -Sn
-        Hn = Hn + np.swapaxes(Hn, 1, 2)
-        HA = HA + Hn
-        A1 = A[:, None, None]
-        Hz = (HV / A1
-              - (dV[:, :, None] * dA[:, None, :] + dA[:, :, None] * dV[:, None, :]) / A1 ** 2
-              + 2.0 * (V[:, None, None] / A1 ** 3) * dA[:, :, None] * dA[:, None, :]
-              - (V[:, None, None] / A1 ** 2) * HA)
-        hess = np.einsum("ia,kab,jb->kij", T, Hz, T)
-    return g, grad, hess, n, np.stack([xi, eta], axis=1)
+    xs, x1, x2, x3 = (np.ascontiguousarray(v, dtype=float).reshape(-1, 3)
+                      for v in (xs, x1, x2, x3))
+    k = len(xs)
+    g, grad, n, bc = np.empty(k), np.empty((k, 12)), np.empty((k, 3)), np.empty((k, 2))
+    hess = np.empty((k, 12, 12) if hessian else (0, 12, 12))
+    _plane_gap_kernel(xs, x1, x2, x3, _C, bool(hessian), g, grad, hess, n, bc)
+    return g, grad, (hess if hessian else None), n, bc

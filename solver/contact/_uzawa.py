@@ -70,6 +70,22 @@ class UzawaLoop:
         self.update = augmented
         return True
 
+    def augmentation_due(self, load: float, augmented: bool, error: float,
+                         tolerance: float, margin: float = 1.5) -> bool:
+        """Whether a step at `load` that is not yet converged will be augmented anyway: its
+        penetration `error` (at the current iterate) exceeds `margin` times the tolerance on
+        a step that is augmented down to the tolerance, and the count allows another solve.
+        The solver may then stop the penalty solve early and update the multipliers (an
+        inexact inner solve of the method of multipliers, Bertsekas 1982, sec. 2.5: the
+        penalty solve of a state that is to be corrected need not be converged tightly)."""
+        if load != self._load:
+            count = 0
+        else:
+            count = self.count
+        intermediate = self.schedule != "every_step" and load < 1.0 - 1e-9
+        return (augmented and not intermediate and count < self.max_augmentations
+                and error > margin * tolerance)
+
     def load_factor(self, load: float) -> float:
         """Factor for the multipliers at an evaluation at `load`: with the "carried" schedule
         load / (load of the previous evaluation) at the first evaluation of a new load (a
@@ -98,6 +114,11 @@ class StatusFreezing:
 
     def _unfreeze(self) -> None:
         self._evals_load, self._evals = None, 0
+
+    def restart_step(self) -> None:
+        """The solver restarts the current step from its converged start (it rejected its
+        predictor): the status is searched afresh, as at a new load."""
+        self._unfreeze()
 
     def _frozen(self, load) -> bool:
         """Count the evaluations at this load; True once the status is to be frozen. At the

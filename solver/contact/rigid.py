@@ -297,6 +297,21 @@ class RigidSurfaceContact(StatusFreezing):
             e += float(0.5 * np.sum(self.eps[ia] * np.einsum("ij,ij->i", dt, dt)))
         return e
 
+    def augmentation_due(self, x, load) -> bool:
+        """Whether the current (not converged) iterate at `load` penetrates so deep that the
+        step will be augmented (`UzawaLoop.augmentation_due`); the solve's status is kept."""
+        if self.bilateral:
+            return False
+        saved = (self._face, self._active, self._hess)
+        try:
+            frozen = self._is_frozen(load)
+            g, _, _, _ = self.gaps(x, load, frozen)
+            p, _ = self._pressure(g, frozen)
+            err = float(np.max(-g[p > 0], initial=0.0))
+        finally:
+            self._face, self._active, self._hess = saved
+        return self.uzawa.augmentation_due(load, self.augmented, err, self.tolerance)
+
     def end_step(self, x, load) -> bool:
         frozen_active = self._active.copy() if self._active is not None else None
         was_frozen = self._is_frozen(load)

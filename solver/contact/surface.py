@@ -263,6 +263,23 @@ class SurfaceContact(StatusFreezing):
         """Deepest penetration (mm, >= 0) over both passes at coordinates x."""
         return deepest_penetration(g for _, _, g, *_ in self._evaluate(x, hessian=False))
 
+    def augmentation_due(self, x, load) -> bool:
+        """Whether the current (not converged) iterate at `load` penetrates so deep that the
+        step will be augmented (`UzawaLoop.augmentation_due`); the status (pairing, active
+        set) of the solve is left as it is."""
+        saved = [(ps.previous.copy(), ps.active.copy()) for ps in self.passes]
+        try:
+            err = 0.0
+            for ps, s, g, grad, hess, dofs, eps, lam, p in self._evaluate(
+                    x, hessian=False, frozen=self._is_frozen(load)):
+                act = (p > 0) & ps.active[s]
+                if np.any(act):
+                    err = max(err, float(-g[act].min()))
+        finally:
+            for ps, (prev, act) in zip(self.passes, saved):
+                ps.previous, ps.active = prev, act
+        return self.uzawa.augmentation_due(load, self.augmented, err, self.tolerance)
+
     def end_step(self, x, load) -> bool:
         before = [ps.previous.copy() for ps in self.passes]
         before_active = [ps.active.copy() for ps in self.passes]

@@ -192,3 +192,49 @@ def test_update_flag_is_set_for_a_resolve_or_a_carried_update_with_augmentation_
     assert not loop.update
     assert loop.another_solve(0.75, True, False, error=0.05, tolerance=0.1) and not loop.update
     assert loop.another_solve(1.0, False, True, error=1.0, tolerance=0.1) and loop.update
+
+
+def test_augmentation_is_due_only_on_an_augmented_step_beyond_the_margin():
+    # a step that is augmented down to the tolerance (the final one with "carried") and
+    # penetrates beyond 1.5 tolerances will be augmented anyway; an intermediate step of
+    # "carried" is not re-solved, nor a step of a penalty-only term, nor one whose count is
+    # spent
+    loop = UzawaLoop(max_augmentations=1)
+    assert loop.augmentation_due(1.0, True, error=0.2, tolerance=0.1)
+    assert not loop.augmentation_due(1.0, True, error=0.14, tolerance=0.1)
+    assert not loop.augmentation_due(0.5, True, error=1.0, tolerance=0.1)
+    assert not loop.augmentation_due(1.0, False, error=1.0, tolerance=0.1)
+    assert loop.another_solve(1.0, False, True, error=1.0, tolerance=0.1)   # count 1 of 1
+    assert not loop.augmentation_due(1.0, True, error=1.0, tolerance=0.1)
+    every = UzawaLoop(max_augmentations=3, schedule="every_step")
+    assert every.augmentation_due(0.5, True, error=0.2, tolerance=0.1)
+
+
+@pytest.mark.parametrize("kind", ["rigid", "surface"])
+def test_asking_whether_augmentation_is_due_leaves_the_contact_status_alone(kind):
+    # `augmentation_due` evaluates the penetration at an iterate inside a solve: the status
+    # the solve works with (active set, pairing, frozen or not) must not change
+    from solver.contact import RigidSurfaceContact
+
+    V = np.array([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [5.0, 5.0, 0.0], [-5.0, 5.0, 0.0]])
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    if kind == "rigid":
+        nodes = np.array([[0.0, 0.0, -0.2], [1.0, 0.0, 0.3]])
+        term = RigidSurfaceContact(nodes, V, F, slave_nodes=[0, 1], tolerance=0.05,
+                                   search_radius=1.0)
+        state = lambda: [(term._active.copy(), term._face.copy())]      # noqa: E731
+    else:
+        lower = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+        upper = lower + [0.0, 0.0, -0.2]                # 0.2 mm through the lower quad
+        nodes = np.vstack([lower, upper])
+        term = SurfaceContact(nodes, [[0, 1, 2, 3]], [[7, 6, 5, 4]], search_radius=1.0,
+                              ignore_initial_penetration=False, tolerance=0.05)
+        state = lambda: [(ps.previous.copy(), ps.active.copy()) for ps in term.passes]  # noqa
+    term.assemble(nodes, 1.0)
+    before = state()
+    moved = nodes.copy()
+    moved[:, 2] += np.where(nodes[:, 2] < 0, 0.5, 0.0)          # out of contact
+    assert term.augmentation_due(nodes, 1.0)                    # 0.2 mm > 1.5 x 0.05
+    assert not term.augmentation_due(moved, 1.0)
+    for old, new in zip(before, state()):
+        assert all(np.array_equal(p, q) for p, q in zip(old, new))

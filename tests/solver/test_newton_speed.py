@@ -97,3 +97,50 @@ def test_bad_options_refused():
         _pull("lagged", predictor="quadratic")
     with pytest.raises(ValueError):
         _pull("lagged", krylov_precision="half")
+
+
+def test_auto_predictor_is_tangent_for_terms_under_prescribed_motion():
+    # "auto" takes the secant predictor with the lagged strategy, but the tangent predictor
+    # when extra terms (contact) act under prescribed motion (surfaces that move with the
+    # bones make the extrapolated start a poor one); the choice is recorded
+    from solver.contact import RigidSurfaceContact
+
+    assert _pull("lagged").predictor == "secant"
+    assert _pull("exact").predictor == "tangent"
+    nodes, hexes, s = block((4.0, 4.0, 4.0), (2, 2, 2))
+    plane = np.array([[-9.0, -9.0, 4.5], [9.0, -9.0, 4.5], [9.0, 9.0, 4.5], [-9.0, 9.0, 4.5]])
+    far = RigidSurfaceContact(nodes, plane, np.array([[0, 2, 1], [0, 3, 2]]),
+                              slave_nodes=s["zmax"], search_radius=0.1)
+    body = solver.SolidBody(solver.HexMesh(nodes, hexes),
+                            solver.Yeoh(2.5, 1.175, 0.0, K=100.0, volumetric="quadratic"))
+    pulled = [solver.fix(s["xmin"]), solver.Prescribed(s["xmax"], [0.4, 0.0, 0.0], (0,))]
+    res = solver.newton_solve(body, pulled, [far], steps=2, linear_strategy="lagged")
+    assert res.converged and res.predictor == "tangent"
+    f = np.zeros(3 * len(nodes))
+    f[3 * s["xmax"]] = 0.05
+    res = solver.newton_solve(body, [solver.fix(s["xmin"])], [far], external=f, steps=2,
+                              linear_strategy="lagged")
+    assert res.converged and res.predictor == "secant"
+
+
+def test_a_bad_extrapolated_start_is_rejected_for_the_tangent_predictor(monkeypatch):
+    # An extrapolation ten times too long (the converged state of the last step plus ten
+    # times its increment) leads Newton astray: the step is solved again from its converged
+    # start with the tangent predictor instead of being cut back, and reaches the same
+    # solution (the 1e-6 bound of the tests above)
+    import solver.newton as newton
+
+    exact = newton._extrapolate
+
+    def ten_times(history, target):
+        x, mixed = exact(history, target)
+        last = history[-1][1]
+        return last + 10.0 * (x - last), mixed
+
+    tangent = _pull("exact", predictor="tangent", steps=4, etol=1.0)
+    monkeypatch.setattr(newton, "_extrapolate", ten_times)
+    res = _pull("exact", predictor="secant", steps=4, etol=1.0)
+    assert res.converged and res.cutbacks == 0
+    assert res.predictor_rejections >= 1
+    rel = np.abs(res.u - tangent.u).max() / np.abs(tangent.u).max()
+    assert rel < 1e-6, rel

@@ -227,9 +227,9 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
     extrapolation of the last converged states in the load fraction (quadratic through three,
     or linear, x_n + (dt_n+1/dt_n)(x_n - x_n-1), with extra terms), falling back to the
     tangent predictor when that state is invalid, on the first step and after a cut-back, and
-    restarting the step with it when the residual grows at the second iteration from the
-    extrapolated state (`predictor_rejections`); it saves about one Newton iteration per step
-    on smooth load paths. "auto" takes "secant" with the lagged strategy, except with extra
+    restarting the step with it when the solve from the extrapolated state fails or its
+    residual grows at the second iteration (`predictor_rejections`); it saves about one
+    Newton iteration per step on smooth load paths. "auto" takes "secant" with the lagged strategy, except with extra
     terms under prescribed motion (contact with surfaces that move with the prescribed
     bones), and "tangent" otherwise; `NewtonResult.predictor` records the choice.
     max_increment: if given (mm), a Newton update that would move some free node farther is
@@ -356,9 +356,9 @@ def newton_solve(body, constraints=(), terms=(), external=None, *, steps: int = 
             # a re-solve of the step (the terms' augmentation) continues the same load
             # increment: its energy criterion keeps the step's first energy norm
             e0 = info["e0"]
-            if not ok and (info["predictor_rejected"] or info["predicted"]):
-                # the extrapolated start led astray (or the solve from it failed): solve the
-                # step again from its converged start with the tangent predictor, before any
+            if not ok and info["predicted"]:
+                # the solve from the extrapolated start went astray or failed: solve the step
+                # again from its converged start with the tangent predictor, before any
                 # cut-back
                 if mixed:
                     body.mixed = (mixed_conv[0].copy(), mixed_conv[1].copy())
@@ -502,7 +502,7 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
         x = x0.copy()
         ev, r, A, cpl = system.evaluate(x, target, targets=targets)
     info = {"iterations": 0, "residuals": [], "reason": "", "worst_element": None, "min_J": np.nan,
-            "e0": e0, "early": False, "predictor_rejected": False, "predicted": predicted}
+            "e0": e0, "early": False, "predicted": predicted}
     due = [t.augmentation_due for t in system.terms if hasattr(t, "augmentation_due")]
     if not early or not due:
         early = None
@@ -636,12 +636,12 @@ def _solve_step(system, lin, x0, target, uhat, free, cons, max_it, rtol, atol, e
                 (en_norm0 <= etol * e0 or rn <= atol or it > 1 and rn <= 1e-3 * rtol * scale):
             return True, x, info
         # predictor safeguard: a solve started from the extrapolated state whose residual
-        # grows at its second iteration is abandoned (Newton from there heads elsewhere: e.g.
-        # contact with teeth moving with the bones, demo plan: 7.7e3 -> 7.7e4, then a stall
-        # and cut-backs); the caller restarts the step with the tangent predictor
+        # grows at its second iteration is abandoned at once, Newton heads elsewhere from
+        # there (the demo plan with the secant predictor: 7.8e3 -> 7.4e4 at load 0.5, where
+        # the unguarded solve stalled and cut back); the caller restarts the step with the
+        # tangent predictor
         if predicted and it == 2 and rn > rnorm_hist[0]:
-            info.update(reason=f"predictor rejected (|R| {rnorm_hist[0]:.3e} -> {rn:.3e})",
-                        predictor_rejected=True)
+            info["reason"] = f"predictor rejected (|R| {rnorm_hist[0]:.3e} -> {rn:.3e})"
             return False, x, info
         # the step will be augmented anyway: its multiplier update need not wait for the
         # penalty solve to converge (asked once per solve)

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 __all__ = ["closest_point_on_triangles", "closest_on_triangle", "TriangleSurface", "plane_gap", "triangulate",
-           "nodal_areas", "facet_normals", "skew", "psd_projection"]
+           "nodal_areas", "facet_normals", "psd_projection"]
 
 FACE, VERT_A, VERT_B, VERT_C, EDGE_AB, EDGE_BC, EDGE_CA = range(7)
 
@@ -60,18 +60,6 @@ def facet_normals(nodes: np.ndarray, tri: np.ndarray) -> np.ndarray:
     n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     ln = np.linalg.norm(n, axis=1, keepdims=True)
     return np.divide(n, ln, out=np.zeros_like(n), where=ln > 0)
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """[v]_x (..., 3, 3) with [v]_x w = v x w."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1] = -v[..., 2]
-    S[..., 0, 2] = v[..., 1]
-    S[..., 1, 0] = v[..., 2]
-    S[..., 1, 2] = -v[..., 0]
-    S[..., 2, 0] = -v[..., 1]
-    S[..., 2, 1] = v[..., 0]
-    return S
 
 
 def psd_projection(M):

@@ -123,6 +123,36 @@ def test_auto_predictor_is_tangent_for_terms_under_prescribed_motion():
     assert res.converged and res.predictor == "secant"
 
 
+def test_extrapolation_is_linear_with_terms_quadratic_without(monkeypatch):
+    # contact switching on kinks the load path, where a parabola overshoots: with extra
+    # terms the secant predictor extrapolates through the last two converged states only
+    import solver.newton as newton
+    from solver.contact import RigidSurfaceContact
+
+    points = []
+    exact = newton._extrapolate
+
+    def counting(history, target):
+        points.append(len(history))
+        return exact(history, target)
+
+    monkeypatch.setattr(newton, "_extrapolate", counting)
+    nodes, hexes, s = block((4.0, 4.0, 4.0), (2, 2, 2))
+    plane = np.array([[-9.0, -9.0, 4.5], [9.0, -9.0, 4.5], [9.0, 9.0, 4.5], [-9.0, 9.0, 4.5]])
+    far = RigidSurfaceContact(nodes, plane, np.array([[0, 2, 1], [0, 3, 2]]),
+                              slave_nodes=s["zmax"], search_radius=0.1)
+    body = solver.SolidBody(solver.HexMesh(nodes, hexes),
+                            solver.Yeoh(2.5, 1.175, 0.0, K=100.0, volumetric="quadratic"))
+    f = np.zeros(3 * len(nodes))
+    f[3 * s["xmax"]] = 0.05
+    for terms, most in (([far], 2), ([], 3)):
+        points.clear()
+        res = solver.newton_solve(body, [solver.fix(s["xmin"])], terms, external=f, steps=4,
+                                  grow=False, linear_strategy="lagged")
+        assert res.converged and res.predictor == "secant"
+        assert max(points) == most, points
+
+
 def test_a_bad_extrapolated_start_is_rejected_for_the_tangent_predictor(monkeypatch):
     # An extrapolation ten times too long (the converged state of the last step plus ten
     # times its increment) leads Newton astray: the step is solved again from its converged

@@ -18,7 +18,9 @@ from an overlapping state). This stage restores the gap:
 A node with g < gap is moved by (gap + tol - g) / 2 along n(q) -- each side of an overlap moves
 half the way, as in a symmetric node-to-surface contact correction (Wriggers, "Computational
 Contact Mechanics", 2006, ch. 5: the gap function and its normal). Pushed skin nodes (the
-front edge of the slit) are projected back onto the patient skin; a target that comes within
+front edge of the slit) are projected back onto the patient skin (where the scan shows the lips
+crossing, a lip's edge hidden behind the other, the nodes whose pushes the skin keeps taking
+back may leave it by up to `skin_release_mm` once the search has stalled); a target that comes within
 the teeth clearance of an arch is moved to the nearest clear point along a ray that does not
 go back towards the other lip (at the deep end of the slit, where the lips meet over the
 incisal edges, the lip and teeth constraints would otherwise undo each other). The displacement of the
@@ -98,7 +100,7 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
                   skin: TargetSurface | None = None, gap: float = 0.1, tol: float = 0.05,
                   threshold: float = 0.2, band: float = 3.0, max_rounds: int = 30,
                   arches: list | None = None, teeth_clearance: float = 0.25, reach_mm: float = 15.0,
-                  stall_rounds: int = 4):
+                  stall_rounds: int = 4, skin_release_mm: float | None = None):
     """Move lip-surface nodes apart until each lip is at least `gap` mm from the other.
 
     fixed: nodes that never move (bone-attached); skin_nodes: the skin nodes (held where not
@@ -107,6 +109,13 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
     that comes closer is moved to the nearest clear point along a ray that does not go back
     towards the other lip (`registration.teeth.escape_outward`). The search ends early after
     `stall_rounds` rounds in a row that do not reduce the largest push still needed.
+    skin_release_mm: when the search ends (stalled, or out of rounds) with the lips still
+    crossing, the pushed skin nodes whose push the patient skin took back (their target
+    projected onto the skin kept less than half of the push) in `stall_rounds` rounds or more
+    leave the skin, by at most this distance in all, and the search goes on for up to
+    max_rounds / 3 more rounds: where the scan shows the lips touching or crossing (a lip
+    overhanging the other, its edge hidden behind it) the slit's front edge cannot lie on the
+    skin with the lips apart. None: skin nodes always stay on the skin.
     Returns (new nodes, report)."""
     hexes = np.asarray(hexes)
     x = np.array(x, dtype=float)
@@ -134,9 +143,13 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
     by_teeth = np.zeros(n, bool)
     if arches:
         by_teeth = union_distance(arches, x, teeth_clearance + 1.0)[0] < teeth_clearance + 0.5
+    released = np.zeros(n, bool)           # skin nodes let off the skin (skin_release_mm)
+    taken_back = np.zeros(n, np.int64)     # rounds in which the skin took a node's push back
     rounds, repaired, unrepairable = 0, 0, False
     best_short, stalled = np.inf, 0
-    for rounds in range(1, max_rounds + 1):
+    limit, rounds = max_rounds, 0
+    while rounds < limit:
+        rounds += 1
         push = np.zeros((n, 3))
         normal = np.zeros((n, 3))
         hit = np.zeros(n, bool)
@@ -157,13 +170,31 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
             best_short, stalled = short, 0
         else:
             stalled += 1
-            if stalled >= stall_rounds:
+        if stalled >= stall_rounds or rounds == limit:
+            # the search ends with lips crossing: the skin nodes whose pushes the skin keeps
+            # taking back leave it (once), and the search goes on
+            free = hit & on_skin & (taken_back >= stall_rounds) \
+                if skin_release_mm is not None and not released.any() else np.zeros(n, bool)
+            if free.any():
+                released |= free
+                on_skin &= ~free
+                best_short, stalled = np.inf, 0
+                limit = rounds + max(max_rounds // 3, 1)
+            elif stalled >= stall_rounds:
                 break
         ids = np.flatnonzero(hit)
         target = x[ids] + push[ids]
-        slide = on_skin[ids]
+        slide = on_skin[ids] | released[ids]
         if skin is not None and slide.any():
-            target[slide] = skin.closest(target[slide]).points
+            cl = skin.closest(target[slide])
+            # a released node keeps its target while within skin_release_mm of the skin
+            off = released[ids[slide]] & (cl.distance <= (skin_release_mm or 0.0))
+            d = push[ids[slide]]
+            kept = np.einsum("kc,kc->k", cl.points - x[ids[slide]], d) / \
+                np.maximum(np.einsum("kc,kc->k", d, d), 1e-300)
+            taken_back[ids[slide][(kept < 0.5) & ~off]] += 1
+            target[slide] = np.where(off[:, None], target[slide], cl.points)
+            slide[np.flatnonzero(slide)[off]] = False
         if arches:
             sd = union_distance(arches, target, teeth_clearance + 1.0)[0]
             near = ~slide & (sd < teeth_clearance)
@@ -201,7 +232,8 @@ def separate_lips(x: np.ndarray, hexes: np.ndarray, upper_quads: np.ndarray,
         "before": before,
         "after": after,
         "nodes_pushed": int(held.sum()),
-        "skin_nodes_pushed": int((held & on_skin).sum()),
+        "skin_nodes_pushed": int((held & (on_skin | released)).sum()),
+        "skin_nodes_released": int(released.sum()),
         "nodes_moved": int((moved > 1e-3).sum()),
         "max_move_mm": float(moved.max()) if n else 0.0,
         "rounds": int(rounds),

@@ -73,6 +73,9 @@ class MatchOptions:
     facet_fit: bool = True
     # lips kept at least this far apart across the mouth slit (registration.lips); 0 disables
     lip_gap_mm: float = 0.1
+    # a lip's skin node at the slit's front edge may leave the patient skin by up to this much
+    # where the skin takes its push back (lips touching or crossing as scanned); None: never
+    lip_skin_release_mm: float | None = 1.0
     seed: int = 0
 
 
@@ -433,7 +436,8 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                 x, rep_l = separate_lips(x, hexes, up, low, fixed, skin_nodes=skin_ids, skin=skin,
                                          gap=opt.lip_gap_mm, threshold=opt.threshold,
                                          arches=arches if placed else None,
-                                         teeth_clearance=opt.teeth_clearance_mm)
+                                         teeth_clearance=opt.teeth_clearance_mm,
+                                         skin_release_mm=opt.lip_skin_release_mm)
                 passes.append(rep_l)
                 if not placed or union_distance(arches, x[movable], opt.teeth_clearance_mm + 1.0)[0].min() \
                         >= opt.teeth_clearance_mm - 1e-6:

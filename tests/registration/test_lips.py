@@ -115,3 +115,64 @@ def test_separation_stops_when_the_pushes_make_no_progress():
     np.testing.assert_allclose(y, x, atol=1e-9)
     assert rep["after"]["lower_in_upper_mm"] == pytest.approx(0.4, abs=1e-9)
     assert min_scaled_jacobian(y, hexes).min() >= 0.2 and not rep["undone"]
+
+
+def test_skin_nodes_the_skin_keeps_taking_back_leave_it_when_allowed():
+    """The stalled case above with `skin_release_mm`: once the search stalls with the lips
+    crossing, the upper lip's contact nodes that the skin (the contact plane) took back in
+    `stall_rounds` rounds leave it and are pushed the whole deficit (the lower lip is held):
+    0.4 + 0.1 mm plus the tolerance's half, within the 1 mm allowed. The nodes on the slab's
+    border are beside the lower lip, never pushed, so the facets they share still cross
+    partly: the crossing shrinks (0.4 -> 0.31 mm), it does not vanish in this setting (the
+    registered head below is the real case). With a bound below the push they stay on."""
+    from registration.surface import TargetSurface
+
+    x, hexes, upper, lower, n_upper = _two_lips(0.4)
+    fixed = np.arange(n_upper, len(x))
+    ids = np.unique(upper)
+    tris = np.searchsorted(ids, np.concatenate([upper[:, [0, 1, 2]], upper[:, [0, 2, 3]]]))
+    skin = TargetSurface(x[ids], tris, "contact plane")
+    y, rep = separate_lips(x, hexes, upper, lower, fixed, skin_nodes=ids, skin=skin, gap=0.1,
+                           stall_rounds=4, skin_release_mm=1.0)
+    pushed = ids[np.linalg.norm(y[ids] - x[ids], axis=1) > 1e-9]
+    assert rep["skin_nodes_released"] == len(pushed) == 16        # the 4 x 4 interior nodes
+    off = skin.closest(y[pushed]).distance
+    assert np.all((off >= 0.5 - 1e-9) & (off <= 1.0 + 1e-9))
+    assert rep["after"]["lower_in_upper_mm"] < 0.4 - 0.05
+    assert min_scaled_jacobian(y, hexes).min() >= 0.2 and not rep["undone"]
+    np.testing.assert_array_equal(y[fixed], x[fixed])
+    z, rep = separate_lips(x, hexes, upper, lower, fixed, skin_nodes=ids, skin=skin, gap=0.1,
+                           stall_rounds=4, skin_release_mm=0.2)
+    assert rep["after"]["lower_in_upper_mm"] == pytest.approx(0.4, abs=1e-9)
+
+
+def test_overhanging_lips_on_a_scan_like_skin_end_apart(generic):
+    """Synthetic head 13 (strong class III, lower lip in front of and over the upper lip's
+    edge) with its own teeth on the ~1 mm scan-like skin: the upper lip's front-edge skin
+    node at the midline cannot stay on the scan with the lips apart (the lips crossed by
+    0.4 mm after the lip separation before skin nodes could leave the skin). Now the lips
+    are apart (the requested 0.1 mm, to 1 micrometre), checked with the FE model's own
+    penetration measure too; a released node lies within 1 mm of the patient skin."""
+    import trimesh
+
+    from facemodel import synthetic
+    from facemodel.simulation import lip_penetrations
+    from registration import mesh_match_and_repair
+    from registration.surface import TargetSurface
+
+    head = synthetic.synthetic_head(13)
+    teeth = {k: trimesh.Trimesh(v, f, process=False) for k, (v, f, _) in head.teeth.items()}
+    patient, rep = mesh_match_and_repair(generic, head.skin, head.bones, head.landmarks,
+                                         cache=False, teeth=teeth)
+    lips = rep["lip_separation"]
+    released = sum(p["skin_nodes_released"] for p in lips["passes"])
+    assert released >= 1
+    assert lips["after"]["min_gap_mm"] >= 0.1 - 1e-3
+    pen = lip_penetrations(patient, patient.nodes, load=0.0)
+    assert pen["lower_in_upper"] == 0.0 and pen["upper_in_lower"] == 0.0, pen
+    skin = TargetSurface(np.asarray(head.skin.vertices), np.asarray(head.skin.faces))
+    ids = generic.node_sets["skin"]
+    assert skin.closest(patient.nodes[ids]).distance.max() < 2.0     # no skin node far off
+    assert rep["fit"]["skin"]["mean_mm"] < 0.3
+    q = min_scaled_jacobian(patient.nodes, patient.hexes)
+    assert q.min() >= 0.2

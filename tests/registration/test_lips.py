@@ -97,18 +97,25 @@ def test_registered_lips_are_apart(generic, registered_3):
     assert rep["fit"]["skin"]["mean_mm"] < 0.3 and rep["fit"]["skin"]["p95_mm"] < 1.0
 
 
-def test_separation_stops_when_the_pushes_make_no_progress():
-    """The lower lip held entirely (bone-attached) and the upper lip's contact nodes lying on
-    the patient skin, here the contact plane itself: each push is taken back by the skin, the
-    shortfall never shrinks, and the stage ends after `stall_rounds` rounds without progress
-    (not after its 30 rounds), the mesh untouched and the crossing reported as it is."""
+def _upper_lip_on_skin():
+    """Two lips crossing by 0.4 mm, the lower one held entirely, the upper lip's contact
+    nodes on a patient 'skin' that is the contact plane itself:
+    (x, hexes, upper, lower, fixed, upper contact nodes, skin)."""
     from registration.surface import TargetSurface
 
     x, hexes, upper, lower, n_upper = _two_lips(0.4)
     fixed = np.arange(n_upper, len(x))
     ids = np.unique(upper)
     tris = np.searchsorted(ids, np.concatenate([upper[:, [0, 1, 2]], upper[:, [0, 2, 3]]]))
-    skin = TargetSurface(x[ids], tris, "contact plane")
+    return x, hexes, upper, lower, fixed, ids, TargetSurface(x[ids], tris, "contact plane")
+
+
+def test_separation_stops_when_the_pushes_make_no_progress():
+    """The lower lip held entirely (bone-attached) and the upper lip's contact nodes lying on
+    the patient skin, here the contact plane itself: each push is taken back by the skin, the
+    shortfall never shrinks, and the stage ends after `stall_rounds` rounds without progress
+    (not after its 30 rounds), the mesh untouched and the crossing reported as it is."""
+    x, hexes, upper, lower, fixed, ids, skin = _upper_lip_on_skin()
     y, rep = separate_lips(x, hexes, upper, lower, fixed, skin_nodes=ids, skin=skin, gap=0.1,
                            stall_rounds=4)
     assert rep["rounds"] == 5                 # the first round sets the shortfall, 4 repeat it
@@ -125,13 +132,7 @@ def test_skin_nodes_the_skin_keeps_taking_back_leave_it_when_allowed():
     border are beside the lower lip, never pushed, so the facets they share still cross
     partly: the crossing shrinks (0.4 -> 0.31 mm), it does not vanish in this setting (the
     registered head below is the real case). With a bound below the push they stay on."""
-    from registration.surface import TargetSurface
-
-    x, hexes, upper, lower, n_upper = _two_lips(0.4)
-    fixed = np.arange(n_upper, len(x))
-    ids = np.unique(upper)
-    tris = np.searchsorted(ids, np.concatenate([upper[:, [0, 1, 2]], upper[:, [0, 2, 3]]]))
-    skin = TargetSurface(x[ids], tris, "contact plane")
+    x, hexes, upper, lower, fixed, ids, skin = _upper_lip_on_skin()
     y, rep = separate_lips(x, hexes, upper, lower, fixed, skin_nodes=ids, skin=skin, gap=0.1,
                            stall_rounds=4, skin_release_mm=1.0)
     pushed = ids[np.linalg.norm(y[ids] - x[ids], axis=1) > 1e-9]

@@ -99,25 +99,33 @@ def test_bad_options_refused():
         _pull("lagged", krylov_precision="half")
 
 
-def test_auto_predictor_is_tangent_for_terms_under_prescribed_motion():
-    # "auto" takes the secant predictor with the lagged strategy, but the tangent predictor
-    # when extra terms (contact) act under prescribed motion (surfaces that move with the
-    # bones make the extrapolated start a poor one); the choice is recorded
+def _block_with_far_plane():
+    """A 2x2x2 Yeoh block with a contact term that never acts (a rigid plane 0.5 mm beyond
+    its top, searched within 0.1 mm) and a pull of 0.05 on its +x face's nodes: (body, node
+    sets, term, force)."""
     from solver.contact import RigidSurfaceContact
 
-    assert _pull("lagged").predictor == "secant"
-    assert _pull("exact").predictor == "tangent"
     nodes, hexes, s = block((4.0, 4.0, 4.0), (2, 2, 2))
     plane = np.array([[-9.0, -9.0, 4.5], [9.0, -9.0, 4.5], [9.0, 9.0, 4.5], [-9.0, 9.0, 4.5]])
     far = RigidSurfaceContact(nodes, plane, np.array([[0, 2, 1], [0, 3, 2]]),
                               slave_nodes=s["zmax"], search_radius=0.1)
     body = solver.SolidBody(solver.HexMesh(nodes, hexes),
                             solver.Yeoh(2.5, 1.175, 0.0, K=100.0, volumetric="quadratic"))
+    f = np.zeros(3 * len(nodes))
+    f[3 * s["xmax"]] = 0.05
+    return body, s, far, f
+
+
+def test_auto_predictor_is_tangent_for_terms_under_prescribed_motion():
+    # "auto" takes the secant predictor with the lagged strategy, but the tangent predictor
+    # when extra terms (contact) act under prescribed motion (surfaces that move with the
+    # bones make the extrapolated start a poor one); the choice is recorded
+    assert _pull("lagged").predictor == "secant"
+    assert _pull("exact").predictor == "tangent"
+    body, s, far, f = _block_with_far_plane()
     pulled = [solver.fix(s["xmin"]), solver.Prescribed(s["xmax"], [0.4, 0.0, 0.0], (0,))]
     res = solver.newton_solve(body, pulled, [far], steps=2, linear_strategy="lagged")
     assert res.converged and res.predictor == "tangent"
-    f = np.zeros(3 * len(nodes))
-    f[3 * s["xmax"]] = 0.05
     res = solver.newton_solve(body, [solver.fix(s["xmin"])], [far], external=f, steps=2,
                               linear_strategy="lagged")
     assert res.converged and res.predictor == "secant"
@@ -127,7 +135,6 @@ def test_extrapolation_is_linear_with_terms_quadratic_without(monkeypatch):
     # contact switching on kinks the load path, where a parabola overshoots: with extra
     # terms the secant predictor extrapolates through the last two converged states only
     import solver.newton as newton
-    from solver.contact import RigidSurfaceContact
 
     points = []
     exact = newton._extrapolate
@@ -137,14 +144,7 @@ def test_extrapolation_is_linear_with_terms_quadratic_without(monkeypatch):
         return exact(history, target)
 
     monkeypatch.setattr(newton, "_extrapolate", counting)
-    nodes, hexes, s = block((4.0, 4.0, 4.0), (2, 2, 2))
-    plane = np.array([[-9.0, -9.0, 4.5], [9.0, -9.0, 4.5], [9.0, 9.0, 4.5], [-9.0, 9.0, 4.5]])
-    far = RigidSurfaceContact(nodes, plane, np.array([[0, 2, 1], [0, 3, 2]]),
-                              slave_nodes=s["zmax"], search_radius=0.1)
-    body = solver.SolidBody(solver.HexMesh(nodes, hexes),
-                            solver.Yeoh(2.5, 1.175, 0.0, K=100.0, volumetric="quadratic"))
-    f = np.zeros(3 * len(nodes))
-    f[3 * s["xmax"]] = 0.05
+    body, s, far, f = _block_with_far_plane()
     for terms, most in (([far], 2), ([], 3)):
         points.clear()
         res = solver.newton_solve(body, [solver.fix(s["xmin"])], terms, external=f, steps=4,

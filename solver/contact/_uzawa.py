@@ -57,7 +57,7 @@ class UzawaLoop:
         if load != self._load:                      # a new step: restart the count
             self._load = load
             self.count = 0
-        intermediate = self.schedule != "every_step" and load < 1.0 - 1e-9
+        intermediate = self._intermediate(load)
         self.carry = False
         if self.count >= self.max_augmentations or \
                 (not status_changed and (not augmented or error <= tolerance or intermediate)):
@@ -78,13 +78,14 @@ class UzawaLoop:
         The solver may then stop the penalty solve early and update the multipliers (an
         inexact inner solve of the method of multipliers, Bertsekas 1982, sec. 2.5: the
         penalty solve of a state that is to be corrected need not be converged tightly)."""
-        if load != self._load:
-            count = 0
-        else:
-            count = self.count
-        intermediate = self.schedule != "every_step" and load < 1.0 - 1e-9
-        return (augmented and not intermediate and count < self.max_augmentations
+        count = self.count if load == self._load else 0     # a new step starts at 0
+        return (augmented and not self._intermediate(load) and count < self.max_augmentations
                 and error > margin * tolerance)
+
+    def _intermediate(self, load: float) -> bool:
+        """A step the schedule does not augment down to the tolerance (before the final
+        load, unless "every_step")."""
+        return self.schedule != "every_step" and load < 1.0 - 1e-9
 
     def load_factor(self, load: float) -> float:
         """Factor for the multipliers at an evaluation at `load`: with the "carried" schedule

@@ -269,12 +269,8 @@ class SurfaceContact(StatusFreezing):
         set) of the solve is left as it is."""
         saved = [(ps.previous.copy(), ps.active.copy()) for ps in self.passes]
         try:
-            err = 0.0
-            for ps, s, g, grad, hess, dofs, eps, lam, p in self._evaluate(
-                    x, hessian=False, frozen=self._is_frozen(load)):
-                act = (p > 0) & ps.active[s]
-                if np.any(act):
-                    err = max(err, float(-g[act].min()))
+            err = self._active_penetration(self._evaluate(x, hessian=False,
+                                                          frozen=self._is_frozen(load)))
         finally:
             for ps, (prev, act) in zip(self.passes, saved):
                 ps.previous, ps.active = prev, act
@@ -316,10 +312,7 @@ class SurfaceContact(StatusFreezing):
             off = (np.abs(q_new - q_old) > self.tolerance) & ~done
             done |= off
             changed |= bool(np.any(off))
-        err = 0.0
-        for ps, s, g, grad, hess, dofs, eps, lam, p in ev:
-            if np.any(p > 0):
-                err = max(err, float(-g[p > 0].min()))
+        err = self._active_penetration(ev)
         self.last_error = err
         again = self.uzawa.another_solve(load, changed, self.augmented, err, self.tolerance)
         if again:
@@ -330,6 +323,17 @@ class SurfaceContact(StatusFreezing):
                 new[s] = p
                 ps.multipliers = new
         return again
+
+    @staticmethod
+    def _active_penetration(ev) -> float:
+        """Deepest penetration (mm, >= 0) of the nodes in contact (pressing, and active in
+        the status of the evaluation `ev`)."""
+        err = 0.0
+        for ps, s, g, grad, hess, dofs, eps, lam, p in ev:
+            act = (p > 0) & ps.active[s]
+            if np.any(act):
+                err = max(err, float(-g[act].min()))
+        return err
 
     def _scale_multipliers(self, factor: float) -> None:
         for ps in self.passes:

@@ -112,10 +112,10 @@ class SolidBody:
             if not np.all(np.isfinite(theta)) or not np.all(theta > 0.0):
                 raise ValueError("growth ratios must be finite and > 0")
             self.growth = theta
+            # the arrays start ungrown (load 0, where Newton starts); `_set_growth` moves them
+            # to the grown intermediate configuration of a load fraction
             self._dNdX0, self._dV0 = self.dNdX.copy(), self.dV.copy()
-            # the grown intermediate configuration: gradients over theta^(1/3), volumes times theta
-            self.dNdX = np.ascontiguousarray(self._dNdX0 / np.cbrt(theta)[:, None, None, None])
-            self.dV = np.ascontiguousarray(self._dV0 * theta[:, None])
+            self._growth_load = 0.0
         self.volume = self.dV.sum(axis=1)                            # V_e
         self.pattern = UpperPattern.build(mesh.hexes, mesh.n_nodes)
         m, nq = self.dV.shape
@@ -362,10 +362,11 @@ class SolidBody:
         return self.formulation == "mean_dilatation"
 
     def begin_mixed(self, x):
-        """Start three-field Newton from x: theta = v/V, p = U'(theta) per element."""
+        """Start three-field Newton from x (at load 0): theta = v/V, p = U'(theta) per element."""
         if not self.supports_mixed:
             return
-        theta = self.volume_ratio(x)
+        self._set_growth(0.0)
+        theta = self._volume_ratio(x)
         self.mixed = (theta, self._volumetric(theta)[1])
 
     def mixed_snapshot(self):
@@ -431,8 +432,12 @@ class SolidBody:
         return np.einsum("mqij,mq->mij", sig, self.dV) / self.volume[:, None, None]
 
     def volume_ratio(self, x: np.ndarray) -> np.ndarray:
-        """Element volume ratio v/V (the mean dilatation; elastic, v / (theta V), with growth)
-        -> (m,)."""
+        """Element volume ratio v/V (the mean dilatation; elastic, v / (theta V), with growth
+        at its full value) -> (m,)."""
+        self._set_growth(1.0)
+        return self._volume_ratio(x)
+
+    def _volume_ratio(self, x: np.ndarray) -> np.ndarray:
         F = self.deformation_gradient(x)
         _, Jq = inverse_and_det(F)
         return np.einsum("mq,mq->m", Jq, self.dV) / self.volume

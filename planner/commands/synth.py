@@ -56,7 +56,7 @@ BONE_ROTATION_DEG = (1.0, 3.0)
 STIFF_LAYERS = ("dermis", "hypodermis", "muscle")
 SOFTER, STIFFER = (0.5, 0.7), (1.5, 2.5)
 FOLLOW_UP_MONTHS = (3.0, 12.0)
-TRUTH_RESOLUTION = "fine"
+TRUTH_RESOLUTION = "standard"   # fine: beyond the 2-minute budget per case (docs/effects.md)
 
 
 def add_arguments(parser) -> None:

@@ -2,14 +2,19 @@
 
 Each sub-command is a small function in its own module, registered here. Exit status follows
 the contract: 0 done, 2 bad input (`planner.errors.InputError`), 3 the model could not be solved
-(`planner.errors.SolveError`). User mistakes never show a traceback.
+(`planner.errors.SolveError`), 4 the machine refused (disk full, read-only or failing file
+system, permission denied while writing: `planner.atomic.is_environment_error`; nothing
+half-written is left), 130 interrupted (Ctrl-C, or SIGTERM: 143). User mistakes and faults of
+the machine never show a traceback.
 """
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 
-from planner.errors import InputError, SolveError
+EXIT_ENVIRONMENT = 4
+EXIT_INTERRUPTED = 130
 
 # name -> (module path, one-line help). Modules expose `add_arguments(parser)` and `run(args)`.
 COMMANDS = {
@@ -21,6 +26,14 @@ COMMANDS = {
     "synth": ("planner.commands.synth", "synthetic case folders"),
     "calibrate": ("planner.commands.calibrate", "material parameters from aspiration / indentation data"),
 }
+
+
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that `with` blocks clean up as for Ctrl-C."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
 
 
 def _load(name: str):
@@ -39,6 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="faceplan",
         description="Predict the face after orthognathic surgery and diagnose where predictions miss.",
+        epilog="exit status: 0 done, 2 bad input, 3 the model could not be solved, 4 disk full / "
+               "not writable, 130 interrupted",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, help_text) in COMMANDS.items():
@@ -52,7 +67,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def _run(argv: list[str] | None) -> int:
+    from planner.atomic import is_environment_error
+    from planner.errors import InputError, SolveError
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
@@ -70,9 +88,30 @@ def main(argv: list[str] | None = None) -> int:
     except SolveError as exc:
         print(f"faceplan {args.command}: the model could not be solved: {exc}", file=sys.stderr)
         return 3
+    except OSError as exc:
+        if not is_environment_error(exc):
+            raise
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"faceplan {args.command}: error: {exc.strerror or exc}{where}; nothing was written",
+              file=sys.stderr)
+        return EXIT_ENVIRONMENT
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one command; every exit path, including Ctrl-C during start-up, returns a status."""
+    try:
+        if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+            signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:        # not the main thread: leave signals alone
+        pass
+    try:
+        return _run(argv)
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+        print("faceplan: interrupted; nothing was written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Terminated:
+        print("faceplan: terminated; nothing was written", file=sys.stderr)
+        return 128 + signal.SIGTERM
 
 
 if __name__ == "__main__":

@@ -495,9 +495,10 @@ def build_report(pred: Prediction, progress: Progress, inputs: dict, registratio
 
 def write_outputs(pred: Prediction, out_dir: Path, progress: Progress, inputs: dict,
                   registration: dict | None = None, render: bool = True,
-                  extra: Callable[[Path], None] | None = None) -> Path:
+                  extra: Callable[[Path], None] | None = None, kind: str = "predict") -> Path:
     """Write every output into `out_dir` atomically (whole or not at all); `extra(tmp)` may add
-    files to the folder before it is moved into place."""
+    files to the folder before it is moved into place. kind: the command named in the output
+    marker (`planner.atomic`: only a previous output of that command is replaced)."""
     from planner.atomic import atomic_output_dir
     from planner.html_report import write_html_report
 
@@ -505,7 +506,7 @@ def write_outputs(pred: Prediction, out_dir: Path, progress: Progress, inputs: d
     if not np.all(np.isfinite(pred.displacement)):
         raise SolveError("the solution contains NaN or infinite displacements; nothing written")
     t_start = time.perf_counter()
-    with atomic_output_dir(out_dir) as tmp:
+    with atomic_output_dir(out_dir, kind, inputs=[inputs.get("case")]) as tmp:
         with progress.stage("write meshes"):
             write_volume(pred, tmp / "prediction.vtu")
             surfaces = write_skin(pred, tmp)
@@ -575,10 +576,14 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
                  effects: dict[str, float] | None = None, max_translation_mm: float | None = None,
                  max_rotation_deg: float | None = None, render: bool = True,
                  echo: bool | Callable[[str], None] = True,
-                 extra: Callable[[Path], None] | None = None) -> Path:
-    """Run the whole prediction for a case folder; return the output folder."""
+                 extra: Callable[[Path], None] | None = None, kind: str = "predict") -> Path:
+    """Run the whole prediction for a case folder; return the output folder (checked before
+    any work by `planner.atomic.prepare_output`; kind: the command named in its marker)."""
+    from planner.atomic import prepare_output
     from planner.case import load_case
 
+    out_dir = prepare_output(out if out is not None else Path(case_dir) / "predict", kind,
+                             inputs=[case_dir])
     progress = Progress(echo)
     with progress.stage("load case"):
         case = load_case(case_dir)
@@ -601,8 +606,7 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
         "sha256": {"plan": _file_digest(plan_path),
                    **({"skin": _file_digest(case.skin_path)} if case.skin_path else {})},
     }
-    out_dir = Path(out) if out is not None else Path(case_dir) / "predict"
-    return write_outputs(pred, out_dir, progress, inputs, reg, render=render, extra=extra)
+    return write_outputs(pred, out_dir, progress, inputs, reg, render=render, extra=extra, kind=kind)
 
 
 # --------------------------------------------------------------------------- demo
@@ -672,4 +676,5 @@ def run_demo(out_dir: str | Path, *, resolution: str = "coarse", render: bool = 
         def keep_case(folder: Path) -> None:
             shutil.copytree(case, folder / "case", ignore=shutil.ignore_patterns("predict", ".*"))
 
-        return predict_case(case, out_dir, resolution=resolution, render=render, echo=echo, extra=keep_case)
+        return predict_case(case, out_dir, resolution=resolution, render=render, echo=echo,
+                            extra=keep_case, kind="demo")

@@ -74,7 +74,7 @@ def _postop_landmarks_file(case: Path, given: str | None) -> Path | None:
 
 
 def run(args) -> int:
-    from planner.atomic import atomic_output_dir
+    from planner.atomic import atomic_output_dir, prepare_output
     from planner.compare.cohort import write_cohort
     from planner.compare.comparison import compare_surfaces
     from planner.compare.inputs import find_postop, load_surface, read_prediction
@@ -82,6 +82,13 @@ def run(args) -> int:
 
     _check_args(args)
     cases = [Path(c) for c in args.cases]
+    # every output folder is checked before any work: nothing the user has is replaced
+    outs = [prepare_output(Path(args.out) if (args.out and len(cases) == 1) else case / "compare",
+                           "compare", inputs=cases) for case in cases]
+    summary_dir = None
+    if len(cases) > 1:
+        summary_dir = prepare_output(Path(args.out) if args.out else cases[0].resolve().parent / "compare_summary",
+                                     "compare-summary", inputs=cases)
     results = []
     for case in cases:
         t0 = time.perf_counter()
@@ -114,9 +121,8 @@ def run(args) -> int:
         results.append((case, result, header))
 
     reports = {}
-    for case, result, header in results:
-        out = Path(args.out) if (args.out and len(cases) == 1) else case / "compare"
-        with atomic_output_dir(out) as tmp:
+    for (case, result, header), out in zip(results, outs):
+        with atomic_output_dir(out, "compare", inputs=cases) as tmp:
             report = write_comparison(result, tmp, header, render_images=not args.no_images)
         reports[header["case"]] = report
         o = report["metrics"]["overall"]
@@ -128,8 +134,7 @@ def run(args) -> int:
     if len(cases) > 1:
         if len(set(reports)) < len(cases):
             reports = {str(c.resolve()): r for c, r in zip(cases, reports.values())}
-        summary_dir = Path(args.out) if args.out else cases[0].resolve().parent / "compare_summary"
-        with atomic_output_dir(summary_dir) as tmp:
+        with atomic_output_dir(summary_dir, "compare-summary", inputs=cases) as tmp:
             write_cohort(tmp, reports)
         print(f"cohort summary of {len(cases)} cases -> {summary_dir}")
     return 0

@@ -14,7 +14,9 @@ negating x and y) or from an older Slicer fiducial list `preop/landmarks.fcsv`. 
 surface is checked for what goes wrong in practice: unreadable, empty, NaN coordinates, and
 the size of a head in metres rather than millimetres. Every problem raises
 `planner.errors.InputError` naming the file and the field. Surfaces extracted from a CT are
-cached by the CT's content hash.
+cached by the CT's content hash: `KEY.npz` and, written last, `KEY.sha256` (its SHA-256); an
+entry without a matching digest or with arrays that are not triangle surfaces is deleted
+with a warning and the CT segmented again, never used.
 """
 from __future__ import annotations
 
@@ -220,26 +222,86 @@ def _ct_cache_key(ct_path: Path, options: dict) -> str:
     return h.hexdigest()[:24]
 
 
+class CacheWarning(UserWarning):
+    """A damaged CT cache entry was found, deleted and is being rebuilt."""
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def _cache_load(path: Path):
+    """The cached {"skin", "bone"} surfaces of entry `path` (KEY.npz), None when absent; a
+    damaged entry is deleted with a CacheWarning (the caller extracts the surfaces again)."""
+    import warnings
+
     import trimesh
 
+    digest = path.with_suffix(".sha256")
+    if not path.is_file():
+        return None
     try:
-        with np.load(path) as z:
-            return {k: trimesh.Trimesh(z[f"{k}_vertices"], z[f"{k}_faces"], process=False)
-                    for k in ("skin", "bone")}
-    except (OSError, KeyError, ValueError):
-        return None  # absent or damaged: extract again
+        recorded = digest.read_text().strip() if digest.is_file() else None
+        if recorded is None:
+            raise ValueError("no digest (the entry was never completed)")
+        if recorded != _sha256(path):
+            raise ValueError("content does not match its recorded SHA-256 (truncated or altered)")
+        out = {}
+        with np.load(path, allow_pickle=False) as z:
+            for k in ("skin", "bone"):
+                v, f = np.asarray(z[f"{k}_vertices"], float), np.asarray(z[f"{k}_faces"])
+                if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or not len(f) \
+                        or not np.all(np.isfinite(v)) or f.min() < 0 or f.max() >= len(v):
+                    raise ValueError(f"{k} is not a valid triangle surface")
+                out[k] = trimesh.Trimesh(v, f, process=False)
+        return out
+    except (OSError, KeyError, ValueError, EOFError, TypeError) as exc:
+        warnings.warn(f"CT cache entry {path} is damaged: {exc}; it is deleted and the CT "
+                      "segmented again", CacheWarning, stacklevel=3)
+        for q in (path, digest):
+            q.unlink(missing_ok=True)
+        return None
 
 
 def _cache_store(path: Path, surfaces: dict) -> None:
-    tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
+    """Write KEY.npz through a temporary file, then KEY.sha256 (also through one) last; a cache
+    that cannot be written only costs time, and nothing half-written stays behind."""
+    tmp = path.with_name(f"{path.stem}.tmp-{os.getpid()}.npz")
+    tmp_digest = path.with_name(f"{path.stem}.tmp-{os.getpid()}.sha256")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        path.with_suffix(".sha256").unlink(missing_ok=True)
         np.savez_compressed(tmp, **{f"{k}_{a}": getattr(m, a) for k, m in surfaces.items()
                                     for a in ("vertices", "faces")})
+        tmp_digest.write_text(_sha256(tmp))
         os.replace(tmp, path)
+        os.replace(tmp_digest, path.with_suffix(".sha256"))
     except OSError:
-        tmp.unlink(missing_ok=True)  # a cache that cannot be written only costs time
+        tmp.unlink(missing_ok=True)
+        tmp_digest.unlink(missing_ok=True)
+    _clean_orphans(path.parent)
+
+
+def _clean_orphans(folder: Path) -> None:
+    """Remove `*.tmp-PID.*` files of writers that no longer run (killed mid-write)."""
+    try:
+        entries = list(folder.glob("*.tmp-*"))
+    except OSError:
+        return
+    for p in entries:
+        pid = p.name.rsplit(".tmp-", 1)[-1].split(".", 1)[0]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            p.unlink(missing_ok=True)
+        except OSError:
+            pass
 
 
 def _surfaces_from_ct(ct_path: Path, thresholds: dict, cache_dir: Path | None) -> dict:
@@ -250,7 +312,7 @@ def _surfaces_from_ct(ct_path: Path, thresholds: dict, cache_dir: Path | None) -
     cached = None
     if cache_dir is not None:
         cached = cache_dir / f"{_ct_cache_key(ct_path, options)}.npz"
-        hit = _cache_load(cached) if cached.is_file() else None
+        hit = _cache_load(cached)
         if hit is not None:
             return hit
     try:

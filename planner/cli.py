@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
+import threading
 
 EXIT_ENVIRONMENT = 4
 EXIT_INTERRUPTED = 130
@@ -32,8 +33,48 @@ class Terminated(BaseException):
     """SIGTERM, raised in the main thread so that `with` blocks clean up as for Ctrl-C."""
 
 
-def _on_sigterm(signum, frame):
-    raise Terminated()
+class _Interrupts:
+    """SIGINT / SIGTERM handling that a library cannot swallow.
+
+    The first signal raises KeyboardInterrupt (Terminated for SIGTERM) in the main thread, as
+    Python does. Some libraries catch BaseException around their optional imports (an
+    interrupt during start-up then vanishes, or resurfaces later as an unrelated NameError), so
+    until `main` has returned, the signal is delivered again every `REPEAT_S` seconds, and any
+    exception after an interrupt counts as the interrupt."""
+
+    REPEAT_S = 0.5
+
+    def __init__(self):
+        self.pending: int | None = None
+        self.done = threading.Event()
+        self.saved = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            current = signal.getsignal(sig)
+            if current in (signal.SIG_DFL, signal.default_int_handler):
+                self.saved[sig] = current
+                signal.signal(sig, self._handler)
+
+    def restore(self) -> None:
+        self.done.set()
+        for sig, handler in self.saved.items():
+            signal.signal(sig, handler)
+
+    def _handler(self, signum, frame):
+        if self.done.is_set():        # main has returned: a late repeat is ignored
+            return
+        if self.pending is None:
+            self.pending = signum
+            threading.Thread(target=self._repeat, args=(threading.main_thread().ident,),
+                             daemon=True).start()
+        raise KeyboardInterrupt() if self.pending == signal.SIGINT else Terminated()
+
+    def _repeat(self, ident: int) -> None:
+        while not self.done.wait(self.REPEAT_S):
+            signal.pthread_kill(ident, self.pending)
 
 
 def _load(name: str):
@@ -99,19 +140,24 @@ def _run(argv: list[str] | None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one command; every exit path, including Ctrl-C during start-up, returns a status."""
+    interrupts = _Interrupts()
+    interrupts.install()
     try:
-        if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
-            signal.signal(signal.SIGTERM, _on_sigterm)
-    except ValueError:        # not the main thread: leave signals alone
-        pass
-    try:
-        return _run(argv)
-    except KeyboardInterrupt:
-        print("faceplan: interrupted; nothing was written", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except Terminated:
-        print("faceplan: terminated; nothing was written", file=sys.stderr)
-        return 128 + signal.SIGTERM
+        try:
+            status = _run(argv)
+            if interrupts.pending is None or status == 0:
+                return status
+            signum = interrupts.pending    # an error that followed an interrupt is the interrupt's
+        except BaseException as exc:
+            if interrupts.pending is None and not isinstance(exc, (KeyboardInterrupt, Terminated)):
+                raise
+            signum = interrupts.pending or (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
+        interrupts.done.set()
+        print(f"faceplan: {'interrupted' if signum == signal.SIGINT else 'terminated'}; "
+              "nothing was written", file=sys.stderr)
+        return EXIT_INTERRUPTED if signum == signal.SIGINT else 128 + signal.SIGTERM
+    finally:
+        interrupts.restore()
 
 
 if __name__ == "__main__":

@@ -295,6 +295,9 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
         except ValueError as exc:   # simulate refuses motions/activations/materials it cannot use
             raise InputError(f"the face model refused the plan: {exc}", file=plan.path) from exc
         u, stress, stats = _unpack_result(result, model)
+    if not stats["converged"] or stats["load"] < 1.0 - 1e-9:
+        raise SolveError(f"the solver stopped at load fraction {stats['load']:.3g} without converging; "
+                         "a partial state is not a prediction")
     if not np.all(np.isfinite(u)):
         raise SolveError("the solution contains NaN or infinite displacements")
     bad = rep.inverted_elements(np.asarray(model.nodes, float) + u, model.hexes)
@@ -493,6 +496,21 @@ def build_report(pred: Prediction, progress: Progress, inputs: dict, registratio
     }
 
 
+def check_solution(pred: Prediction) -> None:
+    """Refuse (SolveError) to treat as a prediction a state the solver did not finish: not
+    converged, short of the full load, NaN/infinite displacements or stresses, or an element
+    inverted at a Gauss point."""
+    s = pred.solver or {}
+    if s.get("converged") is False or float(s.get("load", 1.0)) < 1.0 - 1e-9:
+        raise SolveError(f"the solution is not converged (load fraction {s.get('load')}); nothing written")
+    if not np.all(np.isfinite(pred.displacement)) or (
+            pred.stress is not None and not np.all(np.isfinite(pred.stress))):
+        raise SolveError("the solution contains NaN or infinite values; nothing written")
+    bad = rep.inverted_elements(pred.predicted_nodes, pred.model.hexes)
+    if bad.size:
+        raise SolveError(_inverted_message(pred.model, bad) + "; nothing written")
+
+
 def write_outputs(pred: Prediction, out_dir: Path, progress: Progress, inputs: dict,
                   registration: dict | None = None, render: bool = True,
                   extra: Callable[[Path], None] | None = None, kind: str = "predict") -> Path:
@@ -503,8 +521,7 @@ def write_outputs(pred: Prediction, out_dir: Path, progress: Progress, inputs: d
     from planner.html_report import write_html_report
 
     out_dir = Path(out_dir)
-    if not np.all(np.isfinite(pred.displacement)):
-        raise SolveError("the solution contains NaN or infinite displacements; nothing written")
+    check_solution(pred)
     t_start = time.perf_counter()
     with atomic_output_dir(out_dir, kind, inputs=[inputs.get("case")]) as tmp:
         with progress.stage("write meshes"):

@@ -583,6 +583,11 @@ def register_case(case, resolution: str, progress: Progress, threshold: float | 
         raise SolveError(f"registration of the generic face onto the patient failed: {exc}") from exc
     summary = _jsonable(reg_report) if reg_report is not None else {}
     if isinstance(summary, dict):
+        from planner.registration_gate import registration_notes
+
+        summary["quality_gate"] = registration_notes(summary)
+        for note in summary["quality_gate"]:     # shown even with --quiet
+            print(f"faceplan: warning: registration: {note}", file=sys.stderr)
         cached = summary.get("cached", summary.get("cache_hit"))
         if cached is not None:
             progress.say(f"  registration {'reused from cache' if cached else 'computed'}")

@@ -455,18 +455,18 @@ def read_yaml(path: str | Path, file: str | None = None, max_bytes: int = MAX_YA
                              f"{max_bytes / 1e6:g} MB (is it the right file?)", file=file, field="size")
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
-        raise InputError(f"unreadable file ({exc.strerror or exc})", file=file) from None
+        raise InputError(f"unreadable file ({exc.strerror or exc})", file=file, field="file") from None
     except UnicodeDecodeError:
-        raise InputError("not a text file (not UTF-8)", file=file) from None
+        raise InputError("not a text file (not UTF-8)", file=file, field="encoding") from None
     try:
         return yaml.load(text, Loader=_StrictLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}" if mark is not None else None
+        where = f"line {mark.line + 1}" if mark is not None else "yaml"
         problem = getattr(exc, "problem", None) or (str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         raise InputError(f"unreadable YAML: {problem}", file=file, field=where) from None
     except RecursionError:
-        raise InputError("not valid YAML: nested too deeply", file=file) from None
+        raise InputError("unreadable YAML: nested too deeply", file=file, field="yaml") from None
 
 
 def load_plan(path: str | Path, **limits) -> Plan:

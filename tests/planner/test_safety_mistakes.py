@@ -151,3 +151,56 @@ def test_plan_size_limit(tmp_path):
     with pytest.raises(InputError, match="MB") as info:
         load_plan(f)
     assert info.value.file == "plan.yaml"
+
+
+# ------------------------------------------------------------------ post-op scan mistakes
+@pytest.fixture(scope="module")
+def phantoms():
+    from planner.compare.phantom import face_phantom
+
+    return face_phantom(2.5), face_phantom(2.0, jitter=0.5, seed=1, offset=0.3)
+
+
+def _compare_case(root, pred, scan_vertices, scan_faces, preop=None):
+    from planner.compare.phantom import write_prediction_folder
+
+    write_prediction_folder(root / "predict", pred.vertices, pred.faces, pred.region, pred.region_names,
+                            pred.landmarks, pred.unoperated_regions)
+    (root / "postop").mkdir(parents=True)
+    trimesh.Trimesh(scan_vertices, scan_faces, process=False).export(root / "postop" / "skin.stl")
+    if preop is not None:
+        (root / "preop").mkdir()
+        trimesh.Trimesh(*preop, process=False).export(root / "preop" / "skin.stl")
+    return root
+
+
+def test_preop_skin_given_as_postop_scan(tmp_path, phantoms, capsys):
+    from planner.cli import main
+
+    pred, scan = phantoms
+    case = _compare_case(tmp_path / "c", pred, scan.vertices, scan.faces, preop=(scan.vertices, scan.faces))
+    assert main(["compare", str(case), "--no-images"]) == 2
+    err = capsys.readouterr().err
+    assert "is the pre-op skin" in err and "postop/skin.stl" in err
+    assert not (case / "compare").exists()
+
+
+def test_another_patients_scan_is_refused(tmp_path, phantoms, capsys):
+    from planner.cli import main
+
+    pred, scan = phantoms
+    c = np.array([0.0, 0.0, -10.0])
+    # another head: 7 % wider, 5 % shallower, 4 % taller than the predicted patient
+    other = (scan.vertices - c) * [1.07, 0.95, 1.04] + c
+    case = _compare_case(tmp_path / "o", pred, other, scan.faces)
+    assert main(["compare", str(case), "--no-images"]) == 2
+    err = capsys.readouterr().err
+    assert "another patient" in err and "postop/skin.stl" in err
+    # the patient's own scan, with 0.5 mm of scanner noise along the normals, is compared
+    rng = np.random.default_rng(3)
+    n = trimesh.Trimesh(scan.vertices, scan.faces, process=False).vertex_normals
+    own = scan.vertices + n * rng.normal(0.0, 0.5, (len(n), 1))
+    case = _compare_case(tmp_path / "s", pred, own, scan.faces)
+    assert main(["compare", str(case), "--no-images"]) == 0
+    rep = json.loads((case / "compare" / "report.json").read_text())
+    assert rep["alignment"]["unoperated_median_mm"] < 0.6

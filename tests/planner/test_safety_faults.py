@@ -119,3 +119,32 @@ def test_a_bug_s_oserror_is_not_dressed_as_environment(monkeypatch):
     monkeypatch.setattr(cli, "_load", lambda name: fake)
     with pytest.raises(FileNotFoundError):
         cli.main(["fake"])
+
+
+def _in_private_mount(tmp_path, options, argv):
+    """Run the CLI with a fresh tmpfs (mount `options`) at tmp_path/mnt, in a private user and
+    mount namespace (`unshare -rm`: no privilege needed where user namespaces are enabled)."""
+    import shutil as sh
+
+    if sh.which("unshare") is None:
+        pytest.skip("unshare not available")
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    probe = subprocess.run(["unshare", "-rm", "mount", "-t", "tmpfs", "-o", options, "tmpfs", str(mnt)],
+                           capture_output=True)
+    if probe.returncode != 0:
+        pytest.skip("no user/mount namespaces here")
+    script = (f"mount -t tmpfs -o {options} tmpfs {mnt} && "
+              f"exec {sys.executable} -m planner.cli " + " ".join(argv))
+    return subprocess.run(["unshare", "-rm", "sh", "-c", script], env=ENV, capture_output=True,
+                          text=True, timeout=120), mnt
+
+
+@pytest.mark.parametrize("options,words", [("size=1m", "MB free"), ("ro,size=1m", "not writable")])
+def test_real_full_or_read_only_disk_refused_before_work(tmp_path, options, words):
+    case = tmp_path / "case"
+    (case / "preop").mkdir(parents=True)
+    p, mnt = _in_private_mount(tmp_path, options, ["predict", str(case), "--out", str(tmp_path / "mnt" / "out"),
+                                                   "--quiet"])
+    assert p.returncode == 2, p.stderr
+    assert words in p.stderr and "Traceback" not in p.stderr and str(mnt / "out") in p.stderr

@@ -295,6 +295,9 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
         except ValueError as exc:   # simulate refuses motions/activations/materials it cannot use
             raise InputError(f"the face model refused the plan: {exc}", file=plan.path) from exc
         u, stress, stats = _unpack_result(result, model)
+    if not stats["converged"] or stats["load"] < 1.0 - 1e-9:
+        raise SolveError(f"the solver stopped at load fraction {stats['load']:.3g} without converging; "
+                         "a partial state is not a prediction")
     if not np.all(np.isfinite(u)):
         raise SolveError("the solution contains NaN or infinite displacements")
     bad = rep.inverted_elements(np.asarray(model.nodes, float) + u, model.hexes)
@@ -493,19 +496,34 @@ def build_report(pred: Prediction, progress: Progress, inputs: dict, registratio
     }
 
 
+def check_solution(pred: Prediction) -> None:
+    """Refuse (SolveError) to treat as a prediction a state the solver did not finish: not
+    converged, short of the full load, NaN/infinite displacements or stresses, or an element
+    inverted at a Gauss point."""
+    s = pred.solver or {}
+    if s.get("converged") is False or float(s.get("load", 1.0)) < 1.0 - 1e-9:
+        raise SolveError(f"the solution is not converged (load fraction {s.get('load')}); nothing written")
+    if not np.all(np.isfinite(pred.displacement)) or (
+            pred.stress is not None and not np.all(np.isfinite(pred.stress))):
+        raise SolveError("the solution contains NaN or infinite values; nothing written")
+    bad = rep.inverted_elements(pred.predicted_nodes, pred.model.hexes)
+    if bad.size:
+        raise SolveError(_inverted_message(pred.model, bad) + "; nothing written")
+
+
 def write_outputs(pred: Prediction, out_dir: Path, progress: Progress, inputs: dict,
                   registration: dict | None = None, render: bool = True,
-                  extra: Callable[[Path], None] | None = None) -> Path:
+                  extra: Callable[[Path], None] | None = None, kind: str = "predict") -> Path:
     """Write every output into `out_dir` atomically (whole or not at all); `extra(tmp)` may add
-    files to the folder before it is moved into place."""
+    files to the folder before it is moved into place. kind: the command named in the output
+    marker (`planner.atomic`: only a previous output of that command is replaced)."""
     from planner.atomic import atomic_output_dir
     from planner.html_report import write_html_report
 
     out_dir = Path(out_dir)
-    if not np.all(np.isfinite(pred.displacement)):
-        raise SolveError("the solution contains NaN or infinite displacements; nothing written")
+    check_solution(pred)
     t_start = time.perf_counter()
-    with atomic_output_dir(out_dir) as tmp:
+    with atomic_output_dir(out_dir, kind, inputs=[inputs.get("case")]) as tmp:
         with progress.stage("write meshes"):
             write_volume(pred, tmp / "prediction.vtu")
             surfaces = write_skin(pred, tmp)
@@ -565,6 +583,11 @@ def register_case(case, resolution: str, progress: Progress, threshold: float | 
         raise SolveError(f"registration of the generic face onto the patient failed: {exc}") from exc
     summary = _jsonable(reg_report) if reg_report is not None else {}
     if isinstance(summary, dict):
+        from planner.registration_gate import registration_notes
+
+        summary["quality_gate"] = registration_notes(summary)
+        for note in summary["quality_gate"]:     # shown even with --quiet
+            print(f"faceplan: warning: registration: {note}", file=sys.stderr)
         cached = summary.get("cached", summary.get("cache_hit"))
         if cached is not None:
             progress.say(f"  registration {'reused from cache' if cached else 'computed'}")
@@ -575,10 +598,14 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
                  effects: dict[str, float] | None = None, max_translation_mm: float | None = None,
                  max_rotation_deg: float | None = None, render: bool = True,
                  echo: bool | Callable[[str], None] = True,
-                 extra: Callable[[Path], None] | None = None) -> Path:
-    """Run the whole prediction for a case folder; return the output folder."""
+                 extra: Callable[[Path], None] | None = None, kind: str = "predict") -> Path:
+    """Run the whole prediction for a case folder; return the output folder (checked before
+    any work by `planner.atomic.prepare_output`; kind: the command named in its marker)."""
+    from planner.atomic import prepare_output
     from planner.case import load_case
 
+    out_dir = prepare_output(out if out is not None else Path(case_dir) / "predict", kind,
+                             inputs=[case_dir])
     progress = Progress(echo)
     with progress.stage("load case"):
         case = load_case(case_dir)
@@ -601,8 +628,7 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
         "sha256": {"plan": _file_digest(plan_path),
                    **({"skin": _file_digest(case.skin_path)} if case.skin_path else {})},
     }
-    out_dir = Path(out) if out is not None else Path(case_dir) / "predict"
-    return write_outputs(pred, out_dir, progress, inputs, reg, render=render, extra=extra)
+    return write_outputs(pred, out_dir, progress, inputs, reg, render=render, extra=extra, kind=kind)
 
 
 # --------------------------------------------------------------------------- demo
@@ -672,4 +698,5 @@ def run_demo(out_dir: str | Path, *, resolution: str = "coarse", render: bool = 
         def keep_case(folder: Path) -> None:
             shutil.copytree(case, folder / "case", ignore=shutil.ignore_patterns("predict", ".*"))
 
-        return predict_case(case, out_dir, resolution=resolution, render=render, echo=echo, extra=keep_case)
+        return predict_case(case, out_dir, resolution=resolution, render=render, echo=echo,
+                            extra=keep_case, kind="demo")

@@ -167,6 +167,7 @@ def _set_camera(pl, box: _Bounds, view: str, frame=None, zoom: float = 1.15):
 
 
 def _screenshot(pl) -> np.ndarray:
+    pl.render()      # the camera was moved on the VTK objects: draw before reading the pixels
     return np.asarray(pl.screenshot(return_img=True))
 
 

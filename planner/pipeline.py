@@ -489,7 +489,7 @@ def write_images(pre_face, post_face, images: Path, *, frame=None, landmarks_pre
                                    frame=frame, bounds=box, landmarks=landmarks_pre)
     post_imgs = render.render_views((post_face.vertices, post_face.faces), images / "predicted",
                                     title="predicted face", views=FACE_VIEWS, frame=frame, bounds=box,
-                                    landmarks=landmarks_post)
+                                    landmarks=landmarks_post, title_position="upper_right")
     pairs = [(view, pre_imgs[view], post_imgs[view]) for view in FACE_VIEWS]
     mag = post_face.magnitude
     top = max(float(mag.max()), 1e-6)

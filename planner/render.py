@@ -180,10 +180,10 @@ def _save_png(img: np.ndarray, path: Path) -> Path:
     return path
 
 
-def _shoot(pl, box, view: str, path: Path, title: str | None, frame=None):
+def _shoot(pl, box, view: str, path: Path, title: str | None, frame=None, title_position="upper_left"):
     _set_camera(pl, box if isinstance(box, _Bounds) else _Bounds(box.bounds), view, frame)
     if title:
-        pl.add_text(title, position="upper_left", font_size=10, color="black", name="title")
+        pl.add_text(title, position=title_position, font_size=10, color="black", name="title")
     pl.add_text(VIEW_TITLES.get(view, view), position="lower_left", font_size=8, color="gray",
                 name="view")
     return _save_png(_screenshot(pl), path)
@@ -205,12 +205,13 @@ def _landmark_points(poly, landmarks: Mapping[str, Sequence[float]], lift: float
 
 
 def _add_landmarks(pl, marks, direction, color="#1f4e9c"):
-    """Dots and names of the landmarks whose surface faces the camera (normal within 84 degrees
-    of the view direction): the others are behind the face in this view."""
+    """Dots and names of the landmarks whose surface does not face away from the camera (normal
+    within 105 degrees of the view direction, so that the midline ones show on the profile's
+    outline): the others are behind the face in this view."""
     names, pts, normals = marks
     if not len(pts):
         return
-    facing = normals @ np.asarray(direction, float) > 0.1
+    facing = normals @ np.asarray(direction, float) > -0.25
     pl.remove_actor("landmarks")
     if not facing.any():
         return
@@ -236,6 +237,7 @@ def render_views(
     bounds: Sequence[float] | None = None,
     isolines: Sequence[float] | None = None,
     landmarks: Mapping[str, Sequence[float]] | None = None,
+    title_position: str = "upper_left",
 ) -> dict[str, Path]:
     """Render `mesh` from each view into `<out_prefix>_<view>.png`; return {view: path}.
 
@@ -299,7 +301,7 @@ def render_views(
         for view in views:
             path = out_prefix.parent / f"{out_prefix.name}_{view}.png"
             _add_landmarks(pl, marks, view_camera(view, frame)[0])
-            _shoot(pl, box, view, path, title, frame)
+            _shoot(pl, box, view, path, title, frame, title_position)
             written[view] = path
     finally:
         pl.close()

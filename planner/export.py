@@ -94,18 +94,25 @@ def blend_face(patient_vertices: np.ndarray, patient_faces: np.ndarray, patch_ve
     if ud.shape != xv.shape:
         raise ValueError(f"patch displacement {ud.shape} does not match its vertices {xv.shape}")
     patch = trimesh.Trimesh(xv, xf, process=False)
-    closest, distance, tri = trimesh.proximity.closest_point(patch, pv_)
-    bary = trimesh.triangles.points_to_barycentric(patch.triangles[tri], closest)
-    bary = np.clip(bary, 0.0, None)
-    bary /= bary.sum(axis=1, keepdims=True)
-    u = np.einsum("nk,nkj->nj", bary, ud[xf[tri]])
-    border = _boundary_samples(xv, xf, spacing=min(0.5, band_mm / 10.0))
-    if len(border):
-        to_border, _ = cKDTree(border).query(closest)
-    else:                      # a closed patch has no boundary to fade at
-        to_border = np.full(len(pv_), np.inf)
-    weight = _smoothstep(to_border / band_mm) * (1.0 - _smoothstep((distance - gap_mm) / gap_mm))
-    d = weight[:, None] * u
+    # only vertices within 2 gap_mm of the patch's box can move: the others are not queried
+    near = np.all((pv_ >= xv.min(axis=0) - 2 * gap_mm) & (pv_ <= xv.max(axis=0) + 2 * gap_mm), axis=1)
+    d = np.zeros_like(pv_)
+    weight = np.zeros(len(pv_))
+    if near.any():
+        q = pv_[near]
+        closest, distance, tri = trimesh.proximity.closest_point(patch, q)
+        bary = trimesh.triangles.points_to_barycentric(patch.triangles[tri], closest)
+        bary = np.clip(bary, 0.0, None)
+        bary /= bary.sum(axis=1, keepdims=True)
+        u = np.einsum("nk,nkj->nj", bary, ud[xf[tri]])
+        border = _boundary_samples(xv, xf, spacing=min(0.5, band_mm / 10.0))
+        if len(border):
+            to_border, _ = cKDTree(border).query(closest)
+        else:                      # a closed patch has no boundary to fade at
+            to_border = np.full(len(q), np.inf)
+        w = _smoothstep(to_border / band_mm) * (1.0 - _smoothstep((distance - gap_mm) / gap_mm))
+        weight[near] = w
+        d[near] = w[:, None] * u
     return BlendedFace(pv_ + d, pf, d, weight)
 
 

@@ -181,6 +181,7 @@ def render_html_report(
     tables: Mapping[str, tuple[Sequence[str], Sequence[Sequence[Any]]]] | None = None,
     intro: str | None = None,
     before_after: Sequence[tuple[str, os.PathLike | str, os.PathLike | str]] = (),
+    before_after_labels: tuple[str, str] = ("pre-op", "predicted"),
 ) -> str:
     """The HTML text (see `write_html_report`)."""
     parts = [
@@ -194,9 +195,13 @@ def render_html_report(
     if intro:
         parts.append(f"<p>{html.escape(intro)}</p>")
     if before_after:
-        parts.append("<h2>Before and after</h2><p class=\"meta\">Drag a slider: the pre-op "
-                     "face left of it, the predicted face right of it; the same camera for both.</p><div>")
-        parts.extend(_before_after_html(c, Path(a), Path(b)) for c, a, b in before_after)
+        la, lb = (html.escape(x) for x in before_after_labels)
+        heading = ("Before and after" if tuple(before_after_labels) == ("pre-op", "predicted")
+                   else f"{la[:1].upper()}{la[1:]} and {lb}")
+        parts.append(f"<h2>{heading}</h2><p class=\"meta\">Drag a slider: the {la} face left of it, "
+                     f"the {lb} face right of it; the same camera for both.</p><div>")
+        parts.extend(_before_after_html(c, Path(a), Path(b), tuple(before_after_labels))
+                     for c, a, b in before_after)
         parts.append("</div>")
     for name, (columns, rows) in (tables or {}).items():
         parts.append(f"<h2>{html.escape(name)}</h2>")
@@ -230,14 +235,16 @@ def write_html_report(
     tables: Mapping[str, tuple[Sequence[str], Sequence[Sequence[Any]]]] | None = None,
     intro: str | None = None,
     before_after: Sequence[tuple[str, os.PathLike | str, os.PathLike | str]] = (),
+    before_after_labels: tuple[str, str] = ("pre-op", "predicted"),
 ) -> Path:
     """Write a self-contained HTML page summarising `report` with `images` embedded.
 
     `images` are paths (caption from the file name) or (path, caption) pairs; `tables` are
     extra tables shown first, {heading: (column names, rows)}; `before_after`: (caption,
-    pre-op picture, predicted picture) triples shown with a slider each.
+    pre-op picture, predicted picture) triples shown with a slider each (`before_after_labels`
+    names the two pictures when they are other than pre-op and predicted).
     """
-    text = render_html_report(title, report, images, tables, intro, before_after)
+    text = render_html_report(title, report, images, tables, intro, before_after, before_after_labels)
     path = Path(path)
     with atomic_write_file(path, "w") as fh:
         fh.write(text)

@@ -484,7 +484,7 @@ def write_images(pre_face, post_face, images: Path, *, frame=None, landmarks_pre
     images.mkdir(parents=True, exist_ok=True)
     out: list[tuple[Path, str]] = []
     pre_v, pre_f = pre_face
-    box = render._union_bounds([render.to_polydata(pre_face), render.to_polydata((post_face.vertices, post_face.faces))])
+    box = render.union_bounds([render.to_polydata(pre_face), render.to_polydata((post_face.vertices, post_face.faces))])
     pre_imgs = render.render_views(pre_face, images / "preop", title="pre-op face", views=FACE_VIEWS,
                                    frame=frame, bounds=box, landmarks=landmarks_pre)
     post_imgs = render.render_views((post_face.vertices, post_face.faces), images / "predicted",

@@ -36,6 +36,7 @@ __all__ = [
     "render_views",
     "render_overlay",
     "render_turntable",
+    "union_bounds",
     "histogram_chart",
     "bar_chart",
     "profile_chart",
@@ -146,7 +147,7 @@ class _Bounds:
         self.length = float(np.linalg.norm(b[:, 1] - b[:, 0]))
 
 
-def _union_bounds(polys) -> tuple:
+def union_bounds(polys) -> tuple:
     b = np.array([p.bounds for p in polys], float).reshape(-1, 3, 2)
     return tuple(np.stack([b[:, :, 0].min(axis=0), b[:, :, 1].max(axis=0)], axis=1).ravel())
 
@@ -364,7 +365,7 @@ def render_overlay(
         raise ValueError("nothing to overlay")
     if opacity is None:
         opacity = [1.0] + [0.6] * (len(polys) - 1)
-    box = _Bounds(_union_bounds(polys))
+    box = _Bounds(union_bounds(polys))
     out_prefix = Path(out_prefix)
     written = {}
     pl = _plotter(window_size)

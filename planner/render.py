@@ -191,32 +191,50 @@ def _shoot(pl, box, view: str, path: Path, title: str | None, frame=None, title_
 
 
 def _landmark_points(poly, landmarks: Mapping[str, Sequence[float]], lift: float = 1.0):
-    """Landmark names, positions lifted `lift` mm off the surface along its normal (so that the
-    dots are not hidden in the surface they lie on) and those normals."""
+    """Landmark names, the points, the points lifted `lift` mm off the surface along its normal
+    (so that the dots are not hidden in the surface they lie on) and a locator of the surface
+    for the visibility test."""
     from scipy.spatial import cKDTree
+    import vtk
 
     names = list(landmarks or {})
     pts = np.array([landmarks[n] for n in names], float).reshape(-1, 3)
     if not len(pts):
-        return names, pts, pts
+        return names, pts, pts, None
     normals = np.asarray(poly.compute_normals(auto_orient_normals=False, split_vertices=False,
                                               consistent_normals=True).point_data["Normals"])
     _, idx = cKDTree(np.asarray(poly.points)).query(pts)
-    return names, pts + lift * normals[idx], normals[idx]
+    tree = vtk.vtkOBBTree()
+    tree.SetDataSet(poly)
+    tree.BuildLocator()
+    return names, pts, pts + lift * normals[idx], (tree, max(float(poly.length), 1.0))
+
+
+def _visible(locator, points: np.ndarray, direction: np.ndarray, clearance: float = 1.5) -> np.ndarray:
+    """Which points see the camera: nothing of the surface on the segment from `clearance` mm
+    in front of the point (towards the camera) to beyond the surface's extent."""
+    import vtk
+
+    tree, length = locator
+    hits = vtk.vtkPoints()
+    out = np.zeros(len(points), bool)
+    for i, p in enumerate(points):
+        start = p + clearance * direction
+        out[i] = tree.IntersectWithLine(tuple(start), tuple(start + 2.0 * length * direction), hits, None) == 0
+    return out
 
 
 def _add_landmarks(pl, marks, direction, color="#1f4e9c"):
-    """Dots and names of the landmarks whose surface does not face away from the camera (normal
-    within 105 degrees of the view direction, so that the midline ones show on the profile's
-    outline): the others are behind the face in this view."""
-    names, pts, normals = marks
+    """Dots and names of the landmarks the camera sees (a ray test against the surface): a
+    landmark behind the face or inside the mouth slit is not drawn in that view."""
+    names, pts, lifted, locator = marks
+    pl.remove_actor("landmarks")
     if not len(pts):
         return
-    facing = normals @ np.asarray(direction, float) > -0.25
-    pl.remove_actor("landmarks")
-    if not facing.any():
+    seen = _visible(locator, pts, np.asarray(direction, float))
+    if not seen.any():
         return
-    pl.add_point_labels(pts[facing], [n for n, f in zip(names, facing) if f], point_color=color,
+    pl.add_point_labels(lifted[seen], [n for n, f in zip(names, seen) if f], point_color=color,
                         point_size=9, font_size=13, text_color="#102a52", shape_color="white",
                         shape_opacity=0.6, render_points_as_spheres=True, always_visible=True,
                         bold=True, name="landmarks")

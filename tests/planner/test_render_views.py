@@ -155,3 +155,21 @@ def test_landmarks_isolines_and_turntable(tmp_path, head):
             frames.append(np.asarray(im.convert("L"), float))
     # the head turns: the frames differ from one another
     assert np.abs(frames[1] - frames[0]).mean() > 1.0
+
+
+def test_landmark_named_only_where_the_camera_sees_it(head):
+    # the nose tip is seen from the front and both sides, the back of the head from the sides
+    # only (on their outline), a point on the right side 30 degrees behind the widest part from the right
+    # only (from the front it is past the outline)
+    mesh, tip = head
+    poly = render.to_polydata(mesh)
+    back = mesh.vertices[np.argmin(mesh.vertices[:, 1])]
+    a = np.radians(-30.0)
+    side = np.array([70.0 * np.cos(a), 90.0 * np.sin(a), 0.0])
+    cheek = mesh.vertices[np.argmin(np.linalg.norm(mesh.vertices - side, axis=1))]
+    names, pts, _, locator = render._landmark_points(poly, {"Prn": tip, "back": back, "cheekR": cheek})
+    seen = {v: dict(zip(names, render._visible(locator, pts, render.view_camera(v)[0])))
+            for v in ("frontal", "profile", "profile_left")}
+    assert seen["frontal"] == {"Prn": True, "back": False, "cheekR": False}
+    assert seen["profile"] == {"Prn": True, "back": True, "cheekR": True}
+    assert seen["profile_left"] == {"Prn": True, "back": True, "cheekR": False}

@@ -204,7 +204,7 @@ def _landmark_points(poly, landmarks: Mapping[str, Sequence[float]], lift: float
     normals = np.asarray(poly.compute_normals(auto_orient_normals=False, split_vertices=False,
                                               consistent_normals=True).point_data["Normals"])
     _, idx = cKDTree(np.asarray(poly.points)).query(pts)
-    tree = vtk.vtkOBBTree()
+    tree = vtk.vtkStaticCellLocator()
     tree.SetDataSet(poly)
     tree.BuildLocator()
     return names, pts, pts + lift * normals[idx], (tree, max(float(poly.length), 1.0))
@@ -212,15 +212,17 @@ def _landmark_points(poly, landmarks: Mapping[str, Sequence[float]], lift: float
 
 def _visible(locator, points: np.ndarray, direction: np.ndarray, clearance: float = 1.5) -> np.ndarray:
     """Which points see the camera: nothing of the surface on the segment from `clearance` mm
-    in front of the point (towards the camera) to beyond the surface's extent."""
+    in front of the point (towards the camera) to beyond the surface's extent. Given the
+    lifted points, a ray grazing the outline (a profile's midline) runs just off the surface."""
     import vtk
 
     tree, length = locator
-    hits = vtk.vtkPoints()
+    hits, cells = vtk.vtkPoints(), vtk.vtkIdList()
     out = np.zeros(len(points), bool)
     for i, p in enumerate(points):
         start = p + clearance * direction
-        out[i] = tree.IntersectWithLine(tuple(start), tuple(start + 2.0 * length * direction), hits, None) == 0
+        tree.IntersectWithLine(tuple(start), tuple(start + 2.0 * length * direction), 1e-6, hits, cells)
+        out[i] = hits.GetNumberOfPoints() == 0
     return out
 
 
@@ -231,7 +233,7 @@ def _add_landmarks(pl, marks, direction, color="#1f4e9c"):
     pl.remove_actor("landmarks")
     if not len(pts):
         return
-    seen = _visible(locator, pts, np.asarray(direction, float))
+    seen = _visible(locator, lifted, np.asarray(direction, float))
     if not seen.any():
         return
     pl.add_point_labels(lifted[seen], [n for n, f in zip(names, seen) if f], point_color=color,

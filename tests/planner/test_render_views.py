@@ -167,8 +167,8 @@ def test_landmark_named_only_where_the_camera_sees_it(head):
     a = np.radians(-30.0)
     side = np.array([70.0 * np.cos(a), 90.0 * np.sin(a), 0.0])
     cheek = mesh.vertices[np.argmin(np.linalg.norm(mesh.vertices - side, axis=1))]
-    names, pts, _, locator = render._landmark_points(poly, {"Prn": tip, "back": back, "cheekR": cheek})
-    seen = {v: dict(zip(names, render._visible(locator, pts, render.view_camera(v)[0])))
+    names, _, lifted, locator = render._landmark_points(poly, {"Prn": tip, "back": back, "cheekR": cheek})
+    seen = {v: dict(zip(names, render._visible(locator, lifted, render.view_camera(v)[0])))
             for v in ("frontal", "profile", "profile_left")}
     assert seen["frontal"] == {"Prn": True, "back": False, "cheekR": False}
     assert seen["profile"] == {"Prn": True, "back": True, "cheekR": True}

@@ -13,8 +13,8 @@ stays tied) -> nonlinear FE solve (`facemodel.simulation.simulate`, load
 steps with a convergence log) -> outputs written into a temporary folder and moved into place
 only when complete (`planner.atomic`): `prediction.vtu`, `skin_predicted.{stl,ply,vtp}` (the model's
 skin patch), the predicted whole face `face_predicted.{glb,obj}`, `landmarks_predicted.mrk.json`,
-`model.feb` (`planner.export`), renders of the whole face, `report.json` and `report.html`. Solver failures become `SolveError` (exit 3), bad input
-`InputError` (exit 2).
+`model.feb` (`planner.export`), renders of the whole face, `report.json` and `report.html`.
+Solver failures become `SolveError` (exit 3), bad input `InputError` (exit 2).
 """
 from __future__ import annotations
 

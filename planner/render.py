@@ -333,9 +333,9 @@ def render_turntable(
     mesh,
     path: str | os.PathLike,
     frame: np.ndarray | None = None,
-    n_frames: int = 24,
+    n_frames: int = 20,
     swing_deg: float = 75.0,
-    size: int = 360,
+    size: int = 320,
     color: str = SKIN_COLOR,
     duration_ms: int = 110,
 ) -> Path:

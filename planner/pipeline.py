@@ -505,10 +505,13 @@ def write_images(pre_face, post_face, images: Path, *, frame=None, landmarks_pre
     if path is not None:
         out.append((path, "mid-sagittal profile: pre-op vs predicted, landmarks with the "
                           "soft-to-hard tissue ratio of their antero-posterior movement"))
-    overlay = [pre_face, (post_face.vertices, post_face.faces)]
-    for view, path in render.render_overlay(overlay, images / "overlay", labels=["pre-op", "predicted"],
-                                            views=("profile",), frame=frame,
-                                            title="profile: pre-op (grey) vs predicted").items():
+    # the predicted face where the model moved it, over the pre-op face: elsewhere the two
+    # coincide and the pre-op one is shown
+    moved = (post_face.magnitude > 0.05)[np.asarray(post_face.faces)].any(axis=1)
+    overlay = [pre_face] + ([(post_face.vertices, np.asarray(post_face.faces)[moved])] if moved.any() else [])
+    for view, path in render.render_overlay(overlay, images / "overlay", labels=["pre-op", "predicted"][:len(overlay)],
+                                            views=("profile",), frame=frame, opacity=[1.0, 1.0],
+                                            title="profile: predicted (orange) where in front of pre-op (grey)").items():
         out.append((path, f"overlay pre-op vs predicted, {render.VIEW_TITLES[view]}"))
     gif = render.render_turntable((post_face.vertices, post_face.faces), images / "turntable.gif", frame=frame)
     out.append((gif, "predicted face, turntable"))

@@ -371,7 +371,7 @@ def render_turntable(
 def render_overlay(
     meshes: Sequence,
     out_prefix: str | os.PathLike,
-    colors: Sequence[str] = ("#bbbbbb", "#d95f02", "#1b9e77", "#7570b3"),
+    colors: Sequence[str] = ("#9a9a9a", "#d95f02", "#1b9e77", "#7570b3"),
     labels: Sequence[str] | None = None,
     opacity: Sequence[float] | None = None,
     title: str | None = None,
@@ -390,13 +390,18 @@ def render_overlay(
     written = {}
     pl = _plotter(window_size)
     for i, poly in enumerate(polys):
-        pl.add_mesh(poly, color=colors[i % len(colors)], opacity=float(opacity[i]),
-                    smooth_shading=True, label=None if labels is None else labels[i],
-                    **_SKIN_MATERIAL)
+        actor = pl.add_mesh(poly, color=colors[i % len(colors)], opacity=float(opacity[i]),
+                            smooth_shading=True, **_SKIN_MATERIAL)
+        # where surfaces coincide the later one is drawn: each earlier one is pushed back in
+        # depth (polygon offset) instead of the two flickering through each other
+        actor.GetMapper().SetRelativeCoincidentTopologyPolygonOffsetParameters(
+            2.0 * (len(polys) - 1 - i), 4.0 * (len(polys) - 1 - i))
     if labels is not None:
-        # kept inside the picture: a legend box anchored at the upper right corner
-        pl.add_legend(bcolor="white", border=True, size=(0.24, 0.05 * len(polys)),
-                      loc="upper right", face="rectangle")
+        # the legend as coloured words in the upper right corner, inside the picture
+        for i, label in enumerate(labels):
+            pl.add_text(str(label), position=(int(window_size[0] - 12 * max(len(l) for l in labels) - 24),
+                                                     int(window_size[1] - 34 - 24 * i)),
+                        font_size=11, color=colors[i % len(colors)], name=f"legend{i}")
     try:
         for view in views:
             path = out_prefix.parent / f"{out_prefix.name}_{view}.png"

@@ -387,7 +387,7 @@ def scan_like_surface(vertices, faces, landmarks: dict, rng, *, spacing: float =
     V = np.asarray(vertices, float)
     F = np.asarray(faces, np.int64)
     lm = {k: np.asarray(v, float) for k, v in landmarks.items()}
-    x_half = 0.5 * abs(lm["ChL"][0] - lm["ChR"][0]) + 35.0
+    x_half = 0.5 * abs(lm["ChL"][0] - lm["ChR"][0]) + 30.0
     # menton is the lowest point of the face: below it a frontal view sees the neck
     z_lo, z_hi = lm["Me"][2] - 1.0, lm["Prn"][2] + 50.0
     x0, z0 = -x_half, z_lo
@@ -395,6 +395,10 @@ def scan_like_surface(vertices, faces, landmarks: dict, rng, *, spacing: float =
     depth = _zbuffer(np.ascontiguousarray(V), np.ascontiguousarray(F), x0, z0, spacing, nx, nz)
     gx, gz = np.meshgrid(x0 + spacing * np.arange(nx), z0 + spacing * np.arange(nz))
     ok = np.isfinite(depth)
+    # the face ends at the lower border of the mandible, rising from menton towards the
+    # angles (~0.9 mm per mm sideways from 12 mm off the midline): below it the view sees
+    # the neck
+    ok &= gz >= lm["Me"][2] - 1.0 + 0.9 * np.maximum(np.abs(gx - lm["Me"][0]) - 12.0, 0.0)
     # holes: the mouth slit (the stomion line between the commissures, 1.2 mm high) and the
     # nostrils (ellipses 3 x 2 mm at 6 mm either side of subnasale, 2 mm above it)
     z_st = 0.5 * (lm["Stms"][2] + lm["Stmi"][2])

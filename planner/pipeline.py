@@ -450,10 +450,10 @@ def effect_sensitivities(pred: Prediction, names=None) -> dict:
 
     for j, name in enumerate(names):
         head = name.split(".")[0]
-        unit = next(p.unit for p in fe.parameters(head, tuple(pred.plan.motions()) or fe.SEGMENTS)
-                    if p.name == name) if head != "bone_execution" else "mm"
+        v0 = effects.value(name)            # KeyError for a name that is no parameter
+        unit = ("deg" if name.rsplit(".", 1)[-1].startswith("r") else "mm") \
+            if head == "bone_execution" else "-"
         h = _FD_STEP[unit]
-        v0 = effects.value(name)
         lo = 0.0 if head == "muscle_tone" else -np.inf    # activations cannot be negative
         steps = (h, -h) if v0 - h >= lo else (h, 0.0)
         parts = [residual_parts(effects.with_value(name, v0 + d)) for d in steps]

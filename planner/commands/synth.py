@@ -359,7 +359,7 @@ def run_cases(root: Path, seeds: list, options: dict, scheduler: str | None, wor
         client = Client(scheduler)
     else:
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None)
+                               dashboard_address=":0")
         client = Client(cluster)
     try:
         futures = {client.submit(make_case, str(root), s, options, pure=False): s for s in seeds}

@@ -302,8 +302,24 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                 "# faceplan synth: the movements achieved in surgery\n" + yaml.safe_dump(actual, sort_keys=False))
             plan_actual = parse_plan(actual, "plan_actual.yaml")
             effects = fe.parse_effects({"bone_execution": 1})
-    pred = solve_plan(patient, truth_plan, case.bones, effects=effects, plan_actual=plan_actual,
-                      follow_up_months=fu) if effects.active else base
+    pred = base
+    retries = 0
+    while effects.active:
+        try:
+            pred = solve_plan(patient, truth_plan, case.bones, effects=effects, plan_actual=plan_actual,
+                              follow_up_months=fu)
+            break
+        except SolveError:
+            # a value set from a skin-change target may ask more than the truth model can
+            # solve (large growth against lip contact): half its distance from "none", twice
+            # at most; the key records the value used and the change it made
+            if name not in SKIN_CHANGE_MM or retries == 2:
+                raise
+            retries += 1
+            p = fe.parameters(name)[0]
+            v = p.none + 0.5 * (effects.value(name) - p.none)
+            effects = effects.with_value(name, v)
+            value = {name: round(v, 5)}
     region = SKIN_CHANGE_REGIONS.get(name) if name else None
     change = _skin_change(pred, base, region)
     # the post-op skin: the patient's skin moved with the truth model's skin, scanned
@@ -316,7 +332,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
             "perturbation": {"truth_resolution": truth_resolution,
                              "layer_thickness_factors": {"dermis": round(dermis, 4), "deep": round(deep, 4)},
                              **mat_record, "scan": scan},
-            "plan_actual": plan_actual is not None,
+            "plan_actual": plan_actual is not None, "value_halvings": retries,
             "effect_skin_change_mm": {"regions": list(region) if region else "skin", **change}}
 
 

@@ -155,3 +155,32 @@ def test_real_full_or_read_only_disk_refused_before_work(tmp_path, options, word
                                                    "--quiet"])
     assert p.returncode == 2, p.stderr
     assert words in p.stderr and "Traceback" not in p.stderr and str(mnt / "out") in p.stderr
+
+
+def test_disk_full_while_compare_writes(tmp_path, monkeypatch, capsys):
+    """A real command (compare on the analytic face phantom) whose second file write fails with
+    ENOSPC: exit 4, a one-line message, no output folder and no temporary left."""
+    import pyvista as pv
+    import trimesh
+
+    from planner.compare.phantom import face_phantom, write_prediction_folder
+
+    pred, scan = face_phantom(3.0), face_phantom(2.5, jitter=0.5, seed=1, offset=0.3)
+    case = tmp_path / "case"
+    write_prediction_folder(case / "predict", pred.vertices, pred.faces, pred.region, pred.region_names,
+                            pred.landmarks, pred.unoperated_regions)
+    (case / "postop").mkdir()
+    trimesh.Trimesh(scan.vertices, scan.faces, process=False).export(case / "postop" / "skin.stl")
+    real, calls = pv.PolyData.save, []
+
+    def full(self, filename, *a, **k):
+        calls.append(filename)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device", str(filename))
+        return real(self, filename, *a, **k)
+
+    monkeypatch.setattr(pv.PolyData, "save", full)
+    assert cli.main(["compare", str(case), "--no-images"]) == 4
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "Traceback" not in err and len(calls) == 2
+    assert sorted(p.name for p in case.iterdir()) == ["postop", "predict"]

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from facemodel.attachments import bone_frames
+from facemodel.solver_settings import FACE_SOLVER
 from solver.bc import LocalFrame, Prescribed
 from solver.constitution import Yeoh
 from solver.constitution.muscle import Muscle
@@ -257,7 +258,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             mu = _local_shear_modulus(model, by_label, np.vstack([up, lo]))
             terms["lip_contact"] = SurfaceContact(
                 X, up, lo, penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
-                search_radius=max(1.0, h), max_depth=max(2.0, h))
+                search_radius=max(1.0, h), max_depth=max(2.0, h),
+                pair_hysteresis=FACE_SOLVER.pair_hysteresis)
         mucosa = [np.asarray(fs[k], dtype=np.int64) for k in ("lip_upper_teeth", "lip_lower_teeth")
                   if k in fs and len(fs[k])]
         if mucosa:
@@ -278,32 +280,10 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
                 f"|R| {rec['residual_norm']:.3e} (rel {rec['relative_residual']:.2e}) "
                 f"|du| {rec['displacement_norm']:.3e} ls {rec['line_search']:.2g}")
 
-    # Damping: no contact node moves more than 0.35 of the contact facets' size in one
-    # Newton iteration (contact switching on can make an undamped update overshoot); the
-    # other free nodes are not watched: they follow the bones by several mm per load step
-    # (limiting every free node, standard face, Newton iterations: demo plan 47 against 43,
-    # `faceplan synth` seed 11 206 against 140, seed 7 95 against 94). The fraction, Newton
-    # iterations (cut-backs) on the standard face with 0.25 / 0.3 / 0.35 / 0.4 / 0.5:
-    # `faceplan synth` seed 11 132-140 (5) / 117 (2) / 65 (0) / 69 (1) / -; demo plan (surgical
-    # case of `bench/contact.py`) 43 / 43 / 44 / 65 (1) / 67 (1); orbicularis oris worst case
-    # 23 / - / 22 / - / 22; 8 mm closure (coarse) 30 / - / 27 / - / 25; seed 7 64 / - / 57.
-    # A larger limit lets the first update of a step reach contact in one go, a smaller one
-    # spends iterations creeping; beyond 0.35 the demo plan overshoots into a cut-back.
-    max_inc = 0.35 * (lip_size or 2.0) if terms else None
     t0 = time.perf_counter()
-    # Convergence: relative residual 1e-6 and energy ratio 1e-8 (FEBio's defaults are looser,
-    # rtol 0 / etol 1e-2 / dtol 1e-3): node-to-surface contact near facet edges has a
-    # clamped curvature term, so the last digits converge linearly, not quadratically.
-    # Increment control: a step whose first solve needed more than 7 iterations halves the
-    # next (standard face, contact, Newton iterations / cut-backs with 8 -> 7: demo plan
-    # 52 / 1 -> 47 / 0, `faceplan synth` seed 7 99 / 3 -> 95 / 3, seed 11 222 / 6 -> 206 / 4;
-    # the orbicularis worst case 28 either way; with 6 the demo plan took 168 in 22 steps)
-    res = newton_solve(body, constraints, list(terms.values()), steps=n_steps,
-                       max_iterations=max_iterations, max_retries=20, callback=callback,
-                       max_increment=max_inc, stall_iterations=8 if terms else None,
-                       increment_nodes=_contact_nodes(terms),
-                       shrink_iterations=7,
-                       rtol=1e-6, etol=1e-8)
+    control = FACE_SOLVER.control(n_steps, max_iterations, _contact_nodes(terms), lip_size)
+    res = newton_solve(body, constraints, list(terms.values()), control=control,
+                       callback=callback)
     elapsed = time.perf_counter() - t0
     x = res.x
     sig = body.cauchy_stress(x, 1.0)

@@ -1,7 +1,7 @@
 """The body's upper-triangle pattern extended by the entries of extra terms (contact).
 
-Contact terms couple nodes that share no element (a lip node and the facet of the other lip
-it touches), so their stiffness falls partly outside the body's fixed sparsity pattern. Adding
+Contact terms couple nodes that share no element (a node of one surface and the facet of
+the other it touches), so their stiffness falls partly outside the body's fixed sparsity pattern. Adding
 them as sparse matrices (`K_body + triu(K_term)`) rebuilds the whole global matrix at every
 Newton iteration and changes its pattern whenever the contact pairs change, which makes the
 sparse direct solver redo its symbolic analysis. Here the pattern is the union of the body's

@@ -139,7 +139,7 @@ class SurfaceContact(ContactTerm):
     are kept for gaps in (-max_depth, search_radius)). two_pass: both sets act as slaves in
     turn (symmetric; otherwise a's nodes against b's facets only).
     ignore_initial_penetration: surfaces that already overlap in the reference configuration
-    (e.g. lips of a registered mesh) are not pushed apart: each slave node's initial
+    (e.g. surfaces of a registered mesh) are not pushed apart: each slave node's initial
     penetration is added to its gap as a fixed offset (LS-DYNA's "ignore initial
     penetrations"), so contact acts only against further penetration; the largest offset is
     `initial_penetration` (mm).

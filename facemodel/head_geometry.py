@@ -39,7 +39,6 @@ PHI_LE_FORT = -4.0           # Le Fort I osteotomy at the midline (deg)
 CROWN_SPAN = 7.5             # crown height in elevation (deg): ~10 mm
 OVERJET = 2.5                # mm
 TEETH_GAP = 0.25             # mm between the lip mucosa and the labial surface of the teeth
-ARCH_END = 40.0              # azimuth of the last tooth (deg)
 BONE_SHELL = 7.0             # thickness of the bone segment shells (mm)
 OSTEOTOMY_KERF = 0.8         # deg between bone segments
 

@@ -29,63 +29,21 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from facemodel.attachments import bone_frames
+from facemodel.materials import default_materials
+from facemodel.model import MUSCLES
 from facemodel.solver_settings import FACE_SOLVER
 from solver.bc import LocalFrame, Prescribed
-from solver.constitution import Yeoh
 from solver.constitution.muscle import Muscle
 from solver.contact import RigidSurfaceContact, SurfaceContact, TriangleSurface, ramped_rigid_motion
 from solver.contact._geometry import triangulate
-from solver.mechanics import SolidBody
+from solver.mechanics import SolidBody, von_mises
 from solver.mesh import HexMesh
 from solver.newton import newton_solve
 
-__all__ = ["simulate", "SimulationResult", "MUSCLES", "default_face_materials",
+__all__ = ["simulate", "SimulationResult", "MUSCLES",
            "lip_penetrations", "rigid_motion_ok"]
 
 log = logging.getLogger("facemodel.simulation")
-
-MUSCLES = ("orbicularis_oris", "zygomaticus_major", "levator_labii_superioris", "risorius",
-           "buccinator", "depressor_anguli_oris", "depressor_labii_inferioris", "mentalis")
-
-# Fallback soft-tissue values when facemodel.materials offers no table (kPa): Yeoh constants
-# of face tissue used by Payan's group (Barbarino et al. 2009; Nazari et al. 2010: muscle
-# C10 = 2.5 kPa, C20 = 1.175 kPa at rest), near incompressibility K = 1000 C10 (nu ~ 0.4998);
-# muscle active stress T_max = 100 kPa as in published face models (Nazari 2010; Flynn 2013).
-_FALLBACK = {
-    "dermis": dict(C10=10.0, C20=5.0), "hypodermis": dict(C10=1.5, C20=0.7),
-    "mucosa": dict(C10=2.5, C20=1.175), "nose": dict(C10=10.0, C20=5.0),
-}
-_MUSCLE_FALLBACK = dict(C10=2.5, C20=1.175, C30=0.0, k1=2.0, k2=5.0, T_max=100.0, lam_opt=1.0,
-                        width=0.5, G_T=0.5, G_T_active=10.0)
-
-
-def default_face_materials(model) -> dict:
-    """Materials per label name: `facemodel.materials`' table when available, else fallback."""
-    try:
-        from facemodel import materials as fm
-    except ImportError:
-        fm = None
-    if fm is not None:
-        for name in ("default_materials", "materials_table", "default_table"):
-            fn = getattr(fm, name, None)
-            if callable(fn):
-                try:
-                    return dict(fn(model))
-                except TypeError:
-                    return dict(fn())
-        for name in ("DEFAULT_MATERIALS", "MATERIALS", "TABLE"):
-            if isinstance(getattr(fm, name, None), dict):
-                return dict(getattr(fm, name))
-    out = {}
-    for name in model.label_names:
-        if name in MUSCLES:
-            p = dict(_MUSCLE_FALLBACK)
-            out[name] = Muscle(K=1000.0 * p["C10"], **p)
-        else:
-            p = _FALLBACK.get(name, dict(C10=2.5, C20=1.175))
-            out[name] = Yeoh(K=1000.0 * p["C10"], **p)
-    return out
-
 
 def rigid_motion_ok(T, tol: float = 1e-6) -> bool:
     """True if T is a finite 4x4 proper rigid motion."""
@@ -207,7 +165,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
 
     X = np.asarray(model.nodes, dtype=float)
     labels = np.asarray(model.labels, dtype=np.int64)
-    table = default_face_materials(model) if materials is None else dict(materials)
+    table = default_materials(model) if materials is None else dict(materials)
     by_label = {}
     for li, name in enumerate(names):
         if not np.any(labels == li):
@@ -287,8 +245,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     elapsed = time.perf_counter() - t0
     x = res.x
     sig = body.cauchy_stress(x, 1.0)
-    dev = sig - np.trace(sig, axis1=1, axis2=2)[:, None, None] / 3.0 * np.eye(3)
-    vm = np.sqrt(1.5 * np.einsum("mij,mij->m", dev, dev))
+    vm = von_mises(sig)
     info = {"n_nodes": len(X), "n_elements": len(labels), "n_constrained_nodes":
             int(sum(len(c.nodes) for c in constraints)), "terms": list(terms),
             "activations": activations, "sliding": list(sliding),

@@ -31,6 +31,7 @@ from planner import report as rep
 from planner.errors import InputError, SolveError
 from planner.plan import EFFECTS, Plan, check_against_bones, load_plan
 from planner.segments import as_trimesh, assign_segments, with_segments
+from solver.mechanics import von_mises
 
 # Effects `--effect NAME=VALUE` can add to a prediction, and how each maps onto the model.
 # sliding: 0/1 (1: the soft tissue slides on every moved bone segment); muscle_tone: resting activation of the
@@ -141,10 +142,7 @@ def face_materials(model, overrides: dict[str, dict[str, float]] | None = None, 
     parameter overrides and the `stiffness` effect (a factor on every modulus, active stress
     excepted, as `facemodel.materials.parameters` defines it)."""
     from facemodel import materials as fm
-    from solver.constitution import Yeoh
-    from solver.constitution.muscle import Muscle
 
-    laws = {"Yeoh": Yeoh, "Muscle": Muscle}
     overrides = overrides or {}
     for label in overrides:
         if label not in model.label_names:
@@ -152,18 +150,14 @@ def face_materials(model, overrides: dict[str, dict[str, float]] | None = None, 
                              field=f"model.materials.{label}")
     out = {}
     for label in model.label_names:
-        entry = fm.material(label)
         params = dict(fm.parameters(label, stiffness))
         for k, v in overrides.get(label, {}).items():
             if k not in params:
                 raise InputError(f"material {label!r} has no parameter {k!r} "
                                  f"(parameters: {', '.join(params)})", field=f"model.materials.{label}.{k}")
             params[k] = v
-        law = laws.get(entry.law)
-        if law is None:
-            raise SolveError(f"material table: unknown law {entry.law!r} for {label!r}")
         try:
-            out[label] = law(**params)
+            out[label] = fm.solver_material(label, params)
         except (TypeError, ValueError) as exc:
             raise InputError(f"material {label!r}: {exc}", field=f"model.materials.{label}") from None
     return out
@@ -351,11 +345,6 @@ def region_of_nodes(model, ids: np.ndarray) -> tuple[np.ndarray, list[str]]:
     return region, names
 
 
-def _von_mises(s: np.ndarray) -> np.ndarray:
-    dev = s - np.trace(s, axis1=-2, axis2=-1)[..., None, None] * np.eye(3) / 3.0
-    return np.sqrt(1.5 * np.einsum("...ij,...ij->...", dev, dev))
-
-
 def write_volume(pred: Prediction, path: Path) -> None:
     """`prediction.vtu` (meshio): predicted node positions, displacement, labels, stress.
 
@@ -370,7 +359,7 @@ def write_volume(pred: Prediction, path: Path) -> None:
     cell_data = {"label": [np.asarray(model.labels, np.int32)]}
     if pred.stress is not None and len(pred.stress) == len(hexes):
         cell_data["stress"] = [pred.stress.reshape(len(hexes), 9)]
-        cell_data["von_mises"] = [_von_mises(pred.stress)]
+        cell_data["von_mises"] = [von_mises(pred.stress)]
     meshio.Mesh(pred.predicted_nodes, [("hexahedron", hexes)], point_data=point_data,
                 cell_data=cell_data).write(path)
 
@@ -607,7 +596,6 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
 
 # --------------------------------------------------------------------------- demo
 
-DEMO_SEED = 7
 DEMO_PLAN = {
     "faceplan": 1,
     "frame": "RAS",

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from facemodel.attachments import bone_frames
+from facemodel.errors import ModelInputError
 from facemodel.materials import default_materials
 from facemodel.model import MUSCLES
 from facemodel.solver_settings import FACE_SOLVER
@@ -141,27 +142,29 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     n_steps: initial number of load steps. log: optional callable receiving one text line per
     Newton iteration. penalty_factor: contact penalty eps = factor * 3 mu / h (mu the
     median shear modulus of the tissue at the contact surface, h its median facet edge). contact_tolerance:
-    largest lip/teeth penetration accepted (mm). Raises ValueError for bad motions or
-    activations and `solver.errors.SolveFailed` if Newton fails.
+    largest lip/teeth penetration accepted (mm). Raises `facemodel.errors.ModelInputError` (a
+    ValueError) for motions, activations, materials or model parts it cannot use (contact
+    asked of a model without lip contact surfaces) and `solver.errors.SolveFailed` if Newton
+    fails.
     """
     motions = dict(motions or {})
     activations = dict(activations or {})
     segments = tuple(model.segments)
     for seg, T in motions.items():
         if seg not in segments:
-            raise ValueError(f"unknown bone segment {seg!r} (segments: {', '.join(segments)})")
+            raise ModelInputError(f"unknown bone segment {seg!r} (segments: {', '.join(segments)})")
         if not rigid_motion_ok(T):
-            raise ValueError(f"the motion of segment {seg!r} is not a 4x4 rigid transform")
+            raise ModelInputError(f"the motion of segment {seg!r} is not a 4x4 rigid transform")
     names = tuple(model.label_names)
     for m, a in activations.items():
         if m not in names:
-            raise ValueError(f"unknown muscle {m!r} (labels: {', '.join(names)})")
+            raise ModelInputError(f"unknown muscle {m!r} (labels: {', '.join(names)})")
         if not (np.isfinite(a) and 0.0 <= a <= 1.0):
-            raise ValueError(f"activation of {m!r} must be in [0, 1], got {a}")
+            raise ModelInputError(f"activation of {m!r} must be in [0, 1], got {a}")
     sliding = tuple(sliding or ())
     for seg in sliding:
         if seg not in segments:
-            raise ValueError(f"cannot slide on unknown segment {seg!r}")
+            raise ModelInputError(f"cannot slide on unknown segment {seg!r}")
 
     X = np.asarray(model.nodes, dtype=float)
     labels = np.asarray(model.labels, dtype=np.int64)
@@ -171,13 +174,13 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
         if not np.any(labels == li):
             continue
         if name not in table:
-            raise ValueError(f"no material for tissue label {name!r}")
+            raise ModelInputError(f"no material for tissue label {name!r}")
         mat = table[name]
         a = float(activations.get(name, 0.0))
         if isinstance(mat, Muscle):
             mat = mat.with_activation(a)
         elif a > 0:
-            raise ValueError(f"label {name!r} has activation {a} but no active material")
+            raise ModelInputError(f"label {name!r} has activation {a} but no active material")
         by_label[li] = mat
     fibres = getattr(model, "fibres", None)
     body = SolidBody(HexMesh(X, model.hexes, labels), by_label,
@@ -189,7 +192,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     sliding_nodes = dict(sliding_nodes or {})
     for seg in sliding_nodes:
         if seg not in segments:
-            raise ValueError(f"cannot slide on unknown segment {seg!r}")
+            raise ModelInputError(f"cannot slide on unknown segment {seg!r}")
     on_bone = np.zeros(len(X), dtype=bool)          # nodes of the deep facets on the bone
     on_bone[np.asarray(model.facet_sets.get("deep_bone", np.zeros((0, 4))), dtype=np.int64)] = True
     for seg, ids in attach.items():
@@ -211,13 +214,16 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
         fs = model.facet_sets
         up = np.asarray(fs.get("lip_upper_contact", np.zeros((0, 4))), dtype=np.int64)
         lo = np.asarray(fs.get("lip_lower_contact", np.zeros((0, 4))), dtype=np.int64)
-        if len(up) and len(lo):
-            h = lip_size = _typical_size(X, np.vstack([up, lo]))
-            mu = _local_shear_modulus(model, by_label, np.vstack([up, lo]))
-            terms["lip_contact"] = SurfaceContact(
-                X, up, lo, penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
-                search_radius=max(1.0, h), max_depth=max(2.0, h),
-                pair_hysteresis=FACE_SOLVER.pair_hysteresis)
+        if not (len(up) and len(lo)):
+            raise ModelInputError("contact asked for, but the model has no lip contact surfaces "
+                                  "(facet sets lip_upper_contact and lip_lower_contact); "
+                                  "solve with contact=False to go without lip contact")
+        h = lip_size = _typical_size(X, np.vstack([up, lo]))
+        mu = _local_shear_modulus(model, by_label, np.vstack([up, lo]))
+        terms["lip_contact"] = SurfaceContact(
+            X, up, lo, penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
+            search_radius=max(1.0, h), max_depth=max(2.0, h),
+            pair_hysteresis=FACE_SOLVER.pair_hysteresis)
         mucosa = [np.asarray(fs[k], dtype=np.int64) for k in ("lip_upper_teeth", "lip_lower_teeth")
                   if k in fs and len(fs[k])]
         if mucosa:

@@ -73,6 +73,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except Exception:           # not bad input, not a solve failure: a bug, shown as one
+        import traceback
+
+        traceback.print_exc()
+        print(f"faceplan {args.command}: this is a bug in faceplan: please report it with the "
+              f"command line", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

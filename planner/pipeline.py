@@ -233,6 +233,7 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
             if m in model.label_names:
                 activations[m] = max(activations.get(m, 0.0), tone)
     materials = face_materials(model, plan.model.materials, effects.get("stiffness", 1.0))
+    from facemodel.errors import ModelInputError
     from solver import errors as solver_errors
 
     teeth_shift = {}
@@ -286,7 +287,8 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
                              field=f"model.materials ({exc.parameter})" if exc.parameter else "model.materials") from exc
         except solver_errors.SolverError as exc:
             raise SolveError(f"{type(exc).__name__}: {exc}") from exc
-        except ValueError as exc:   # simulate refuses motions/activations/materials it cannot use
+        except ModelInputError as exc:   # simulate refuses input it cannot use; any other
+            # exception is a bug and surfaces as one
             raise InputError(f"the face model refused the plan: {exc}", file=plan.path) from exc
         u, stress, stats = _unpack_result(result, model)
     if not np.all(np.isfinite(u)):

@@ -1,0 +1,14 @@
+"""An unexpected exception in a command is shown as a bug: the traceback, a line asking to
+report it, exit status 1 (not 2, which means bad input)."""
+import planner.cli as cli
+
+
+def test_unexpected_exception_is_reported_as_a_bug(monkeypatch, capsys):
+    def run(args):
+        raise ZeroDivisionError("an internal slip")
+
+    monkeypatch.setattr(cli._load("compare"), "run", run)
+    assert cli.main(["compare", "somewhere"]) == 1
+    err = capsys.readouterr().err
+    assert "ZeroDivisionError: an internal slip" in err and "Traceback" in err
+    assert "this is a bug in faceplan: please report it" in err

@@ -5,7 +5,9 @@
 barycentric coordinates and its region (the face, an edge or a vertex), so that a caller may
 sign a distance with pseudo-normals (contact) or tell boundary points (registration).
 `closest_on_triangle` is its form on (3,) arrays, `closest_point_on_triangles` its row-by-row
-form on (k, 3) arrays; `triangulate` splits quads into triangles.
+form on (k, 3) arrays; `triangulate` splits quads into triangles. `deepest_concavity` finds,
+on a planar polyline, the point deepest behind the convex-hull edge (bitangent) that spans a
+concavity.
 """
 from __future__ import annotations
 
@@ -13,7 +15,8 @@ import numba as nb
 import numpy as np
 
 __all__ = ["FACE", "VERT_A", "VERT_B", "VERT_C", "EDGE_AB", "EDGE_BC", "EDGE_CA",
-           "point_triangle", "closest_on_triangle", "closest_point_on_triangles", "triangulate"]
+           "point_triangle", "closest_on_triangle", "closest_point_on_triangles", "triangulate",
+           "deepest_concavity"]
 
 FACE, VERT_A, VERT_B, VERT_C, EDGE_AB, EDGE_BC, EDGE_CA = range(7)
 
@@ -99,3 +102,28 @@ def triangulate(facets: np.ndarray) -> np.ndarray:
     if facets.shape[1] == 3:
         return facets
     return np.concatenate([facets[:, [0, 1, 2]], facets[:, [0, 2, 3]]])
+
+
+def deepest_concavity(p, lo: int, hi: int):
+    """On the planar polyline p[lo..hi] ((k, 2), ordered by decreasing second coordinate):
+    walk its convex hull on the side of the largest first coordinate (each hull vertex the
+    next point whose chord leans farthest that way) and return (k, i, j, inward): k the point
+    deepest behind a hull edge (i, j), i.e. the deepest concavity, and that edge's unit normal
+    pointing into the concavity. Without a concavity: (lo, lo, hi, (-1, 0))."""
+    p = np.asarray(p, dtype=float)
+    best, best_k, span = -1.0, lo, (lo, hi, np.array([-1.0, 0.0]))
+    i = lo
+    while i < hi:
+        d = p[i + 1:hi + 1] - p[i]
+        j = i + 1 + int(np.argmax(np.arctan2(d[:, 0], -d[:, 1])))   # next hull vertex
+        if j > i + 1:
+            chord = p[j] - p[i]
+            inward = np.array([-chord[1], chord[0]]) / np.linalg.norm(chord)
+            if inward[0] > 0:
+                inward = -inward
+            depth = (p[i + 1:j] - p[i]) @ inward
+            k = int(np.argmax(depth))
+            if depth[k] > best:
+                best, best_k, span = float(depth[k]), i + 1 + k, (i, j, inward)
+        i = j
+    return (best_k,) + span

@@ -257,7 +257,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             "activations": activations, "sliding": list(sliding),
             "cutbacks": res.cutbacks, "timings": res.timings}
     if contact:
-        info["penetration_mm"] = {k: float(_term_penetration(t, x)) for k, t in terms.items()}
+        info["penetration_mm"] = {k: float(t.penetration(x)) for k, t in terms.items()}
         if "lip_contact" in terms:
             # lips overlapping before any movement (a registered mesh can have them so) are
             # left as they are; contact acts against further penetration only
@@ -290,14 +290,6 @@ def _rigid_displacement(Xs, T):
         Tl = ramped_rigid_motion(T, load)
         return Xs @ Tl[:3, :3].T + Tl[:3, 3] - Xs
     return disp
-
-
-def _term_penetration(term, x):
-    if isinstance(term, SurfaceContact):
-        return term.penetration(x)
-    g, *_ = term.gaps(x, 1.0)
-    g = g[np.isfinite(g) & (g > -term.max_depth)]
-    return float(max(0.0, -g.min())) if len(g) else 0.0
 
 
 def lip_penetrations(model, x, load: float = 1.0, motions: dict | None = None,

@@ -136,13 +136,15 @@ class Predictor:
     "tangent": the last converged state; the first Newton iteration imposes the prescribed
     increments. "secant": the Lagrange extrapolation in the load fraction of the last
     `points` converged states (x and the three-field state): linear from two, quadratic from
-    three; not on the first step, nor after a cut-back. The solver falls back to the tangent
+    three (`extrapolation`, default `extrapolate`); not on the first step, nor after a
+    cut-back. The solver falls back to the tangent
     start when the extrapolated state is invalid or its solve goes astray.
     """
 
-    def __init__(self, kind: str, points: int, start=None):
+    def __init__(self, kind: str, points: int, start=None, extrapolation=None):
         self.kind = kind
         self.points = points
+        self.extrapolation = extrapolation or extrapolate
         self.history = [] if start is None else [start]
         self.just_cut = False
 
@@ -150,7 +152,7 @@ class Predictor:
         """(x, mixed state) extrapolated to `target`, or None for the tangent start."""
         if self.kind != "secant" or len(self.history) < 2 or self.just_cut:
             return None
-        return extrapolate(self.history[-self.points:], target)
+        return self.extrapolation(self.history[-self.points:], target)
 
     def converged(self, load, x, mixed) -> None:
         self.just_cut = False

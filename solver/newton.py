@@ -28,6 +28,7 @@ from solver.assembly._extended import ExtendedPattern, rotate_blocks
 from solver.bc import ConstraintSet
 from solver.control import (ConvergenceCriterion, IncrementLimiter, Predictor, SolverControl,
                             StepController, StepResult)
+from solver.control import extrapolate as _extrapolate
 from solver.errors import SolveFailed
 from solver import linalg as _linalg
 from solver.linalg import LaggedFactorSolver, SymmetricSolver, _dot, sym_matvec
@@ -280,7 +281,7 @@ class _Run:
         # a quadratic extrapolation overshoots where contact switching on kinks the load
         # path: with extra terms it is linear
         start = None if x0 is not None else (0.0, self.x.copy(), self.mixed_state())
-        self.predictor = Predictor(kind, 2 if system.terms else 3, start)
+        self.predictor = Predictor(kind, 2 if system.terms else 3, start, _extrapolate)
         self.stepper = StepController(control)
         self.result = NewtonResult(x=self.x, u=self.x - X, load=0.0, converged=False,
                                    linear_strategy=strategy, predictor=kind)

@@ -61,7 +61,7 @@ def _focus_box(sites, ems, rng, n=6000):
 def materials_block(c10: float, c20: float, ratio: float) -> dict:
     """`model.materials` entries (facemodel.materials parameter names) of the two layers."""
     def yeoh(f):
-        return {"C10": round(f * c10, 5), "C20": round(f * c20, 5), "C30": 0.0,
+        return {"C10": round(f * c10, 5), "C20": round(f * c20, 5),
                 "K": round(BULK_FACTOR * 2.0 * f * c10, 3)}
     return {"hypodermis": yeoh(1.0), "dermis": yeoh(ratio)}
 

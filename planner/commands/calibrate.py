@@ -44,8 +44,8 @@ def run(args) -> int:
 
     if not 1 <= args.workers <= 64:
         raise InputError("must be in 1..64", field="--workers")
-    if not 10 <= args.runs <= 400:
-        raise InputError("must be in 10..400", field="--runs")
+    if not 6 <= args.runs <= 400:
+        raise InputError("must be in 6..400", field="--runs")
     sites = read_calibration_data(args.data)
     data = Path(args.data)
     out = Path(args.out) if args.out else (data if data.is_dir() else data.parent) / "calibration"
@@ -53,8 +53,8 @@ def run(args) -> int:
     try:
         with dask_client(args.scheduler, args.workers) as client:
             report, extras = calibrate_sites(
-                sites, client, opt=opt, n_stage1=max(8, (2 * args.runs) // 3),
-                n_stage2=args.runs, n_heldout=max(4, args.runs // 3), seed=args.seed)
+                sites, client, opt=opt, n_stage1=max(6, (2 * args.runs) // 3),
+                n_stage2=args.runs, n_heldout=max(3, args.runs // 3), seed=args.seed)
     except ForwardError as exc:
         raise SolveError(f"calibration forward model: {exc}") from None
     report["data"] = str(data.resolve())

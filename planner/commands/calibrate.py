@@ -2,7 +2,7 @@
 in-vivo aspiration and indentation curves (see planner.calibration and docs/calibration.md).
 
 Writes `calibration.json`, `images/*.png` and `report.html` into `--out DIR` (default
-`calibration/` beside DATA), whole or not at all.
+`calibrate/` in the DATA folder or beside the DATA file), whole or not at all.
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", metavar="DATA",
                    help="calibration data: a YAML file, or a folder holding sites.yaml and the "
                         "curves' CSV files (an example ships in planner/data/calibration_example)")
-    p.add_argument("--out", metavar="DIR", help="output folder (default: calibration/ beside DATA)")
+    p.add_argument("--out", metavar="DIR", help="output folder (default: calibrate/ in the DATA folder, or beside the DATA file)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="dask scheduler to run the forward runs on (default: a LocalCluster "
                         "of --workers processes)")
@@ -48,7 +48,7 @@ def run(args) -> int:
         raise InputError("must be in 6..400", field="--runs")
     sites = read_calibration_data(args.data)
     data = Path(args.data)
-    out = Path(args.out) if args.out else (data if data.is_dir() else data.parent) / "calibration"
+    out = Path(args.out) if args.out else (data if data.is_dir() else data.parent) / "calibrate"
     opt = MeshOptions(n_fine=RESOLUTION[args.resolution])
     try:
         with dask_client(args.scheduler, args.workers) as client:

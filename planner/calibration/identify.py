@@ -95,7 +95,8 @@ def _importance_sample(prob, box, t0, cov, rng, n=4000, rounds=4, min_ess=400):
         inside = np.all((T >= lo) & (T <= hi), axis=1)
         T = T[inside]
         ll = prob.loglik(T)
-        q = 0.9 * prop.pdf(T) * n / (n + n_u) + 0.1 * n_u / (n + n_u) / np.prod(width)
+        # density of the mixture the draws came from (n from the proposal, n_u uniform)
+        q = (n * prop.pdf(T) + n_u / np.prod(width)) / (n + n_u)
         lw = ll - np.log(np.maximum(q, 1e-300))
         w = np.exp(lw - lw.max())
         w /= w.sum()

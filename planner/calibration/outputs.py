@@ -13,6 +13,10 @@ from planner.calibration.emulator import to_params
 __all__ = ["write_outputs"]
 
 
+_LABELS = {"aspiration": ("suction (kPa)", "apex height (mm)"),
+           "indentation": ("depth (mm)", "force (mN)")}
+
+
 def _resample(fit, rng, n):
     w = fit["weights"]
     idx = rng.choice(len(w), size=n, p=w)
@@ -43,9 +47,9 @@ def _curves_png(path, extras, rng):
             ax.plot(sd.x, fep, "--", color="#c44e52", label="FE, pooled estimate")
         err = sd.noise if sd.noise else None
         ax.errorbar(sd.x, sd.y, yerr=err, fmt="o", ms=3.5, color="k", label="measured")
-        xl, yl = sd.columns
-        ax.set_xlabel(xl.replace("_", " "))
-        ax.set_ylabel(yl.replace("_", " "))
+        xl, yl = _LABELS[sd.site.test]
+        ax.set_xlabel(xl)
+        ax.set_ylabel(yl)
         ax.set_title(f"{sd.name} ({sd.site.test})")
         ax.legend(fontsize=7)
     fig.tight_layout()
@@ -71,12 +75,13 @@ def _cloud_png(path, extras, rng):
         axes[1].scatter(6 * c10, ratio, s=3, alpha=0.35, color=col, label=name)
         e10, e20, er = to_params(fit["theta"])
         axes[0].plot(6 * e10, e20, "x", color=col, ms=9, mew=2)
+        axes[1].plot(6 * e10, fit["fixed_ratio"] or er, "x", color=col, ms=9, mew=2)
     axes[0].set_xlabel("E0 = 6 C10 (kPa)")
     axes[0].set_ylabel("C20 (kPa)")
     axes[1].set_xlabel("E0 = 6 C10 (kPa)")
     axes[1].set_ylabel("dermis / hypodermis ratio")
     axes[0].set_title("posterior sample")
-    axes[1].set_title("(ratio fixed where not identifiable)")
+    axes[1].set_title("E0 and dermis ratio (x: estimate)")
     axes[0].legend(fontsize=7, markerscale=3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

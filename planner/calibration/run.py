@@ -157,8 +157,8 @@ def calibrate_sites(sites, client, *, opt: MeshOptions = MeshOptions(), n_stage1
         "emulator": {"n_runs": int(sum(e.n_runs for e in ems)),
                      "n_runs_per_site": [int(e.n_runs) for e in ems],
                      "n_stage1_runs_per_site": int(n_stage1),
-                     "heldout_error_pct": round(float(100 * np.nanmax(err)), 3),
-                     "heldout_rms_pct": round(float(100 * np.sqrt(np.nanmean(err ** 2))), 3),
+                     "heldout_error_pct": _finite(100 * np.nanmax(err)),
+                     "heldout_rms_pct": _finite(100 * np.sqrt(np.nanmean(err ** 2))),
                      "n_heldout_runs_per_site": int(n_heldout),
                      "focused_box": {name: [round(float(a), 4), round(float(b), 4)]
                                      for name, (a, b) in zip(PARAMETERS, box)},
@@ -173,6 +173,11 @@ def calibrate_sites(sites, client, *, opt: MeshOptions = MeshOptions(), n_stage1
                       "total": round(time.perf_counter() - t0, 2)},
     }
     return report, extras
+
+
+def _finite(v, digits=3):
+    """A JSON-safe number: None when no held-out run succeeded."""
+    return round(float(v), digits) if np.isfinite(v) else None
 
 
 def _comparison(sites, records) -> list[dict]:

@@ -140,7 +140,22 @@ def calibrate_sites(sites, client, *, opt: MeshOptions = MeshOptions(), n_stage1
         site_records[sd.name] = rec
     pooled_rec = summarise(pooled)
     pooled_rec["residual_rms_fe"] = {sd.name: _fe_rms(fe[n + i], sd) for i, sd in enumerate(sites)}
-    pooled_rec["residual_rms"] = round(float(pooled["residual_rms"]), 6)
+    # the pooled residual per site (each in its curve's units); one number when all sites
+    # measure the same quantity, and in units of each site's noise over all sites
+    res, k = pooled["residuals"], 0
+    per_site, normalised = {}, []
+    for sd, sig in zip(sites, pooled["sigmas"]):
+        r = res[k:k + len(sd.y)]
+        k += len(sd.y)
+        per_site[sd.name] = round(float(np.sqrt(np.mean(r ** 2))), 6)
+        normalised.append(r / sig)
+    pooled_rec["residual_rms_sites"] = per_site
+    pooled_rec["residual_rms_normalised"] = round(float(np.sqrt(np.mean(
+        np.concatenate(normalised) ** 2))), 4)
+    if len({sd.site.test for sd in sites}) == 1:
+        pooled_rec["residual_rms"] = round(float(pooled["residual_rms"]), 6)
+    else:
+        pooled_rec["residual_rms"] = per_site
     sens = {sd.name: sobol_table(em1) for sd, em1 in zip(sites, ems1)}
     timings["sensitivity"] = time.perf_counter() - t1
     c10, c20, ratio = to_params(pooled["theta"])

@@ -53,7 +53,7 @@ def test_non_monotonic_curve(data, capsys):
 
 
 def test_decreasing_measured_quantity(data, capsys):
-    _edit(data / "cheekbone_left.csv", "223.31", "100.0")
+    _edit(data / "cheekbone_left.csv", "222.78", "100.0")
     _refused(data, capsys, "cheekbone_left.csv", "row 4", "force_mn", "not monotonic")
 
 

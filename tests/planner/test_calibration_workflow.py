@@ -124,7 +124,9 @@ def test_cli_on_the_shipped_example(cluster, tmp_path, capsys):
             assert 0 <= lo <= hi and 0.5 * lo <= rec[key]["estimate"] <= 2.0 * hi
         assert rec["E0_kpa"]["estimate"] == pytest.approx(6 * rec["C10_kpa"]["estimate"], rel=1e-3)
         assert "identifiable" in rec["dermis_ratio"]
-        assert rec["residual_rms"] >= 0
+        assert rec["residual_rms"] >= 0           # both sites aspiration: one number (mm)
+    assert set(rep["pooled"]["residual_rms_sites"]) == set(rep["sites"])
+    assert rep["pooled"]["residual_rms_normalised"] > 0
     assert rep["emulator"]["n_runs"] > 0 and rep["emulator"]["heldout_error_pct"] >= 0
     assert set(rep["materials"]) == {"dermis", "hypodermis"}
     assert (out / "images" / "curves.png").stat().st_size > 1000

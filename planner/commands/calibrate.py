@@ -35,7 +35,7 @@ RESOLUTION = {"coarse": 6, "standard": 8, "fine": 12}
 
 
 def run(args) -> int:
-    from planner.atomic import atomic_output_dir
+    from planner.atomic import atomic_output_dir, prepare_output
     from planner.calibration.data import read_calibration_data
     from planner.calibration.emulator import dask_client
     from planner.calibration.outputs import write_outputs
@@ -46,9 +46,11 @@ def run(args) -> int:
         raise InputError("must be in 1..64", field="--workers")
     if not 6 <= args.runs <= 400:
         raise InputError("must be in 6..400", field="--runs")
-    sites = read_calibration_data(args.data)
     data = Path(args.data)
-    out = Path(args.out) if args.out else (data if data.is_dir() else data.parent) / "calibrate"
+    out = prepare_output(Path(args.out) if args.out else
+                         (data if data.is_dir() else data.parent) / "calibrate",
+                         "calibrate", inputs=[data])
+    sites = read_calibration_data(args.data)
     opt = MeshOptions(n_fine=RESOLUTION[args.resolution])
     try:
         with dask_client(args.scheduler, args.workers) as client:
@@ -58,7 +60,7 @@ def run(args) -> int:
     except ForwardError as exc:
         raise SolveError(f"calibration forward model: {exc}") from None
     report["data"] = str(data.resolve())
-    with atomic_output_dir(out) as tmp:
+    with atomic_output_dir(out, "calibrate", inputs=[data]) as tmp:
         write_outputs(tmp, report, extras, render=not args.no_images)
     print(out)
     return 0

@@ -20,7 +20,7 @@ import numpy as np
 
 from planner.calibration.emulator import (PARAMETERS, PRIOR_BOX, fit_emulator, latin_hypercube,
                                           run_forward, to_params)
-from planner.calibration.identify import GENERIC_RATIO, identify, sobol_table, summarise
+from planner.calibration.identify import identify, sobol_table, summarise
 from planner.calibration.slab import BULK_FACTOR, MeshOptions
 
 __all__ = ["calibrate_sites", "materials_block", "PUBLISHED"]

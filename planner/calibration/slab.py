@@ -90,8 +90,12 @@ class SlabMesh:
     wedge: float                    # radians
 
     def node(self, plane, i, k):
-        nr, nz = len(self.radii), len(self.z)
-        return np.asarray(plane) * nr * nz + np.asarray(i) * nz + np.asarray(k)
+        """Node index of (cut plane 0/1, radial index, height index)."""
+        return _node_index(len(self.radii), len(self.z), plane, i, k)
+
+
+def _node_index(nr, nz, plane, i, k):
+    return np.asarray(plane) * nr * nz + np.asarray(i) * nz + np.asarray(k)
 
 
 def _graded(h: float, length: float, growth: float) -> np.ndarray:
@@ -160,8 +164,9 @@ def slab_mesh(site: Site, opt: MeshOptions = MeshOptions()) -> SlabMesh:
     nodes = np.stack([r[I] * np.cos(th), r[I] * np.sin(th), z[K]], -1).reshape(-1, 3)
     i, k = np.meshgrid(np.arange(nr - 1), np.arange(nz - 1), indexing="ij")
     i, k = i.ravel(), k.ravel()
-    sm = SlabMesh(None, r, z, w)
-    n = sm.node
+    def n(plane, i, k):
+        return _node_index(nr, nz, plane, i, k)
+
     hexes = np.stack([n(0, i, k), n(0, i + 1, k), n(1, i + 1, k), n(1, i, k),
                       n(0, i, k + 1), n(0, i + 1, k + 1), n(1, i + 1, k + 1), n(1, i, k + 1)], 1)
     zc = 0.5 * (z[k] + z[k + 1])

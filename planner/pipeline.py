@@ -687,9 +687,12 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
                  effects: dict[str, float] | None = None, max_translation_mm: float | None = None,
                  max_rotation_deg: float | None = None, render: bool = True,
                  echo: bool | Callable[[str], None] = True,
-                 extra: Callable[[Path], None] | None = None, kind: str = "predict") -> Path:
+                 extra: Callable[[Path], None] | None = None, kind: str = "predict",
+                 materials: dict[str, dict[str, float]] | None = None) -> Path:
     """Run the whole prediction for a case folder; return the output folder (checked before
-    any work by `planner.atomic.prepare_output`; kind: the command named in its marker)."""
+    any work by `planner.atomic.prepare_output`; kind: the command named in its marker).
+    `materials` (e.g. `planner.calibration.materials.read_materials`) is merged into the
+    plan's model.materials."""
     from planner.atomic import prepare_output
     from planner.case import load_case
 
@@ -700,6 +703,9 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
         case = load_case(case_dir)
         plan_path = case.require_plan()
         plan = load_plan(plan_path, max_translation_mm=max_translation_mm, max_rotation_deg=max_rotation_deg)
+        if materials:
+            from planner.calibration.materials import with_materials
+            plan = with_materials(plan, materials)
         bone_vertices = {k: np.asarray(v.vertices, float) for k, v in case.bones.items()}
         check_against_bones(plan, bone_vertices)
         check_effects(plan, effects)

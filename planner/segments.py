@@ -3,7 +3,9 @@
 The generic model marks the soft-tissue nodes tied to bone (`attach_*` node sets). After
 registration these nodes lie on the patient's bone, and which segment they follow during surgery
 is decided by the patient's anatomy and the plan, not by the generic labels: each attachment node
-goes to the bone surface closest to it (point-to-triangle distance, `trimesh.proximity`), and a
+goes to the bone surface closest to it (exact point-to-triangle distance, `nearest_surface`: a
+k-d tree of triangle centroids and compiled projections, so that a CT-derived bone of 10^5-10^6
+triangles costs about as much as a synthetic one), and a
 segment defined by cut planes (plan `cut_planes`, `from`) takes over the nodes of its source
 surface that lie on the kept side of all its planes (Payan et al.: nodes attached to the
 osteotomised segment follow its rigid movement, the others stay fixed with the skull).
@@ -32,6 +34,52 @@ def as_trimesh(surface) -> trimesh.Trimesh:
         return trimesh.Trimesh(np.asarray(surface.vertices, float), np.asarray(surface.faces, int),
                                process=False)
     raise TypeError(f"not a surface: {type(surface).__name__}")
+
+
+def nearest_surface(surfaces: list, points: np.ndarray, k: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """For each point (n, 3): the index of the closest of `surfaces` (any form `as_trimesh`
+    takes) and the exact distance to it.
+
+    Per surface, the triangles of the k nearest centroids give a distance d that is exact
+    unless an unseen triangle could be closer: a triangle whose centroid lies c from the point
+    is at least c - r away (r: the largest centroid-to-corner distance of the surface), so d is
+    exact when the k-th centroid lies beyond d + r. Otherwise, and only where that surface
+    could be the nearest one (its lower bound, the nearest centroid's distance minus r, below
+    the best distance found over all surfaces), every triangle whose centroid lies within
+    d + r is projected. Ties between surfaces go to the first."""
+    from scipy.spatial import cKDTree
+
+    from registration.surface import TargetSurface
+
+    x = np.asarray(points, float)
+    n = len(x)
+    found = []
+    for surface in surfaces:
+        mesh = as_trimesh(surface)
+        ts = TargetSurface(np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64))
+        tree = cKDTree(ts.centroids)
+        corners = ts.vertices[ts.faces]
+        r = float(np.linalg.norm(corners - ts.centroids[:, None, :], axis=2).max())
+        kk = int(min(k, len(ts.faces)))
+        dc, _ = tree.query(x, k=kk)
+        dc = dc.reshape(n, kk)
+        d = ts.closest(x, k=kk).distance
+        sure = (dc[:, -1] - r >= d) | (kk == len(ts.faces))
+        found.append((ts, tree, r, np.maximum(dc[:, 0] - r, 0.0), d, sure))
+    best = np.min([f[4] for f in found], axis=0)
+    dist = np.empty((len(found), n))
+    for i, (ts, tree, r, lower, d, sure) in enumerate(found):
+        need = np.flatnonzero(~sure & (lower <= best))
+        if len(need):
+            counts = np.asarray(tree.query_ball_point(x[need], d[need] + r, return_length=True))
+            # points in groups of similar candidate counts: each query as wide as it must be
+            order = np.argsort(counts)
+            for chunk in np.array_split(order, max(1, len(order) // 256)):
+                kq = int(min(len(ts.faces), max(counts[chunk].max(), 1)))
+                d[need[chunk]] = np.minimum(d[need[chunk]], ts.closest(x[need[chunk]], k=kq).distance)
+        dist[i] = d
+    nearest = np.argmin(dist, axis=0)
+    return nearest, dist[nearest, np.arange(n)]
 
 
 @dataclass(frozen=True)
@@ -93,14 +141,8 @@ def assign_segments(model, bones: dict, plan: Plan, segments: tuple[str, ...] | 
     x = np.asarray(model.nodes, float)[nodes]
 
     names = sorted(bones)
-    dist = np.empty((len(names), nodes.size))
-    for i, name in enumerate(names):
-        mesh = as_trimesh(bones[name])
-        _, d, _ = trimesh.proximity.closest_point(mesh, x)
-        dist[i] = d
-    nearest = np.argmin(dist, axis=0)
+    nearest, distance = nearest_surface([bones[n] for n in names], x)
     label = np.array(names, dtype=object)[nearest]
-    distance = dist[nearest, np.arange(nodes.size)]
 
     for seg in _cut_order(plan):
         sp = plan.segments[seg]

@@ -11,6 +11,7 @@ whatever the winding of the input, so flipped-normal files behave like correct o
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import numba
@@ -283,5 +284,19 @@ class TargetSurface:
         return np.einsum("ni,nid->nd", w, self.vertices[self.faces[f]])
 
     def transformed(self, scale: float, rotation: np.ndarray, translation: np.ndarray) -> "TargetSurface":
-        v = scale * self.vertices @ np.asarray(rotation).T + np.asarray(translation)
-        return TargetSurface(v, self.faces, self.name)
+        """The surface moved by x -> scale R x + t. A similarity (scale > 0, R proper) keeps
+        which vertices coincide, which triangles are valid, the open edges and the outward
+        orientation: only the geometry is mapped and the centroid tree rebuilt (cleaning and
+        orienting anew cost seconds on a 10^6-triangle scan)."""
+        r = np.asarray(rotation, float)
+        t = np.asarray(translation, float)
+        v = scale * self.vertices @ r.T + t
+        if not (scale > 0 and np.linalg.det(r) > 0):
+            return TargetSurface(v, self.faces, self.name)
+        out = copy.copy(self)
+        out.vertices = v
+        out.centroids = scale * self.centroids @ r.T + t
+        out.face_normals = self.face_normals @ r.T
+        out.face_areas = scale * scale * self.face_areas
+        out._tree = cKDTree(out.centroids)
+        return out

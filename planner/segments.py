@@ -5,7 +5,7 @@ registration these nodes lie on the patient's bone, and which segment they follo
 is decided by the patient's anatomy and the plan, not by the generic labels: each attachment node
 goes to the bone surface closest to it (exact point-to-triangle distance, `nearest_surface`: a
 k-d tree of triangle centroids and compiled projections, so that a CT-derived bone of 10^5-10^6
-triangles costs about as much as a synthetic one), and a
+triangles costs little more than a synthetic one), and a
 segment defined by cut planes (plan `cut_planes`, `from`) takes over the nodes of its source
 surface that lie on the kept side of all its planes (Payan et al.: nodes attached to the
 osteotomised segment follow its rigid movement, the others stay fixed with the skull).
@@ -40,43 +40,50 @@ def nearest_surface(surfaces: list, points: np.ndarray, k: int = 16) -> tuple[np
     """For each point (n, 3): the index of the closest of `surfaces` (any form `as_trimesh`
     takes) and the exact distance to it.
 
-    Per surface, the triangles of the k nearest centroids give a distance d that is exact
-    unless an unseen triangle could be closer: a triangle whose centroid lies c from the point
-    is at least c - r away (r: the largest centroid-to-corner distance of the surface), so d is
-    exact when the k-th centroid lies beyond d + r. Otherwise, and only where that surface
-    could be the nearest one (its lower bound, the nearest centroid's distance minus r, below
-    the best distance found over all surfaces), every triangle whose centroid lies within
-    d + r is projected. Ties between surfaces go to the first."""
+    Per surface, the triangles of the k nearest centroids (a k-d tree) are projected exactly
+    (Ericson's point-triangle routine, compiled: `registration.surface`). That distance d is
+    exact unless an unseen triangle could be closer: a triangle whose centroid lies c from
+    the point is at least c - r away (r: the largest centroid-to-corner distance of the
+    surface), so d is exact when the k-th centroid lies beyond d + r. Otherwise, and only
+    where that surface could be the nearest one (its lower bound, the nearest centroid's
+    distance minus r, not above the best distance found over all surfaces), every triangle
+    whose centroid lies within d + r is projected. Ties between surfaces go to the first."""
     from scipy.spatial import cKDTree
 
-    from registration.surface import TargetSurface
+    from registration.surface import _closest_over_candidates
 
-    x = np.asarray(points, float)
+    x = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
     n = len(x)
     found = []
     for surface in surfaces:
         mesh = as_trimesh(surface)
-        ts = TargetSurface(np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64))
-        tree = cKDTree(ts.centroids)
-        corners = ts.vertices[ts.faces]
-        r = float(np.linalg.norm(corners - ts.centroids[:, None, :], axis=2).max())
-        kk = int(min(k, len(ts.faces)))
-        dc, _ = tree.query(x, k=kk)
-        dc = dc.reshape(n, kk)
-        d = ts.closest(x, k=kk).distance
-        sure = (dc[:, -1] - r >= d) | (kk == len(ts.faces))
-        found.append((ts, tree, r, np.maximum(dc[:, 0] - r, 0.0), d, sure))
-    best = np.min([f[4] for f in found], axis=0)
+        v = np.ascontiguousarray(mesh.vertices, dtype=float)
+        f = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+        tri = v[f]
+        # zero-area triangles project nowhere (their edges belong to their neighbours)
+        area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        keep = area2 > 1e-12 * max(float(area2.max()), 1e-300)
+        f, tri = f[keep], tri[keep]
+        centroids = tri.mean(axis=1)
+        tree = cKDTree(centroids)
+        r = float(np.linalg.norm(tri - centroids[:, None, :], axis=2).max())
+        kk = int(min(k, len(f)))
+        dc, cand = tree.query(x, k=kk)
+        dc, cand = dc.reshape(n, kk), np.asarray(cand, np.int64).reshape(n, kk)
+        d = _closest_over_candidates(x, v, f, cand)[3]
+        sure = (dc[:, -1] - r >= d) | (kk == len(f))
+        found.append((v, f, tree, r, np.maximum(dc[:, 0] - r, 0.0), d, sure))
+    best = np.min([item[5] for item in found], axis=0)
     dist = np.empty((len(found), n))
-    for i, (ts, tree, r, lower, d, sure) in enumerate(found):
+    for i, (v, f, tree, r, lower, d, sure) in enumerate(found):
         need = np.flatnonzero(~sure & (lower <= best))
         if len(need):
-            counts = np.asarray(tree.query_ball_point(x[need], d[need] + r, return_length=True))
-            # points in groups of similar candidate counts: each query as wide as it must be
-            order = np.argsort(counts)
-            for chunk in np.array_split(order, max(1, len(order) // 256)):
-                kq = int(min(len(ts.faces), max(counts[chunk].max(), 1)))
-                d[need[chunk]] = np.minimum(d[need[chunk]], ts.closest(x[need[chunk]], k=kq).distance)
+            balls = tree.query_ball_point(x[need], d[need] + r)
+            width = max(len(b) for b in balls)
+            cand = np.full((len(need), max(width, 1)), -1, np.int64)   # -1: no candidate
+            for row, b in enumerate(balls):
+                cand[row, :len(b)] = b
+            d[need] = np.minimum(d[need], _closest_over_candidates(x[need], v, f, cand)[3])
         dist[i] = d
     nearest = np.argmin(dist, axis=0)
     return nearest, dist[nearest, np.arange(n)]

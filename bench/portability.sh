@@ -9,6 +9,9 @@
 #   bench/portability.sh --quick    tests/registration and tests/solver only
 #   bench/portability.sh --only NAME[,NAME...]   some variants (names as printed)
 #
+# Variants: default; OPENBLAS_CORETYPE=Haswell, SkylakeX, Sandybridge; MKL_CBWR=COMPATIBLE;
+# NUMBA_CPU_NAME=generic; Sandybridge+generic (the combination .ci/run uses).
+#
 # One line per variant: `variant: pass|fail (N passed, M failed, T s)`; exit 1 if any failed.
 # PYTHON (default .venv/bin/python) and WORKERS (default 2) may be set in the environment.
 set -uo pipefail
@@ -22,7 +25,7 @@ while [ $# -gt 0 ]; do
   case $1 in
     --quick) TESTS=(tests/registration tests/solver) ;;
     --only) ONLY=$2; shift ;;
-    -h|--help) sed -n '2,15p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,16p' "$0"; exit 0 ;;
     *) echo "unknown option: $1" >&2; exit 2 ;;
   esac
   shift
@@ -37,6 +40,8 @@ VARIANTS=(
   "OPENBLAS_CORETYPE=Sandybridge|OPENBLAS_CORETYPE=Sandybridge"
   "MKL_CBWR=COMPATIBLE|MKL_CBWR=COMPATIBLE"
   "NUMBA_CPU_NAME=generic|NUMBA_CPU_NAME=generic NUMBA_CACHE_DIR=$GENERIC_CACHE"
+  # the combination .ci/run repeats the registration and solver tests under
+  "Sandybridge+generic|OPENBLAS_CORETYPE=Sandybridge NUMBA_CPU_NAME=generic NUMBA_CACHE_DIR=$GENERIC_CACHE"
 )
 
 log_dir=$(mktemp -d)

@@ -44,8 +44,8 @@ VARIANTS=(
   "Sandybridge+generic|OPENBLAS_CORETYPE=Sandybridge NUMBA_CPU_NAME=generic NUMBA_CACHE_DIR=$GENERIC_CACHE"
 )
 
-log_dir=$(mktemp -d)
-trap 'rm -rf "$log_dir"' EXIT
+# each variant's pytest output is kept (for the failures' messages), removed when all passed
+log_dir=$(mktemp -d "${TMPDIR:-/tmp}/faceplan-portability-XXXXXX")
 status=0
 for v in "${VARIANTS[@]}"; do
   name=${v%%|*}
@@ -53,10 +53,10 @@ for v in "${VARIANTS[@]}"; do
   if [ -n "$ONLY" ] && [[ ",$ONLY," != *",$name,"* ]]; then
     continue
   fi
-  log="$log_dir/run.log"
+  log="$log_dir/$(tr -c 'A-Za-z0-9=+\n' _ <<<"$name").log"
   start=$(date +%s.%N)
   # shellcheck disable=SC2086  # vars is a list of NAME=VALUE words
-  env $vars "$PY" -m pytest -q -p no:cacheprovider -n "$WORKERS" "${TESTS[@]}" >"$log" 2>&1
+  env $vars "$PY" -m pytest -q -rfE -p no:cacheprovider -n "$WORKERS" "${TESTS[@]}" >"$log" 2>&1
   rc=$?
   secs=$(awk -v a="$start" -v b="$(date +%s.%N)" 'BEGIN { printf "%.0f", b - a }')
   summary=$(grep -E '^=* ?[0-9]+ (passed|failed|error)|no tests ran' "$log" | tail -1)
@@ -74,6 +74,8 @@ for v in "${VARIANTS[@]}"; do
   echo "$name: $verdict ($passed passed, $failed failed, $secs s$note)"
   if [ "$verdict" = fail ]; then
     grep -E '^(FAILED|ERROR) ' "$log" | sed 's/^/    /'
+    echo "    log: $log"
   fi
 done
+[ "$status" -eq 0 ] && rm -rf "$log_dir"
 exit $status

@@ -33,6 +33,7 @@ import scipy.sparse as sp
 from solver import (FollowerPressure, HexMesh, LocalFrame, Prescribed, SolidBody, SolveFailed,
                     Yeoh, newton_solve)
 from solver.contact import nodal_areas
+from solver.terms import Term
 
 __all__ = ["Site", "MeshOptions", "SlabMesh", "slab_mesh", "forward_curve", "BULK_FACTOR",
            "ForwardError"]
@@ -205,7 +206,7 @@ def _symmetry(sm: SlabMesh, held: np.ndarray) -> list:
     return [cn for cn in cons if len(cn.nodes)]
 
 
-class SphereContact:
+class SphereContact(Term):
     """Frictionless penalty contact of nodes against a rigid sphere whose centre moves along z.
 
     Gap g_i = |x_i - c| - R, pressure force p_i = eps A_i <-g_i>, residual -p_i n_i with
@@ -248,9 +249,6 @@ class SphereContact:
     def energy(self, x, load):
         _, dist, p = self._state(x, load)
         return float(0.5 * np.sum(p * np.maximum(self.R - dist, 0.0)))
-
-    def end_step(self, x, load):
-        return False
 
     def force_z(self, x, load) -> float:
         """Force on the sphere along +z (mN), this wedge only."""

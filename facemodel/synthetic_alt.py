@@ -377,7 +377,7 @@ def write_alt_case(folder, head, plan: dict | None = None) -> dict:
                                  "mandible": {"translation": [0.0, 3.0, 0.0]},
                                  "chin": {"translation": [0.0, 3.0, 0.0]}}}
     (folder / "plan.yaml").write_text(yaml.safe_dump(plan, sort_keys=False))
-    (folder / "case.yaml").write_text(yaml.safe_dump({"id": folder.name, "synthetic": True,
-                                                      "family": "superquadric", "seed": int(head.seed)},
+    (folder / "case.yaml").write_text(yaml.safe_dump({"id": folder.name, "synthetic": True, "seed": int(head.seed),
+                                                      "notes": "superquadric head family (facemodel.synthetic_alt)"},
                                                      sort_keys=False))
     return {"id": folder.name, "seed": int(head.seed), "shape": head.shape.as_dict()}

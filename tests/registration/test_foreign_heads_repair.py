@@ -46,3 +46,4 @@ def test_regularised_penalty_matches_the_exact_one_on_a_sound_mesh():
     f1, g1 = _penalty_and_gradient(x, hexes.astype(np.int64), local, len(x), EDGE_OPERATOR, 0.5, 25e-12)
     assert abs(f1 - f0) <= 1e-9 * f0
     assert np.abs(g1 - g0).max() <= 1e-9 * np.abs(g0).max()
+

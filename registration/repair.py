@@ -7,6 +7,7 @@ quality improvement (Knupp, "Hexahedral and tetrahedral mesh untangling", Eng. C
 2003) over a patch: the nodes of the elements whose minimum scaled Jacobian is below the
 threshold, grown by `rings` layers of neighbours. The patch objective is
   E(a) = sum over patch elements e and their 9 corners q of max(0, tau - sj_eq)^2
+         + sum over inverted corners of (det_eq / h^3)^2
          + mu * sum_nodes |x - x0|^2 / h^2,
 with tau = threshold + margin, so that invalid corners (sj <= 0) are penalised hardest
 (validity first) and corners already better than tau cost nothing (quality next, with minimal
@@ -71,12 +72,15 @@ def _tangent_bases(x: np.ndarray, free: np.ndarray, constraints: list[SurfaceCon
 
 
 @numba.njit(cache=True)
-def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0):
+def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.0):
     """sum over elements and their 9 corners of max(0, tau - sj)^2 and its gradient with
     respect to the free nodes (local[node] >= 0), accumulated node by node. Edge lengths are
     regularised, l = sqrt(|e|^2 + eps2): with eps2 > 0 a collapsed edge (two nodes on one
     point, as a projection onto a patient surface can leave) gives a finite objective and
-    gradient instead of a division by zero; eps2 = (1e-6 h)^2 changes sj by ~1e-12 elsewhere."""
+    gradient instead of a division by zero; eps2 = (1e-6 h)^2 changes sj by ~1e-12 elsewhere.
+    With h3 > 0 (a typical element volume, h^3) every inverted corner also costs (det / h3)^2,
+    Knupp's untangling term on the unscaled Jacobian: the scaled Jacobian is stationary at -1
+    (an element turned inside out as a whole has a zero sj gradient), its determinant is not."""
     f = 0.0
     g = np.zeros((n_free, 3))
     e = np.empty((3, 3))
@@ -104,11 +108,15 @@ def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0):
                 continue
             f += short * short
             coef = -2.0 * short
+            untangle = 0.0
+            if h3 > 0.0 and det < 0.0:
+                f += (det / h3) ** 2
+                untangle = 2.0 * det / (h3 * h3)
             for k in range(3):
                 lk = l0 if k == 0 else (l1 if k == 1 else l2)
                 for d in range(3):
                     cd = c23[d] if k == 0 else (c31[d] if k == 1 else c12[d])
-                    dsj = cd / prod - sj * e[k, d] / (lk * lk)
+                    dsj = cd / prod - sj * e[k, d] / (lk * lk) + untangle * cd / coef
                     for n in range(8):
                         w = edge_op[q, k, n]
                         if w != 0.0:
@@ -128,7 +136,7 @@ def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h, maxiter=50):
     def fun(a):
         a = a.reshape(-1, 3)
         xw[free] = x0 + np.einsum("kij,kj->ki", basis, a)
-        f, g = _penalty_and_gradient(xw, hx, local, len(free), EDGE_OPERATOR, tau, (1e-6 * h) ** 2)
+        f, g = _penalty_and_gradient(xw, hx, local, len(free), EDGE_OPERATOR, tau, (1e-6 * h) ** 2, h**3)
         dx = xw[free] - x0
         f += mu * float(np.sum(dx**2)) / h**2
         g += 2.0 * mu * dx / h**2

@@ -5,7 +5,8 @@ face region (in front of the ears, down under the chin) at several heights (`--c
 scan to the forehead, a CBCT ending below the eyes, one ending at mid-nose), registered with
 their landmarks (and, with `--no-landmarks`, also without them) at each resolution. One line
 per run: success, minimum scaled Jacobian, inverted elements, skin fit (mean / p95 mm),
-bone fit mean, landmark error (max), regions not fitted, time; a summary per resolution.
+bone fit mean, landmark error (max), coverage, surface nodes the repair released, regions
+not fitted, time; a summary per resolution.
 
 Usage: python bench/heads.py [--heads 6] [--first 100] [--cuts scan,below_eyes,mid_nose]
                              [--resolutions coarse,standard] [--fine] [--no-landmarks]
@@ -55,7 +56,8 @@ def run_one(model, head, landmarks: bool):
            "skin_mean": (fit.get("skin") or {}).get("mean_mm"), "skin_p95": (fit.get("skin") or {}).get("p95_mm"),
            "bone_mean": (fit.get("bone") or {}).get("mean_mm"),
            "lm_max": max((v["error_mm"] for v in lm.values()), default=None),
-           "coverage": rep.get("coverage"), "unfitted": unfitted}
+           "coverage": rep.get("coverage"), "unfitted": unfitted,
+           "released": (rep.get("repair") or {}).get("nodes_released_from_surfaces")}
     return row
 
 
@@ -88,7 +90,7 @@ def main(argv=None) -> int:
                     print(f"{res:8s} head {seed} {cut:10s} lm={'y' if with_lm else 'n'} {r['status']:5s} "
                           f"minSJ {fmt(r['min_sj'])} inv {fmt(r['inverted'], 'd')} "
                           f"skin {fmt(r['skin_mean'])}/{fmt(r['skin_p95'])} mm bone {fmt(r['bone_mean'])} "
-                          f"lm_max {fmt(r['lm_max'], '.2f')} cover {fmt(r['coverage'], '.2f')} "
+                          f"lm_max {fmt(r['lm_max'], '.2f')} cover {fmt(r['coverage'], '.2f')} released {fmt(r['released'], 'd')} "
                           f"not_fitted [{','.join(r['unfitted'])}] {r['time_s']:.1f} s {r['error'][:120]}",
                           flush=True)
     print()

@@ -116,7 +116,7 @@ class IcpResult:
 def trimmed_icp(source: TargetSurface, target: TargetSurface, init: Similarity, *,
                 n_points: int = 800, iterations: int = 30, keep: float = 0.9,
                 inlier_mm: float = 5.0, scale_bounds=(0.6, 1.6), tol: float = 1e-4,
-                seed: int = 0, extra=(), fix_scale: bool = False) -> IcpResult:
+                seed: int = 0, extra=(), fix_scale: bool = False, step_tol: float = 0.0) -> IcpResult:
     """Symmetric trimmed ICP between two triangulated surfaces (similarity, point-to-plane).
 
     Forward pairs: source samples -> closest point on the target; reverse pairs: target samples
@@ -128,7 +128,9 @@ def trimmed_icp(source: TargetSurface, target: TargetSurface, init: Similarity, 
     the model's bone attachment nodes and the patient's bone segment they belong to, matched
     forwards like the samples (trimmed, point-to-plane) and weighted as much as the skin's
     forward pairs together; their truncated error enters the score likewise. fix_scale: a
-    rigid refinement at the starting scale."""
+    rigid refinement at the starting scale. Iterations stop when the RMS changes by less than
+    `tol` (relative) or, with step_tol > 0, when the step moves the pairs by less than step_tol
+    mm (rotation and scale over the pairs' spread, plus translation)."""
     rng = np.random.default_rng(seed)
     src, src_n = _samples(source, n_points, rng)
     tgt, tgt_n = _samples(target, n_points, rng)
@@ -191,12 +193,16 @@ def trimmed_icp(source: TargetSurface, target: TargetSurface, init: Similarity, 
         tf = new
         if abs(prev - rms) < tol * max(rms, 1e-9):
             break
+        # the pose itself has stopped moving (motion of the pairs' spread below step_tol mm)
+        spread = float(np.sqrt(w @ np.sum(mc**2, axis=1) / w.sum()))
+        if step_tol and spread * (np.linalg.norm(step[:3]) + abs(step[3])) + np.linalg.norm(step[4:]) < step_tol:
+            break
         prev = rms
     return IcpResult(tf, rms, float(inl), score)
 
 
 def align_surfaces(source: TargetSurface, target: TargetSurface, *, good_rms_mm: float = 3.0,
-                   seed: int = 0, extra=(), fix_scale: bool = False) -> IcpResult:
+                   seed: int = 0, extra=(), fix_scale: bool = False, step_tol: float = 0.0) -> IcpResult:
     """Similarity taking the generic skin `source` onto the patient skin `target`.
 
     The identity (both surfaces are in patient RAS and mm) is tried first and kept when its
@@ -244,7 +250,7 @@ def _finish_with_bones(source, target, start: Similarity, seed: int, extra) -> I
     search starts, i.e. on how the patient lies in the scanner -- while the bones under it,
     the skull above all, fix both; the skin finishes the pose (its surface is the one the
     registration fits) without rescaling the head onto a part of the face."""
-    joint = trimmed_icp(source, target, start, n_points=1500, iterations=200, seed=seed + 1, extra=extra,
-                        tol=1e-7)
-    return trimmed_icp(source, target, joint.similarity, n_points=1500, iterations=200, seed=seed + 1,
-                       fix_scale=True, tol=1e-7)
+    joint = trimmed_icp(source, target, start, n_points=1500, iterations=60, seed=seed + 1, extra=extra,
+                        tol=0.0, step_tol=0.05)
+    return trimmed_icp(source, target, joint.similarity, n_points=1500, iterations=100, seed=seed + 1,
+                       fix_scale=True, tol=0.0, step_tol=0.05)

@@ -8,8 +8,12 @@ per run: success, minimum scaled Jacobian, inverted elements, skin fit (mean / p
 bone fit mean, landmark error (max), coverage, surface nodes the repair released, regions
 not fitted, time; a summary per resolution.
 
+With `--family own` the heads come from faceplan's own generator (`facemodel.synthetic`),
+cut the same way: the comparison.
+
 Usage: python bench/heads.py [--heads 6] [--first 100] [--cuts scan,below_eyes,mid_nose]
                              [--resolutions coarse,standard] [--fine] [--no-landmarks]
+                             [--family alt|own]
 """
 from __future__ import annotations
 
@@ -73,6 +77,8 @@ def main(argv=None) -> int:
     ap.add_argument("--resolutions", default="coarse,standard")
     ap.add_argument("--fine", action="store_true", help="also at fine resolution")
     ap.add_argument("--no-landmarks", action="store_true", help="also register without landmarks")
+    ap.add_argument("--family", choices=("alt", "own"), default="alt",
+                    help="alt: the superquadric family; own: faceplan's generator (the comparison)")
     args = ap.parse_args(argv)
     resolutions = args.resolutions.split(",") + (["fine"] if args.fine else [])
     cuts = args.cuts.split(",")
@@ -80,7 +86,12 @@ def main(argv=None) -> int:
     for res in resolutions:
         model = generic_mesh.load(res)
         for seed in range(args.first, args.first + args.heads):
-            head = synthetic_alt.alt_head(seed)
+            if args.family == "alt":
+                head = synthetic_alt.alt_head(seed)
+            else:
+                from facemodel import synthetic
+
+                head = synthetic.synthetic_head(seed)
             for cut in cuts:
                 cropped = synthetic_alt.crop_face(head, cut)
                 for with_lm in (True, False) if args.no_landmarks else (True,):

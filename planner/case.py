@@ -43,6 +43,10 @@ METRES_DIAGONAL_MM = 1.0
 # ~20 mm on the face), so 30 mm leaves room for both. (An LPS/RAS mix-up on a closed head
 # surface can land on the back of the head and pass; on a face-only surface it is caught.)
 LANDMARK_MAX_SKIN_DISTANCE_MM = 30.0
+# The accepted landmark names are all soft-tissue landmarks, placed on the skin: placement and
+# surface differences (another isosurface of the same CT) stay within ~1-2 mm, so a median
+# distance above this is another frame or another scan.
+LANDMARK_MEDIAN_SKIN_DISTANCE_MM = 4.0
 # A bone segment whose nearest point is farther than this from the skin is not under that skin
 # (facial soft tissue is 3-25 mm thick over bone): another frame origin, units or patient.
 BONE_MAX_SKIN_DISTANCE_MM = 30.0
@@ -566,6 +570,15 @@ def _check_landmarks_near_skin(landmarks: dict, skin, file: str) -> None:
     if check.any():
         _, distance[check], _ = trimesh.proximity.closest_point(skin, points[check])
     far = distance > LANDMARK_MAX_SKIN_DISTANCE_MM
+    if not far.any() and len(points) >= 3 and np.median(distance) > LANDMARK_MEDIAN_SKIN_DISTANCE_MM:
+        # every accepted name is a soft-tissue landmark: together they lie on the skin (the
+        # nearest-vertex distance is an upper bound, so only then is the exact one needed)
+        _, exact, _ = trimesh.proximity.closest_point(skin, points)
+        if np.median(exact) > LANDMARK_MEDIAN_SKIN_DISTANCE_MM:
+            k = int(np.argmax(exact))
+            raise InputError(f"the landmarks do not lie on the skin (median {np.median(exact):.1f} mm off, "
+                             f"{names[k]} {exact[k]:.1f} mm): the skin or the landmarks are in another "
+                             "frame (LPS vs RAS) or of another scan", file=file, field=f"landmarks.{names[k]}")
     if far.any():
         k = int(np.argmax(distance))
         raise InputError(f"landmark {names[k]} lies {distance[k]:.0f} mm from the skin surface "

@@ -56,6 +56,7 @@ from scipy.spatial import cKDTree
 
 from registration.alignment import Similarity
 from registration.surface import TargetSurface
+from solver.geometry import deepest_concavity
 
 MIDLINE_RADIUS = 15.0    # mm: mirror pairs around a landmark that place its mid-sagittal plane
 SYMMETRY_RADIUS = 12.0   # mm: skin around a landmark whose mirror symmetry refines that plane
@@ -293,24 +294,8 @@ def deepest_under_bitangent(p: np.ndarray, lo: int, hi: int, with_span: bool = F
     """On the profile arc p[lo..hi] (ordered downwards): the index of the point deepest behind
     the anterior convex hull edge that spans the arc's deepest concavity; `with_span`: also
     that edge's ends (i, j) and its inward (posterior) unit normal in (y, z)."""
-    yz = p[:, 1:]
-    best, best_k = -1.0, lo
-    span = (lo, hi, np.array([-1.0, 0.0]))
-    i = lo
-    while i < hi:
-        d = yz[i + 1:hi + 1] - yz[i]
-        j = i + 1 + int(np.argmax(np.arctan2(d[:, 0], -d[:, 1])))  # next anterior hull vertex
-        if j > i + 1:
-            chord = yz[j] - yz[i]
-            inward = np.array([-chord[1], chord[0]]) / np.linalg.norm(chord)
-            if inward[0] > 0:
-                inward = -inward
-            depth = (yz[i + 1:j] - yz[i]) @ inward
-            k = int(np.argmax(depth))
-            if depth[k] > best:
-                best, best_k, span = float(depth[k]), i + 1 + k, (i, j, inward)
-        i = j
-    return (best_k, span) if with_span else best_k
+    k, i, j, inward = deepest_concavity(p[:, 1:], lo, hi)
+    return (k, (i, j, inward)) if with_span else k
 
 
 def _thin(p: np.ndarray, min_step: float = 0.25) -> np.ndarray:

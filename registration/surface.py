@@ -19,44 +19,7 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-
-@numba.njit(cache=True)
-def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
-    """Barycentric coordinates (u, v, w) of the point of triangle abc closest to p
-    (Ericson 5.1.5, scalar form: no temporaries)."""
-    abx, aby, abz = bx - ax, by - ay, bz - az
-    acx, acy, acz = cx - ax, cy - ay, cz - az
-    apx, apy, apz = px - ax, py - ay, pz - az
-    d1 = abx * apx + aby * apy + abz * apz
-    d2 = acx * apx + acy * apy + acz * apz
-    if d1 <= 0.0 and d2 <= 0.0:
-        return 1.0, 0.0, 0.0
-    bpx, bpy, bpz = px - bx, py - by, pz - bz
-    d3 = abx * bpx + aby * bpy + abz * bpz
-    d4 = acx * bpx + acy * bpy + acz * bpz
-    if d3 >= 0.0 and d4 <= d3:
-        return 0.0, 1.0, 0.0
-    vc = d1 * d4 - d3 * d2
-    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        v = d1 / (d1 - d3)
-        return 1.0 - v, v, 0.0
-    cpx, cpy, cpz = px - cx, py - cy, pz - cz
-    d5 = abx * cpx + aby * cpy + abz * cpz
-    d6 = acx * cpx + acy * cpy + acz * cpz
-    if d6 >= 0.0 and d5 <= d6:
-        return 0.0, 0.0, 1.0
-    vb = d5 * d2 - d1 * d6
-    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        w = d2 / (d2 - d6)
-        return 1.0 - w, 0.0, w
-    va = d3 * d6 - d5 * d4
-    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        return 0.0, 1.0 - w, w
-    denom = 1.0 / (va + vb + vc)
-    v = vb * denom
-    w = vc * denom
-    return 1.0 - v - w, v, w
+from solver.geometry import point_triangle
 
 
 @numba.njit(cache=True)
@@ -74,10 +37,10 @@ def _closest_over_candidates(points, vertices, faces, candidates):
             if f < 0:
                 continue
             ia, ib, ic = faces[f, 0], faces[f, 1], faces[f, 2]
-            u, v, w = _closest_on_triangle(px, py, pz,
-                                           vertices[ia, 0], vertices[ia, 1], vertices[ia, 2],
-                                           vertices[ib, 0], vertices[ib, 1], vertices[ib, 2],
-                                           vertices[ic, 0], vertices[ic, 1], vertices[ic, 2])
+            _, _, _, u, v, w, _ = point_triangle(
+                px, py, pz, vertices[ia, 0], vertices[ia, 1], vertices[ia, 2],
+                vertices[ib, 0], vertices[ib, 1], vertices[ib, 2],
+                vertices[ic, 0], vertices[ic, 1], vertices[ic, 2])
             qx = u * vertices[ia, 0] + v * vertices[ib, 0] + w * vertices[ic, 0]
             qy = u * vertices[ia, 1] + v * vertices[ib, 1] + w * vertices[ic, 1]
             qz = u * vertices[ia, 2] + v * vertices[ib, 2] + w * vertices[ic, 2]

@@ -79,13 +79,20 @@ def test_a_live_writer_s_temporary_is_not_touched(tmp_path):
     assert live.is_dir()
 
 
-@pytest.mark.parametrize("delay", [0.2, 1.5, 4.0])
+# the command starts right after the interpreter has imported planner.cli ("ready"); an
+# interrupt before that hits Python's own start-up, which no program can catch
+STARTER = ("import sys, planner.cli; sys.stderr.write('ready\\n'); sys.stderr.flush(); "
+           "sys.exit(planner.cli.main(sys.argv[1:]))")
+
+
+@pytest.mark.parametrize("delay", [0.05, 1.5, 4.0])
 def test_ctrl_c_at_any_moment_exits_130(tmp_path, delay):
     out = tmp_path / "demo"
-    p = subprocess.Popen([sys.executable, "-m", "planner.cli", "demo", "--out", str(out),
-                          "--no-images", "--quiet"], env={**ENV, "FACEPLAN_CACHE": str(tmp_path / "c")},
-                         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(delay)
+    p = subprocess.Popen([sys.executable, "-c", STARTER, "demo", "--out", str(out), "--no-images", "--quiet"],
+                         env={**ENV, "FACEPLAN_CACHE": str(tmp_path / "c")}, cwd=tmp_path,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert p.stderr.readline().strip() == "ready"
+    time.sleep(delay)          # 0.05 s: still importing the commands (numpy, scipy, trimesh...)
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=120)
     assert p.returncode == 130, err
@@ -119,3 +126,32 @@ def test_a_bug_s_oserror_is_not_dressed_as_environment(monkeypatch):
     monkeypatch.setattr(cli, "_load", lambda name: fake)
     with pytest.raises(FileNotFoundError):
         cli.main(["fake"])
+
+
+def _in_private_mount(tmp_path, options, argv):
+    """Run the CLI with a fresh tmpfs (mount `options`) at tmp_path/mnt, in a private user and
+    mount namespace (`unshare -rm`: no privilege needed where user namespaces are enabled)."""
+    import shutil as sh
+
+    if sh.which("unshare") is None:
+        pytest.skip("unshare not available")
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    probe = subprocess.run(["unshare", "-rm", "mount", "-t", "tmpfs", "-o", options, "tmpfs", str(mnt)],
+                           capture_output=True)
+    if probe.returncode != 0:
+        pytest.skip("no user/mount namespaces here")
+    script = (f"mount -t tmpfs -o {options} tmpfs {mnt} && "
+              f"exec {sys.executable} -m planner.cli " + " ".join(argv))
+    return subprocess.run(["unshare", "-rm", "sh", "-c", script], env=ENV, capture_output=True,
+                          text=True, timeout=120), mnt
+
+
+@pytest.mark.parametrize("options,words", [("size=1m", "MB free"), ("ro,size=1m", "not writable")])
+def test_real_full_or_read_only_disk_refused_before_work(tmp_path, options, words):
+    case = tmp_path / "case"
+    (case / "preop").mkdir(parents=True)
+    p, mnt = _in_private_mount(tmp_path, options, ["predict", str(case), "--out", str(tmp_path / "mnt" / "out"),
+                                                   "--quiet"])
+    assert p.returncode == 2, p.stderr
+    assert words in p.stderr and "Traceback" not in p.stderr and str(mnt / "out") in p.stderr

@@ -204,3 +204,10 @@ def test_another_patients_scan_is_refused(tmp_path, phantoms, capsys):
     assert main(["compare", str(case), "--no-images"]) == 0
     rep = json.loads((case / "compare" / "report.json").read_text())
     assert rep["alignment"]["unoperated_median_mm"] < 0.6
+
+
+def test_skin_alone_in_lps(case):
+    # bones and landmarks in RAS, the skin in LPS: the landmarks no longer lie on the skin
+    _transform(case / "preop" / "skin.stl", lambda v: v * [-1.0, -1.0, 1.0])
+    err = _refused(case, "do not lie on the skin", "LPS")
+    assert err.file.endswith("landmarks.json")

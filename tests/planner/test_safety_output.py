@@ -129,16 +129,25 @@ def test_unwritable_location_is_refused_before_work(case, tmp_path, no_work, cap
     assert "not writable" in err and str(out) in err and not out.exists()
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only-mode folders")
-def test_read_only_folder_is_refused(case, tmp_path, no_work, capsys):
-    ro = tmp_path / "ro"
-    ro.mkdir()
-    ro.chmod(0o555)
-    try:
-        assert main(_argv("register", case, ro / "out")) == 2
-        assert "not writable" in capsys.readouterr().err
-    finally:
-        ro.chmod(0o755)
+def test_read_only_file_system_is_refused(case, tmp_path, no_work, capsys, monkeypatch):
+    """A read-only file system (EROFS on creating the probe file; as root, permission bits do
+    not stop writes, so the file system's answer is patched in)."""
+    import errno
+    import tempfile
+
+    real = tempfile.mkstemp
+
+    def read_only(*a, dir=None, **k):
+        if dir is not None and Path(dir).is_relative_to(tmp_path / "ro"):
+            raise OSError(errno.EROFS, "Read-only file system", str(dir))
+        return real(*a, dir=dir, **k)
+
+    (tmp_path / "ro").mkdir()
+    monkeypatch.setattr(atomic.tempfile, "mkstemp", read_only)
+    assert main(_argv("register", case, tmp_path / "ro" / "out")) == 2
+    err = capsys.readouterr().err
+    assert "not writable" in err and "Read-only file system" in err
+    assert list((tmp_path / "ro").iterdir()) == []
 
 
 def test_too_little_free_space_is_refused(case, tmp_path, no_work, capsys, monkeypatch):

@@ -123,9 +123,9 @@ REGION_FITTED_MIN = 0.5  # a region is fitted when the patient skin covers this 
 
 def region_coverage(regions: dict, skin_ids: np.ndarray, valid: np.ndarray, dist: np.ndarray,
                     fitted_min: float = REGION_FITTED_MIN) -> dict:
-    """Per skin region: how many of its skin nodes the patient skin covers (closest point
-    inside the patient surface with an agreeing normal: `valid`, over `skin_ids`) and their
-    distance to it. A region covered on less than `fitted_min` of its nodes is "not fitted":
+    """Per skin region: how many of its skin nodes the patient skin covers (`valid`, over
+    `skin_ids`: the caller's test -- closest point inside the patient surface with an agreeing
+    normal, within the snap distance) and their distance to it. A region covered on less than `fitted_min` of its nodes is "not fitted":
     its shape is the generic one carried by the covered skin and the bones (the elastic
     transform and the harmonic extension), not the patient's."""
     pos = np.full(int(max(skin_ids.max(initial=0), max((int(np.max(v)) for v in regions.values()
@@ -532,7 +532,8 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         },
         "quality": quality_summary(x, hexes, opt.threshold),
         # the skin regions the patient skin covers, and those it does not (carried, not fitted)
-        "regions": region_coverage(model.regions, skin_ids, valid, cl.distance),
+        "regions": region_coverage(model.regions, skin_ids, valid & (cl.distance <= opt.max_snap_mm),
+                                   cl.distance),
         "repair": rep,
         "landmark_correction": landmark_report,
         "landmark_search": search_report,

@@ -1,7 +1,8 @@
 # faceplan — the two commands of the README.
 #   make demo : set up .venv (system packages too) and run the demo prediction into out/demo
 #   make test : the same set-up, then the whole test suite
-.PHONY: setup demo test bench clean
+#   make portability : the suite under each BLAS / numba variant (bench/portability.sh)
+.PHONY: setup demo test portability bench clean
 
 setup:
 	bash .ci/setup.sh
@@ -12,6 +13,9 @@ demo: setup
 # pytest exits 5 when it collects nothing: treat that as a failure to be visible, never silent.
 test: setup
 	.venv/bin/python -m pytest -q -n 2 tests
+
+portability: setup
+	bash bench/portability.sh
 
 bench: setup
 	for b in bench/*.py; do .venv/bin/python $$b || exit $$?; done

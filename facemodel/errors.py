@@ -1,8 +1,9 @@
 """Errors of the anatomy layer (`facemodel`), free of the application's error classes.
 
 `CTError` is raised by `facemodel.ct` for a CT volume that cannot be used (unreadable, empty,
-not in Hounsfield units, an inconsistent DICOM series); the planner turns it into an
-`InputError` naming the file.
+not in Hounsfield units, an inconsistent DICOM series); `ModelInputError` by
+`facemodel.simulation.simulate` for motions, activations, materials or model parts it cannot
+use. The planner turns both into an `InputError`; any other exception is a bug.
 """
 from __future__ import annotations
 
@@ -16,3 +17,9 @@ class CTError(ValueError):
         self.reason = reason
         self.file = str(file) if file is not None else None
         super().__init__(f"{self.file}: {reason}" if self.file else reason)
+
+
+class ModelInputError(ValueError):
+    """Input the face model cannot use: an unknown segment or muscle, a motion that is not
+    rigid, an activation outside [0, 1], a label without a material, contact asked of a model
+    without lip contact surfaces."""

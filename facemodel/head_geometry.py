@@ -32,6 +32,8 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
+from solver.geometry import deepest_concavity
+
 CENTRE = np.array([0.0, 10.0, -20.0])
 PHI_STOMION = -19.0          # elevation of the mouth line (deg)
 THETA_COMMISSURE = 18.0      # azimuth of the commissures (deg): mouth width ~50 mm
@@ -39,7 +41,6 @@ PHI_LE_FORT = -4.0           # Le Fort I osteotomy at the midline (deg)
 CROWN_SPAN = 7.5             # crown height in elevation (deg): ~10 mm
 OVERJET = 2.5                # mm
 TEETH_GAP = 0.25             # mm between the lip mucosa and the labial surface of the teeth
-ARCH_END = 40.0              # azimuth of the last tooth (deg)
 BONE_SHELL = 7.0             # thickness of the bone segment shells (mm)
 OSTEOTOMY_KERF = 0.8         # deg between bone segments
 
@@ -515,24 +516,8 @@ def _deepest_under_bitangent(p: np.ndarray, i0: int, i1: int) -> tuple[int, int]
     """On the profile arc p[i0..i1] ((k, 2) as (anterior y, superior z), ordered downwards):
     the anterior convex hull edge that spans the arc's deepest concavity, as (index of the
     deepest point under it, index of the hull vertex that closes it below)."""
-    best = (-1.0, i0, i1)
-    i = i0
-    while i < i1:
-        # next anterior hull vertex: the point below i whose chord leans farthest forward
-        d = p[i + 1:i1 + 1] - p[i]
-        ang = np.arctan2(d[:, 0], -d[:, 1])
-        j = i + 1 + int(np.argmax(ang))
-        if j > i + 1:
-            chord = p[j] - p[i]
-            inward = np.array([-chord[1], chord[0]]) / np.linalg.norm(chord)  # posterior side
-            if inward[0] > 0:
-                inward = -inward
-            depth = (p[i + 1:j] - p[i]) @ inward
-            k = int(np.argmax(depth))
-            if depth[k] > best[0]:
-                best = (float(depth[k]), i + 1 + k, j)
-        i = j
-    return best[1], best[2]
+    k, _, j, _ = deepest_concavity(p, i0, i1)
+    return k, j
 
 
 def menton_direction() -> np.ndarray:

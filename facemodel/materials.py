@@ -120,12 +120,17 @@ def table_rows() -> list:
                  sources={k: SOURCES[v] for k, v in e.sources.items()}) for e in MATERIALS.values()]
 
 
-def default_materials(model=None, stiffness: float = 1.0) -> dict:
-    """Solver material objects per label (solver.constitution `Yeoh` / `Muscle`), for the
-    labels of `model` (all labels of the table when None)."""
+def solver_material(label: str, params: dict):
+    """The solver material object (solver.constitution `Yeoh` / `Muscle`, the table's law of
+    `label`) with keyword parameters `params`."""
     from solver.constitution import Yeoh
     from solver.constitution.muscle import Muscle
 
-    laws = {"Yeoh": Yeoh, "Muscle": Muscle}
+    return {"Yeoh": Yeoh, "Muscle": Muscle}[material(label).law](**params)
+
+
+def default_materials(model=None, stiffness: float = 1.0) -> dict:
+    """Solver material objects per label (solver.constitution `Yeoh` / `Muscle`), for the
+    labels of `model` (all labels of the table when None)."""
     labels = LABEL_NAMES if model is None else tuple(model.label_names)
-    return {label: laws[material(label).law](**parameters(label, stiffness)) for label in labels}
+    return {label: solver_material(label, parameters(label, stiffness)) for label in labels}

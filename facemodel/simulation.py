@@ -29,63 +29,23 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from facemodel.attachments import bone_frames
+from facemodel.errors import ModelInputError
+from facemodel.materials import default_materials
+from facemodel.model import MUSCLES
+from facemodel.solver_settings import FACE_SOLVER
 from solver.bc import LocalFrame, Prescribed
-from solver.constitution import Yeoh
 from solver.constitution.muscle import Muscle
 from solver.contact import RigidSurfaceContact, SurfaceContact, TriangleSurface, ramped_rigid_motion
 from solver.contact._geometry import triangulate
 from solver.loads import BodyForce
-from solver.mechanics import SolidBody
+from solver.mechanics import SolidBody, von_mises
 from solver.mesh import HexMesh
 from solver.newton import newton_solve
 
-__all__ = ["simulate", "build_problem", "SimulationResult", "MUSCLES", "default_face_materials",
+__all__ = ["simulate", "build_problem", "moved_constraints", "SimulationResult", "MUSCLES",
            "lip_penetrations", "rigid_motion_ok"]
 
 log = logging.getLogger("facemodel.simulation")
-
-MUSCLES = ("orbicularis_oris", "zygomaticus_major", "levator_labii_superioris", "risorius",
-           "buccinator", "depressor_anguli_oris", "depressor_labii_inferioris", "mentalis")
-
-# Fallback soft-tissue values when facemodel.materials offers no table (kPa): Yeoh constants
-# of face tissue used by Payan's group (Barbarino et al. 2009; Nazari et al. 2010: muscle
-# C10 = 2.5 kPa, C20 = 1.175 kPa at rest), near incompressibility K = 1000 C10 (nu ~ 0.4998);
-# muscle active stress T_max = 100 kPa as in published face models (Nazari 2010; Flynn 2013).
-_FALLBACK = {
-    "dermis": dict(C10=10.0, C20=5.0), "hypodermis": dict(C10=1.5, C20=0.7),
-    "mucosa": dict(C10=2.5, C20=1.175), "nose": dict(C10=10.0, C20=5.0),
-}
-_MUSCLE_FALLBACK = dict(C10=2.5, C20=1.175, C30=0.0, k1=2.0, k2=5.0, T_max=100.0, lam_opt=1.0,
-                        width=0.5, G_T=0.5, G_T_active=10.0)
-
-
-def default_face_materials(model) -> dict:
-    """Materials per label name: `facemodel.materials`' table when available, else fallback."""
-    try:
-        from facemodel import materials as fm
-    except ImportError:
-        fm = None
-    if fm is not None:
-        for name in ("default_materials", "materials_table", "default_table"):
-            fn = getattr(fm, name, None)
-            if callable(fn):
-                try:
-                    return dict(fn(model))
-                except TypeError:
-                    return dict(fn())
-        for name in ("DEFAULT_MATERIALS", "MATERIALS", "TABLE"):
-            if isinstance(getattr(fm, name, None), dict):
-                return dict(getattr(fm, name))
-    out = {}
-    for name in model.label_names:
-        if name in MUSCLES:
-            p = dict(_MUSCLE_FALLBACK)
-            out[name] = Muscle(K=1000.0 * p["C10"], **p)
-        else:
-            p = _FALLBACK.get(name, dict(C10=2.5, C20=1.175))
-            out[name] = Yeoh(K=1000.0 * p["C10"], **p)
-    return out
-
 
 def rigid_motion_ok(T, tol: float = 1e-6) -> bool:
     """True if T is a finite 4x4 proper rigid motion."""
@@ -171,41 +131,42 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
                   sliding_nodes=None, materials=None, growth=None, body_force=None,
                   penalty_factor=1.0, contact_tolerance=0.05):
     """The FE problem `simulate` solves: (SolidBody, constraints, contact terms {name: term},
-    other terms [body force], lip facet size or None); arguments as `simulate`'s."""
+    other terms [body force], lip facet size or None); arguments as `simulate`'s. The body's
+    `constraint_segments` names the segment each constraint follows."""
     motions = dict(motions or {})
     activations = dict(activations or {})
     segments = tuple(model.segments)
     for seg, T in motions.items():
         if seg not in segments:
-            raise ValueError(f"unknown bone segment {seg!r} (segments: {', '.join(segments)})")
+            raise ModelInputError(f"unknown bone segment {seg!r} (segments: {', '.join(segments)})")
         if not rigid_motion_ok(T):
-            raise ValueError(f"the motion of segment {seg!r} is not a 4x4 rigid transform")
+            raise ModelInputError(f"the motion of segment {seg!r} is not a 4x4 rigid transform")
     names = tuple(model.label_names)
     for m, a in activations.items():
         if m not in names:
-            raise ValueError(f"unknown muscle {m!r} (labels: {', '.join(names)})")
+            raise ModelInputError(f"unknown muscle {m!r} (labels: {', '.join(names)})")
         if not (np.isfinite(a) and 0.0 <= a <= 1.0):
-            raise ValueError(f"activation of {m!r} must be in [0, 1], got {a}")
+            raise ModelInputError(f"activation of {m!r} must be in [0, 1], got {a}")
     sliding = tuple(sliding or ())
     for seg in sliding:
         if seg not in segments:
-            raise ValueError(f"cannot slide on unknown segment {seg!r}")
+            raise ModelInputError(f"cannot slide on unknown segment {seg!r}")
 
     X = np.asarray(model.nodes, dtype=float)
     labels = np.asarray(model.labels, dtype=np.int64)
-    table = default_face_materials(model) if materials is None else dict(materials)
+    table = default_materials(model) if materials is None else dict(materials)
     by_label = {}
     for li, name in enumerate(names):
         if not np.any(labels == li):
             continue
         if name not in table:
-            raise ValueError(f"no material for tissue label {name!r}")
+            raise ModelInputError(f"no material for tissue label {name!r}")
         mat = table[name]
         a = float(activations.get(name, 0.0))
         if isinstance(mat, Muscle):
             mat = mat.with_activation(a)
         elif a > 0:
-            raise ValueError(f"label {name!r} has activation {a} but no active material")
+            raise ModelInputError(f"label {name!r} has activation {a} but no active material")
         by_label[li] = mat
     fibres = getattr(model, "fibres", None)
     body = SolidBody(HexMesh(X, model.hexes, labels), by_label,
@@ -219,7 +180,7 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
     sliding_nodes = dict(sliding_nodes or {})
     for seg in sliding_nodes:
         if seg not in segments:
-            raise ValueError(f"cannot slide on unknown segment {seg!r}")
+            raise ModelInputError(f"cannot slide on unknown segment {seg!r}")
     on_bone = np.zeros(len(X), dtype=bool)          # nodes of the deep facets on the bone
     on_bone[np.asarray(model.facet_sets.get("deep_bone", np.zeros((0, 4))), dtype=np.int64)] = True
     for seg, ids in attach.items():
@@ -243,12 +204,16 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
         fs = model.facet_sets
         up = np.asarray(fs.get("lip_upper_contact", np.zeros((0, 4))), dtype=np.int64)
         lo = np.asarray(fs.get("lip_lower_contact", np.zeros((0, 4))), dtype=np.int64)
-        if len(up) and len(lo):
-            h = lip_size = _typical_size(X, np.vstack([up, lo]))
-            mu = _local_shear_modulus(model, by_label, np.vstack([up, lo]))
-            terms["lip_contact"] = SurfaceContact(
-                X, up, lo, penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
-                search_radius=max(1.0, h), max_depth=max(2.0, h))
+        if not (len(up) and len(lo)):
+            raise ModelInputError("contact asked for, but the model has no lip contact surfaces "
+                                  "(facet sets lip_upper_contact and lip_lower_contact); "
+                                  "solve with contact=False to go without lip contact")
+        h = lip_size = _typical_size(X, np.vstack([up, lo]))
+        mu = _local_shear_modulus(model, by_label, np.vstack([up, lo]))
+        terms["lip_contact"] = SurfaceContact(
+            X, up, lo, penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
+            search_radius=max(1.0, h), max_depth=max(2.0, h),
+            pair_hysteresis=FACE_SOLVER.pair_hysteresis)
         mucosa = [np.asarray(fs[k], dtype=np.int64) for k in ("lip_upper_teeth", "lip_lower_teeth")
                   if k in fs and len(fs[k])]
         if mucosa:
@@ -304,8 +269,10 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     n_steps: initial number of load steps. log: optional callable receiving one text line per
     Newton iteration. penalty_factor: contact penalty eps = factor * 3 mu / h (mu the
     median shear modulus of the tissue at the contact surface, h its median facet edge). contact_tolerance:
-    largest lip/teeth penetration accepted (mm). Raises ValueError for bad motions or
-    activations and `solver.errors.SolveFailed` if Newton fails.
+    largest lip/teeth penetration accepted (mm). Raises `facemodel.errors.ModelInputError` (a
+    ValueError) for motions, activations, materials or model parts it cannot use (contact
+    asked of a model without lip contact surfaces) and `solver.errors.SolveFailed` if Newton
+    fails.
     """
     body, constraints, terms, extra, lip_size = build_problem(
         model, motions, activations, contact=contact, sliding=sliding, sliding_nodes=sliding_nodes,
@@ -322,43 +289,20 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
                 f"|R| {rec['residual_norm']:.3e} (rel {rec['relative_residual']:.2e}) "
                 f"|du| {rec['displacement_norm']:.3e} ls {rec['line_search']:.2g}")
 
-    # Damping: no contact node moves more than 0.35 of the contact facets' size in one
-    # Newton iteration (contact switching on can make an undamped update overshoot); the
-    # other free nodes are not watched: they follow the bones by several mm per load step
-    # (limiting every free node, standard face, Newton iterations: demo plan 47 against 43,
-    # `faceplan synth` seed 11 206 against 140, seed 7 95 against 94). The fraction, Newton
-    # iterations (cut-backs) on the standard face with 0.25 / 0.3 / 0.35 / 0.4 / 0.5:
-    # `faceplan synth` seed 11 132-140 (5) / 117 (2) / 65 (0) / 69 (1) / -; demo plan (surgical
-    # case of `bench/contact.py`) 43 / 43 / 44 / 65 (1) / 67 (1); orbicularis oris worst case
-    # 23 / - / 22 / - / 22; 8 mm closure (coarse) 30 / - / 27 / - / 25; seed 7 64 / - / 57.
-    # A larger limit lets the first update of a step reach contact in one go, a smaller one
-    # spends iterations creeping; beyond 0.35 the demo plan overshoots into a cut-back.
-    max_inc = 0.35 * (lip_size or 2.0) if terms else None
     t0 = time.perf_counter()
-    # Convergence: relative residual 1e-6 and energy ratio 1e-8 (FEBio's defaults are looser,
-    # rtol 0 / etol 1e-2 / dtol 1e-3): node-to-surface contact near facet edges has a
-    # clamped curvature term, so the last digits converge linearly, not quadratically.
-    # Increment control: a step whose first solve needed more than 7 iterations halves the
-    # next (standard face, contact, Newton iterations / cut-backs with 8 -> 7: demo plan
-    # 52 / 1 -> 47 / 0, `faceplan synth` seed 7 99 / 3 -> 95 / 3, seed 11 222 / 6 -> 206 / 4;
-    # the orbicularis worst case 28 either way; with 6 the demo plan took 168 in 22 steps)
-    res = newton_solve(body, constraints, list(terms.values()) + extra, steps=n_steps,
-                       max_iterations=max_iterations, max_retries=20, callback=callback,
-                       max_increment=max_inc, stall_iterations=8 if terms else None,
-                       increment_nodes=_contact_nodes(terms),
-                       shrink_iterations=7,
-                       rtol=1e-6, etol=1e-8)
+    control = FACE_SOLVER.control(n_steps, max_iterations, _contact_nodes(terms), lip_size)
+    res = newton_solve(body, constraints, list(terms.values()) + extra, control=control,
+                       callback=callback)
     elapsed = time.perf_counter() - t0
     x = res.x
     sig = body.cauchy_stress(x, 1.0)
-    dev = sig - np.trace(sig, axis1=1, axis2=2)[:, None, None] / 3.0 * np.eye(3)
-    vm = np.sqrt(1.5 * np.einsum("mij,mij->m", dev, dev))
+    vm = von_mises(sig)
     info = {"n_nodes": len(X), "n_elements": len(labels), "n_constrained_nodes":
             int(sum(len(c.nodes) for c in constraints)), "terms": list(terms),
             "activations": activations, "sliding": list(sliding),
             "cutbacks": res.cutbacks, "timings": res.timings}
     if contact:
-        info["penetration_mm"] = {k: float(_term_penetration(t, x)) for k, t in terms.items()}
+        info["penetration_mm"] = {k: float(t.penetration(x)) for k, t in terms.items()}
         if "lip_contact" in terms:
             # lips overlapping before any movement (a registered mesh can have them so) are
             # left as they are; contact acts against further penetration only
@@ -391,14 +335,6 @@ def _rigid_displacement(Xs, T):
         Tl = ramped_rigid_motion(T, load)
         return Xs @ Tl[:3, :3].T + Tl[:3, 3] - Xs
     return disp
-
-
-def _term_penetration(term, x):
-    if isinstance(term, SurfaceContact):
-        return term.penetration(x)
-    g, *_ = term.gaps(x, 1.0)
-    g = g[np.isfinite(g) & (g > -term.max_depth)]
-    return float(max(0.0, -g.min())) if len(g) else 0.0
 
 
 def lip_penetrations(model, x, load: float = 1.0, motions: dict | None = None,

@@ -570,8 +570,9 @@ def _check_landmarks_near_skin(landmarks: dict, skin, file: str) -> None:
     if check.any():
         _, distance[check], _ = trimesh.proximity.closest_point(skin, points[check])
     far = distance > LANDMARK_MAX_SKIN_DISTANCE_MM
-    if not far.any() and len(points) >= 3:
-        # every accepted name is a soft-tissue landmark: together they lie on the skin
+    if not far.any() and len(points) >= 3 and np.median(distance) > LANDMARK_MEDIAN_SKIN_DISTANCE_MM:
+        # every accepted name is a soft-tissue landmark: together they lie on the skin (the
+        # nearest-vertex distance is an upper bound, so only then is the exact one needed)
         _, exact, _ = trimesh.proximity.closest_point(skin, points)
         if np.median(exact) > LANDMARK_MEDIAN_SKIN_DISTANCE_MM:
             k = int(np.argmax(exact))

@@ -160,5 +160,19 @@ def main(argv: list[str] | None = None) -> int:
         interrupts.restore()
 
 
+def entry(argv: list[str] | None = None) -> int:
+    """The `faceplan` command: `main`, with any other exception (not bad input, not a solve
+    failure: a bug) shown as one: its traceback, a line asking to report it, exit status 1."""
+    try:
+        return main(argv)
+    except Exception:
+        import traceback
+
+        traceback.print_exc()
+        print("faceplan: this is a bug in faceplan: please report it with the command line",
+              file=sys.stderr)
+        return 1
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(entry())

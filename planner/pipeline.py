@@ -35,6 +35,7 @@ from planner.segments import as_trimesh, assign_segments, with_segments
 from solver.loads import BodyForce as _BodyForce
 from facemodel import effects as fe
 from facemodel.effects import EFFECT_NAMES, Effects
+from solver.mechanics import von_mises
 
 # Effects `--effect NAME=VALUE` and `model.effects` add to a prediction (contract, "Effect
 # names"; definitions, parameters and sources in `facemodel.effects`).
@@ -131,10 +132,7 @@ def face_materials(model, overrides: dict[str, dict[str, float]] | None = None, 
     excepted, as `facemodel.materials.parameters` defines it; `label_factors` one per label,
     `Effects.label_factors`, times the uniform `stiffness`)."""
     from facemodel import materials as fm
-    from solver.constitution import Yeoh
-    from solver.constitution.muscle import Muscle
 
-    laws = {"Yeoh": Yeoh, "Muscle": Muscle}
     overrides = overrides or {}
     for label in overrides:
         if label not in model.label_names:
@@ -142,7 +140,6 @@ def face_materials(model, overrides: dict[str, dict[str, float]] | None = None, 
                              field=f"model.materials.{label}")
     out = {}
     for label in model.label_names:
-        entry = fm.material(label)
         factor = stiffness * (label_factors or {}).get(label, 1.0)
         params = dict(fm.parameters(label, factor))
         for k, v in overrides.get(label, {}).items():
@@ -151,11 +148,8 @@ def face_materials(model, overrides: dict[str, dict[str, float]] | None = None, 
                                  f"(parameters: {', '.join(params)})", field=f"model.materials.{label}.{k}")
             # a user's value is the generic value of the patient: the effect scales it too
             params[k] = v * (factor if k in fm.MODULI else 1.0)
-        law = laws.get(entry.law)
-        if law is None:
-            raise SolveError(f"material table: unknown law {entry.law!r} for {label!r}")
         try:
-            out[label] = law(**params)
+            out[label] = fm.solver_material(label, params)
         except (TypeError, ValueError) as exc:
             raise InputError(f"material {label!r}: {exc}", field=f"model.materials.{label}") from None
     return out
@@ -297,6 +291,7 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
             assignment = a.summary()
             for seg, s in assignment.items():
                 progress.say(f"  {seg}: {s['nodes']} attachment nodes (median {s['median_distance_mm']} mm from bone)")
+    from facemodel.errors import ModelInputError
     from solver import errors as solver_errors
 
     teeth_shift = {}
@@ -356,7 +351,8 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
                              field=f"model.materials ({exc.parameter})" if exc.parameter else "model.materials") from exc
         except solver_errors.SolverError as exc:
             raise SolveError(f"{type(exc).__name__}: {exc}") from exc
-        except ValueError as exc:   # simulate refuses motions/activations/materials it cannot use
+        except ModelInputError as exc:   # simulate refuses input it cannot use; any other
+            # exception is a bug and surfaces as one
             raise InputError(f"the face model refused the plan: {exc}", file=plan.path) from exc
         u, stress, stats = _unpack_result(result, model)
     if not stats["converged"] or stats["load"] < 1.0 - 1e-9:
@@ -524,11 +520,6 @@ def region_of_nodes(model, ids: np.ndarray) -> tuple[np.ndarray, list[str]]:
     return region, names
 
 
-def _von_mises(s: np.ndarray) -> np.ndarray:
-    dev = s - np.trace(s, axis1=-2, axis2=-1)[..., None, None] * np.eye(3) / 3.0
-    return np.sqrt(1.5 * np.einsum("...ij,...ij->...", dev, dev))
-
-
 def write_volume(pred: Prediction, path: Path) -> None:
     """`prediction.vtu` (meshio): predicted node positions, displacement, labels, stress.
 
@@ -543,7 +534,7 @@ def write_volume(pred: Prediction, path: Path) -> None:
     cell_data = {"label": [np.asarray(model.labels, np.int32)]}
     if pred.stress is not None and len(pred.stress) == len(hexes):
         cell_data["stress"] = [pred.stress.reshape(len(hexes), 9)]
-        cell_data["von_mises"] = [_von_mises(pred.stress)]
+        cell_data["von_mises"] = [von_mises(pred.stress)]
     meshio.Mesh(pred.predicted_nodes, [("hexahedron", hexes)], point_data=point_data,
                 cell_data=cell_data).write(path)
 
@@ -865,9 +856,12 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
                  effects: dict[str, float] | None = None, max_translation_mm: float | None = None,
                  max_rotation_deg: float | None = None, render: bool = True,
                  echo: bool | Callable[[str], None] = True,
-                 extra: Callable[[Path], None] | None = None, kind: str = "predict") -> Path:
+                 extra: Callable[[Path], None] | None = None, kind: str = "predict",
+                 materials: dict[str, dict[str, float]] | None = None) -> Path:
     """Run the whole prediction for a case folder; return the output folder (checked before
-    any work by `planner.atomic.prepare_output`; kind: the command named in its marker)."""
+    any work by `planner.atomic.prepare_output`; kind: the command named in its marker).
+    `materials` (e.g. `planner.calibration.materials.read_materials`) is merged into the
+    plan's model.materials."""
     from planner.atomic import prepare_output
     from planner.case import load_case
 
@@ -878,6 +872,9 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
         case = load_case(case_dir)
         plan_path = case.require_plan()
         plan = load_plan(plan_path, max_translation_mm=max_translation_mm, max_rotation_deg=max_rotation_deg)
+        if materials:
+            from planner.calibration.materials import with_materials
+            plan = with_materials(plan, materials)
         bone_vertices = {k: np.asarray(v.vertices, float) for k, v in case.bones.items()}
         check_against_bones(plan, bone_vertices)
         merged = check_effects(plan, effects)
@@ -912,7 +909,6 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
 
 # --------------------------------------------------------------------------- demo
 
-DEMO_SEED = 7
 DEMO_PLAN = {
     "faceplan": 1,
     "frame": "RAS",

@@ -34,14 +34,13 @@ from typing import Any
 import numpy as np
 import yaml
 
+from facemodel.model import MUSCLES
 from planner.errors import InputError
 from planner.itk_transform import LPS_FROM_RAS, read_itk_transform
 
 FORMAT_VERSION = 1
 SEGMENTS = ("skull", "maxilla", "mandible", "chin")
 FIXED_SEGMENT = "skull"
-MUSCLES = ("orbicularis_oris", "zygomaticus_major", "levator_labii_superioris", "risorius",
-           "buccinator", "depressor_anguli_oris", "depressor_labii_inferioris", "mentalis")
 RESOLUTIONS = ("coarse", "standard", "fine")
 EFFECTS = ("sliding", "muscle_tone", "swelling", "gravity", "stiffness", "bone_execution")
 DEFAULT_MAX_TRANSLATION_MM = 25.0

@@ -3,7 +3,9 @@
 The generic model marks the soft-tissue nodes tied to bone (`attach_*` node sets). After
 registration these nodes lie on the patient's bone, and which segment they follow during surgery
 is decided by the patient's anatomy and the plan, not by the generic labels: each attachment node
-goes to the bone surface closest to it (point-to-triangle distance, `trimesh.proximity`), and a
+goes to the bone surface closest to it (exact point-to-triangle distance, `nearest_surface`: a
+k-d tree of triangle centroids and compiled projections, so that a CT-derived bone of 10^5-10^6
+triangles costs little more than a synthetic one), and a
 segment defined by cut planes (plan `cut_planes`, `from`) takes over the nodes of its source
 surface that lie on the kept side of all its planes (Payan et al.: nodes attached to the
 osteotomised segment follow its rigid movement, the others stay fixed with the skull).
@@ -32,6 +34,59 @@ def as_trimesh(surface) -> trimesh.Trimesh:
         return trimesh.Trimesh(np.asarray(surface.vertices, float), np.asarray(surface.faces, int),
                                process=False)
     raise TypeError(f"not a surface: {type(surface).__name__}")
+
+
+def nearest_surface(surfaces: list, points: np.ndarray, k: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """For each point (n, 3): the index of the closest of `surfaces` (any form `as_trimesh`
+    takes) and the exact distance to it.
+
+    Per surface, the triangles of the k nearest centroids (a k-d tree) are projected exactly
+    (Ericson's point-triangle routine, compiled: `registration.surface`). That distance d is
+    exact unless an unseen triangle could be closer: a triangle whose centroid lies c from
+    the point is at least c - r away (r: the largest centroid-to-corner distance of the
+    surface), so d is exact when the k-th centroid lies beyond d + r. Otherwise, and only
+    where that surface could be the nearest one (its lower bound, the nearest centroid's
+    distance minus r, not above the best distance found over all surfaces), every triangle
+    whose centroid lies within d + r is projected. Ties between surfaces go to the first."""
+    from scipy.spatial import cKDTree
+
+    from registration.surface import _closest_over_candidates
+
+    x = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
+    n = len(x)
+    found = []
+    for surface in surfaces:
+        mesh = as_trimesh(surface)
+        v = np.ascontiguousarray(mesh.vertices, dtype=float)
+        f = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+        tri = v[f]
+        # zero-area triangles project nowhere (their edges belong to their neighbours)
+        area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        keep = area2 > 1e-12 * max(float(area2.max()), 1e-300)
+        f, tri = f[keep], tri[keep]
+        centroids = tri.mean(axis=1)
+        tree = cKDTree(centroids)
+        r = float(np.linalg.norm(tri - centroids[:, None, :], axis=2).max())
+        kk = int(min(k, len(f)))
+        dc, cand = tree.query(x, k=kk)
+        dc, cand = dc.reshape(n, kk), np.asarray(cand, np.int64).reshape(n, kk)
+        d = _closest_over_candidates(x, v, f, cand)[3]
+        sure = (dc[:, -1] - r >= d) | (kk == len(f))
+        found.append((v, f, tree, r, np.maximum(dc[:, 0] - r, 0.0), d, sure))
+    best = np.min([item[5] for item in found], axis=0)
+    dist = np.empty((len(found), n))
+    for i, (v, f, tree, r, lower, d, sure) in enumerate(found):
+        need = np.flatnonzero(~sure & (lower <= best))
+        if len(need):
+            balls = tree.query_ball_point(x[need], d[need] + r)
+            width = max(len(b) for b in balls)
+            cand = np.full((len(need), max(width, 1)), -1, np.int64)   # -1: no candidate
+            for row, b in enumerate(balls):
+                cand[row, :len(b)] = b
+            d[need] = np.minimum(d[need], _closest_over_candidates(x[need], v, f, cand)[3])
+        dist[i] = d
+    nearest = np.argmin(dist, axis=0)
+    return nearest, dist[nearest, np.arange(n)]
 
 
 @dataclass(frozen=True)
@@ -93,14 +148,8 @@ def assign_segments(model, bones: dict, plan: Plan, segments: tuple[str, ...] | 
     x = np.asarray(model.nodes, float)[nodes]
 
     names = sorted(bones)
-    dist = np.empty((len(names), nodes.size))
-    for i, name in enumerate(names):
-        mesh = as_trimesh(bones[name])
-        _, d, _ = trimesh.proximity.closest_point(mesh, x)
-        dist[i] = d
-    nearest = np.argmin(dist, axis=0)
+    nearest, distance = nearest_surface([bones[n] for n in names], x)
     label = np.array(names, dtype=object)[nearest]
-    distance = dist[nearest, np.arange(nodes.size)]
 
     for seg in _cut_order(plan):
         sp = plan.segments[seg]

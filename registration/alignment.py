@@ -116,7 +116,7 @@ class IcpResult:
 def trimmed_icp(source: TargetSurface, target: TargetSurface, init: Similarity, *,
                 n_points: int = 800, iterations: int = 30, keep: float = 0.9,
                 inlier_mm: float = 5.0, scale_bounds=(0.6, 1.6), tol: float = 1e-4,
-                seed: int = 0, extra=()) -> IcpResult:
+                seed: int = 0, extra=(), fix_scale: bool = False, step_tol: float = 0.0) -> IcpResult:
     """Symmetric trimmed ICP between two triangulated surfaces (similarity, point-to-plane).
 
     Forward pairs: source samples -> closest point on the target; reverse pairs: target samples
@@ -127,7 +127,10 @@ def trimmed_icp(source: TargetSurface, target: TargetSurface, init: Similarity, 
     weighted equally. `extra`: further (points (k, 3) of the source, target surface) pairs, e.g.
     the model's bone attachment nodes and the patient's bone segment they belong to, matched
     forwards like the samples (trimmed, point-to-plane) and weighted as much as the skin's
-    forward pairs together; their truncated error enters the score likewise."""
+    forward pairs together; their truncated error enters the score likewise. fix_scale: a
+    rigid refinement at the starting scale. Iterations stop when the RMS changes by less than
+    `tol` (relative) or, with step_tol > 0, when the step moves the pairs by less than step_tol
+    mm (rotation and scale over the pairs' spread, plus translation)."""
     rng = np.random.default_rng(seed)
     src, src_n = _samples(source, n_points, rng)
     tgt, tgt_n = _samples(target, n_points, rng)
@@ -178,6 +181,8 @@ def trimmed_icp(source: TargetSurface, target: TargetSurface, init: Similarity, 
         rhs = -np.einsum("ij,ij->i", m - q, n)
         sw = np.sqrt(w)[:, None]
         # a light ridge keeps the step defined when the overlap is a near-symmetric patch
+        if fix_scale:
+            rows[:, 3] = 0.0
         lhs = (rows * sw).T @ (rows * sw) + 1e-6 * np.eye(7)
         step = np.linalg.solve(lhs, (rows * sw).T @ (rhs * sw[:, 0]))
         rot = Rotation.from_rotvec(step[:3]).as_matrix()
@@ -188,12 +193,16 @@ def trimmed_icp(source: TargetSurface, target: TargetSurface, init: Similarity, 
         tf = new
         if abs(prev - rms) < tol * max(rms, 1e-9):
             break
+        # the pose itself has stopped moving (motion of the pairs' spread below step_tol mm)
+        spread = float(np.sqrt(w @ np.sum(mc**2, axis=1) / w.sum()))
+        if step_tol and spread * (np.linalg.norm(step[:3]) + abs(step[3])) + np.linalg.norm(step[4:]) < step_tol:
+            break
         prev = rms
     return IcpResult(tf, rms, float(inl), score)
 
 
 def align_surfaces(source: TargetSurface, target: TargetSurface, *, good_rms_mm: float = 3.0,
-                   seed: int = 0, extra=()) -> IcpResult:
+                   seed: int = 0, extra=(), fix_scale: bool = False, step_tol: float = 0.0) -> IcpResult:
     """Similarity taking the generic skin `source` onto the patient skin `target`.
 
     The identity (both surfaces are in patient RAS and mm) is tried first and kept when its
@@ -210,6 +219,8 @@ def align_surfaces(source: TargetSurface, target: TargetSurface, *, good_rms_mm:
     under the face tell them apart (`registration.mesh_match`)."""
     first = trimmed_icp(source, target, Similarity.identity(), n_points=400, iterations=20, seed=seed)
     if first.rms_mm < good_rms_mm and first.inliers >= 0.5:
+        if extra:
+            return _finish_with_bones(source, target, first.similarity, seed, extra)
         return trimmed_icp(source, target, first.similarity, n_points=1500, iterations=30, seed=seed + 1)
     rng = np.random.default_rng(seed)
     ps, _ = _samples(source, 3000, rng)
@@ -227,7 +238,19 @@ def align_surfaces(source: TargetSurface, target: TargetSurface, *, good_rms_mm:
     refined = [trimmed_icp(source, target, t.similarity, n_points=1500, iterations=40, seed=seed + 1,
                            extra=extra) for t in trials[:3]]
     refined.sort(key=lambda t: t.score)
-    if extra:   # the bones chose the pose; the skin alone finishes it, as from the identity
-        return trimmed_icp(source, target, refined[0].similarity, n_points=1500, iterations=30,
-                           seed=seed + 1)
+    if extra:
+        return _finish_with_bones(source, target, refined[0].similarity, seed, extra)
     return refined[0]
+
+
+def _finish_with_bones(source, target, start: Similarity, seed: int, extra) -> IcpResult:
+    """The pose and scale from the skin and the bones together, then the skin alone refines
+    the pose at that scale. A face-only skin (a scan, a CBCT ending below the eyes) leaves the
+    skin-only fit a flat valley in pitch and scale -- its optimum then depends on where the
+    search starts, i.e. on how the patient lies in the scanner -- while the bones under it,
+    the skull above all, fix both; the skin finishes the pose (its surface is the one the
+    registration fits) without rescaling the head onto a part of the face."""
+    joint = trimmed_icp(source, target, start, n_points=1500, iterations=60, seed=seed + 1, extra=extra,
+                        tol=0.0, step_tol=0.05)
+    return trimmed_icp(source, target, joint.similarity, n_points=1500, iterations=100, seed=seed + 1,
+                       fix_scale=True, tol=0.0, step_tol=0.05)

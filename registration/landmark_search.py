@@ -56,6 +56,7 @@ from scipy.spatial import cKDTree
 
 from registration.alignment import Similarity
 from registration.surface import TargetSurface
+from solver.geometry import deepest_concavity
 
 MIDLINE_RADIUS = 15.0    # mm: mirror pairs around a landmark that place its mid-sagittal plane
 SYMMETRY_RADIUS = 12.0   # mm: skin around a landmark whose mirror symmetry refines that plane
@@ -262,8 +263,8 @@ def anterior_summit(skin: TargetSurface, q: np.ndarray, z_range: tuple[float, fl
     surface y = f(x, z), quadratic in x and cubic in z (a chin or nose tip bulges unevenly
     above and below its summit), through the skin's vertices within `radius` of q and z in
     `z_range` (the scan's vertices lie on the skin, its facets cut under a convex summit), its
-    maximum (Newton from q) projected onto the skin; q itself where the fit has no maximum in
-    the fitted region."""
+    maximum (Newton from q) taken onto the skin along y, the fit's own height direction
+    (`skin_along_y`); q itself where the fit has no maximum in the fitted region."""
     v = skin.vertices
     sel = (np.linalg.norm(v - q, axis=1) < radius) & (v[:, 2] >= z_range[0]) & (v[:, 2] <= z_range[1])
     if sel.sum() < 10:
@@ -286,31 +287,41 @@ def anterior_summit(skin: TargetSurface, q: np.ndarray, z_range: tuple[float, fl
     if not (dx.min() <= ox <= dx.max() and dz.min() <= oz <= dz.max()):
         return q
     y0 = c[0] + c[1] * ox + c[2] * oz + c[3] * ox**2 + c[4] * ox * oz + c[5] * oz**2 + c[6] * oz**3
-    return skin.closest(np.array([[q[0] + ox, y0, q[2] + oz]])).points[0]
+    return skin_along_y(skin, q[0] + ox, q[2] + oz, y0)
+
+
+def skin_along_y(skin: TargetSurface, x: float, z: float, y_near: float) -> np.ndarray:
+    """The skin point at (x, z) nearest `y_near` along y: where the line {(x, t, z)} crosses
+    the skin's facets (of several crossings, the one nearest y_near), the closest skin point
+    when the line misses the skin. Unlike the closest point, this is continuous in (x, z) on
+    either side of a crease: a summit on a symmetric head lies on its mid-sagittal plane,
+    where the facets of both sides meet at a ridge, and a point just inside the skin there
+    has two nearest facets, the closest point jumping between them with the last bit of x."""
+    v, f = skin.vertices, skin.faces
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    # barycentric coordinates of (x, z) in each facet projected onto the (x, z) plane
+    e1, e2 = (b - a)[:, [0, 2]], (c - a)[:, [0, 2]]
+    r = np.array([x, z]) - a[:, [0, 2]]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    ok = np.abs(det) > 1e-12 * (np.einsum("ij,ij->i", e1, e1) + np.einsum("ij,ij->i", e2, e2))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = (r[:, 0] * e2[:, 1] - r[:, 1] * e2[:, 0]) / det
+        w = (e1[:, 0] * r[:, 1] - e1[:, 1] * r[:, 0]) / det
+    # a point on a shared edge lies in both facets, at the same height: either will do
+    eps = 1e-9
+    hit = np.flatnonzero(ok & (u >= -eps) & (w >= -eps) & (u + w <= 1.0 + eps))
+    if len(hit) == 0:
+        return skin.closest(np.array([[x, y_near, z]])).points[0]
+    y = a[hit, 1] + u[hit] * (b - a)[hit, 1] + w[hit] * (c - a)[hit, 1]
+    return np.array([x, y[int(np.argmin(np.abs(y - y_near)))], z])
 
 
 def deepest_under_bitangent(p: np.ndarray, lo: int, hi: int, with_span: bool = False):
     """On the profile arc p[lo..hi] (ordered downwards): the index of the point deepest behind
     the anterior convex hull edge that spans the arc's deepest concavity; `with_span`: also
     that edge's ends (i, j) and its inward (posterior) unit normal in (y, z)."""
-    yz = p[:, 1:]
-    best, best_k = -1.0, lo
-    span = (lo, hi, np.array([-1.0, 0.0]))
-    i = lo
-    while i < hi:
-        d = yz[i + 1:hi + 1] - yz[i]
-        j = i + 1 + int(np.argmax(np.arctan2(d[:, 0], -d[:, 1])))  # next anterior hull vertex
-        if j > i + 1:
-            chord = yz[j] - yz[i]
-            inward = np.array([-chord[1], chord[0]]) / np.linalg.norm(chord)
-            if inward[0] > 0:
-                inward = -inward
-            depth = (yz[i + 1:j] - yz[i]) @ inward
-            k = int(np.argmax(depth))
-            if depth[k] > best:
-                best, best_k, span = float(depth[k]), i + 1 + k, (i, j, inward)
-        i = j
-    return (best_k, span) if with_span else best_k
+    k, i, j, inward = deepest_concavity(p[:, 1:], lo, hi)
+    return (k, (i, j, inward)) if with_span else k
 
 
 def _thin(p: np.ndarray, min_step: float = 0.25) -> np.ndarray:

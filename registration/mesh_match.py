@@ -50,7 +50,10 @@ class MatchOptions:
     use_landmarks: bool = True
     max_snap_mm: float = 5.0
     coverage_min: float = 0.25  # fraction of generic skin nodes the patient skin must cover
-    landmark_rms_max_mm: float = 8.0  # Umeyama residual above which landmarks are refused
+    # Umeyama residual above which landmarks are refused: a swapped or misnamed landmark gives
+    # tens of mm; faces of other proportions (long or short lower face, small nose) reach
+    # 8-9 mm RMS over the ten landmarks against the generic face
+    landmark_rms_max_mm: float = 12.0
     skin_mean_gate_mm: float = 1.0  # refuse to return a mesh fitting worse than this
     # soft-tissue nodes end at least this far outside the teeth (the clearance that
     # facemodel.teeth.clear_teeth asks of a contact start, so that it has nothing to move)
@@ -91,6 +94,7 @@ class MatchInput:
     bone_quads: np.ndarray | None = None  # (k, 4) deep facets on bone, outward from the tissue
     teeth: dict = field(default_factory=dict)  # arch -> (vertices, faces, segment), generic frame
     lip_quads: tuple | None = None  # (upper, lower) contact facets across the mouth slit, outward
+    regions: dict = field(default_factory=dict)  # skin region name -> node ids (the report's)
 
 
 def _fit_stats(d: np.ndarray) -> dict:
@@ -112,6 +116,33 @@ def _quads_on_surface(x: np.ndarray, skin_quads: np.ndarray, skin_tris: np.ndarr
     node_ok = np.zeros(len(x), bool)
     node_ok[ids[ok]] = True
     return skin_quads[node_ok[skin_quads].all(axis=1)]
+
+
+REGION_FITTED_MIN = 0.5  # a region is fitted when the patient skin covers this share of its nodes
+
+
+def region_coverage(regions: dict, skin_ids: np.ndarray, valid: np.ndarray, dist: np.ndarray,
+                    fitted_min: float = REGION_FITTED_MIN) -> dict:
+    """Per skin region: how many of its skin nodes the patient skin covers (`valid`, over
+    `skin_ids`: the caller's test -- closest point inside the patient surface with an agreeing
+    normal, within the snap distance) and their distance to it. A region covered on less than `fitted_min` of its nodes is "not fitted":
+    its shape is the generic one carried by the covered skin and the bones (the elastic
+    transform and the harmonic extension), not the patient's."""
+    pos = np.full(int(max(skin_ids.max(initial=0), max((int(np.max(v)) for v in regions.values()
+                                                          if len(v)), default=0))) + 1, -1)
+    pos[skin_ids] = np.arange(len(skin_ids))
+    out = {}
+    for name in sorted(regions):
+        ids = np.asarray(regions[name], np.int64)
+        k = pos[ids]
+        k = k[k >= 0]
+        if len(k) == 0:
+            continue
+        cov = valid[k]
+        out[name] = {"n_nodes": int(len(k)), "covered_fraction": float(cov.mean()),
+                     "fitted": bool(cov.mean() >= fitted_min),
+                     "mean_mm": float(dist[k][cov].mean()) if cov.any() else None}
+    return out
 
 
 def _lip_away(model: MatchInput, x: np.ndarray) -> np.ndarray | None:
@@ -500,6 +531,9 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                             if k.endswith("_mean_mm")},
         },
         "quality": quality_summary(x, hexes, opt.threshold),
+        # the skin regions the patient skin covers, and those it does not (carried, not fitted)
+        "regions": region_coverage(model.regions, skin_ids, valid & (cl.distance <= opt.max_snap_mm),
+                                   cl.distance),
         "repair": rep,
         "landmark_correction": landmark_report,
         "landmark_search": search_report,
@@ -509,6 +543,7 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         "lip_separation": lip_report,
         "elastic": elog.levels,
     }
+    report["regions_not_fitted"] = sorted(k for k, v in report["regions"].items() if not v["fitted"])
     if lm_given is not None:
         lm = lm_given
         # distance from each carried landmark node to the given landmark, in the patient frame

@@ -7,6 +7,7 @@ quality improvement (Knupp, "Hexahedral and tetrahedral mesh untangling", Eng. C
 2003) over a patch: the nodes of the elements whose minimum scaled Jacobian is below the
 threshold, grown by `rings` layers of neighbours. The patch objective is
   E(a) = sum over patch elements e and their 9 corners q of max(0, tau - sj_eq)^2
+         + sum over inverted corners of (det_eq / h^3)^2
          + mu * sum_nodes |x - x0|^2 / h^2,
 with tau = threshold + margin, so that invalid corners (sj <= 0) are penalised hardest
 (validity first) and corners already better than tau cost nothing (quality next, with minimal
@@ -71,9 +72,15 @@ def _tangent_bases(x: np.ndarray, free: np.ndarray, constraints: list[SurfaceCon
 
 
 @numba.njit(cache=True)
-def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau):
+def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.0):
     """sum over elements and their 9 corners of max(0, tau - sj)^2 and its gradient with
-    respect to the free nodes (local[node] >= 0), accumulated node by node."""
+    respect to the free nodes (local[node] >= 0), accumulated node by node. Edge lengths are
+    regularised, l = sqrt(|e|^2 + eps2): with eps2 > 0 a collapsed edge (two nodes on one
+    point, as a projection onto a patient surface can leave) gives a finite objective and
+    gradient instead of a division by zero; eps2 = (1e-6 h)^2 changes sj by ~1e-12 elsewhere.
+    With h3 > 0 (a typical element volume, h^3) every inverted corner also costs (det / h3)^2,
+    Knupp's untangling term on the unscaled Jacobian: the scaled Jacobian is stationary at -1
+    (an element turned inside out as a whole has a zero sj gradient), its determinant is not."""
     f = 0.0
     g = np.zeros((n_free, 3))
     e = np.empty((3, 3))
@@ -89,21 +96,27 @@ def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau):
             c12 = np.array([e[0, 1] * e[1, 2] - e[0, 2] * e[1, 1], e[0, 2] * e[1, 0] - e[0, 0] * e[1, 2],
                             e[0, 0] * e[1, 1] - e[0, 1] * e[1, 0]])
             det = e[0, 0] * c23[0] + e[0, 1] * c23[1] + e[0, 2] * c23[2]
-            l0 = max(np.sqrt(e[0, 0] ** 2 + e[0, 1] ** 2 + e[0, 2] ** 2), 1e-300)
-            l1 = max(np.sqrt(e[1, 0] ** 2 + e[1, 1] ** 2 + e[1, 2] ** 2), 1e-300)
-            l2 = max(np.sqrt(e[2, 0] ** 2 + e[2, 1] ** 2 + e[2, 2] ** 2), 1e-300)
+            l0 = np.sqrt(e[0, 0] ** 2 + e[0, 1] ** 2 + e[0, 2] ** 2 + eps2)
+            l1 = np.sqrt(e[1, 0] ** 2 + e[1, 1] ** 2 + e[1, 2] ** 2 + eps2)
+            l2 = np.sqrt(e[2, 0] ** 2 + e[2, 1] ** 2 + e[2, 2] ** 2 + eps2)
             prod = l0 * l1 * l2
+            if not prod > 0.0:
+                continue  # a fully collapsed corner (eps2 = 0) or NaN: no direction to push it
             sj = det / prod
             short = tau - sj
             if short <= 0.0:
                 continue
             f += short * short
             coef = -2.0 * short
+            untangle = 0.0
+            if h3 > 0.0 and det < 0.0:
+                f += (det / h3) ** 2
+                untangle = 2.0 * det / (h3 * h3)
             for k in range(3):
                 lk = l0 if k == 0 else (l1 if k == 1 else l2)
                 for d in range(3):
                     cd = c23[d] if k == 0 else (c31[d] if k == 1 else c12[d])
-                    dsj = cd / prod - sj * e[k, d] / (lk * lk)
+                    dsj = cd / prod - sj * e[k, d] / (lk * lk) + untangle * cd / coef
                     for n in range(8):
                         w = edge_op[q, k, n]
                         if w != 0.0:
@@ -113,7 +126,7 @@ def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau):
     return f, g
 
 
-def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h):
+def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h, maxiter=50):
     hx = np.ascontiguousarray(hexes[patch_elems], dtype=np.int64)
     x0 = x[free].copy()
     local = np.full(len(x), -1, dtype=np.int64)
@@ -123,7 +136,7 @@ def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h):
     def fun(a):
         a = a.reshape(-1, 3)
         xw[free] = x0 + np.einsum("kij,kj->ki", basis, a)
-        f, g = _penalty_and_gradient(xw, hx, local, len(free), EDGE_OPERATOR, tau)
+        f, g = _penalty_and_gradient(xw, hx, local, len(free), EDGE_OPERATOR, tau, (1e-6 * h) ** 2, h**3)
         dx = xw[free] - x0
         f += mu * float(np.sum(dx**2)) / h**2
         g += 2.0 * mu * dx / h**2
@@ -134,7 +147,7 @@ def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h):
     # one; the standard strong class II: 13 s of 30 in these minimisations)
     with threadpool_limits(limits=1, user_api="blas"):
         res = minimize(fun, np.zeros(3 * len(free)), jac=True, method="L-BFGS-B",
-                       options={"maxiter": 50, "gtol": 1e-7, "ftol": 1e-10})
+                       options={"maxiter": maxiter, "gtol": 1e-7, "ftol": 1e-10})
     fun(res.x)
     return xw
 
@@ -142,14 +155,21 @@ def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h):
 def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
                 constraints: list[SurfaceConstraint] = (), fixed: np.ndarray | None = None,
                 margin: float = 0.1, rings: int = 1, max_rounds: int = 8, mu: float = 1e-4,
-                stall_rounds: int = 3):
+                stall_rounds: int = 3, release: bool = True, release_rounds: int = 6):
     """Relocate nodes until every element's minimum scaled Jacobian is >= threshold.
 
     Returns (new nodes, report dict). Nodes in a constraint stay on its surface (to the
     closest-point precision); `fixed` nodes never move. The search gives up early when
     `stall_rounds` rounds in a row neither reduce the number of elements below the threshold
     nor raise the worst of them (fixed nodes that make the threshold unreachable: a caller
-    then retries with fewer of them fixed)."""
+    then retries with fewer of them fixed). Each round allows the minimiser more iterations
+    than the last (a tangled patch can need hundreds). With `release`, when the constrained
+    rounds end with elements still below the threshold, the surface nodes of those elements
+    and their neighbours leave their surfaces (they move in 3D, held near their place by the
+    motion term only) for up to `release_rounds` more rounds: a surface that leaves no room for
+    a valid element between it and the next (soft tissue thinner than the mesh's layers, two
+    patient surfaces closer than the generic ones) then costs a local fit error, reported as
+    `nodes_released_from_surfaces`, instead of an invalid mesh."""
     hexes = np.asarray(hexes)
     x = np.array(nodes, dtype=float)
     fixed = np.zeros(0, int) if fixed is None else np.asarray(fixed, int)
@@ -159,35 +179,55 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
     inc = node_element_incidence(len(x), hexes)
     h = float(np.median(np.linalg.norm(x[hexes[:, 1]] - x[hexes[:, 0]], axis=1))) or 1.0
     moved = np.zeros(len(x), bool)
-    rounds, stalled = 0, 0
-    best = (len(bad0), float(q.min()) if len(q) else 1.0)
-    for rounds in range(1, max_rounds + 1):
-        bad = np.flatnonzero(q < threshold)
-        if len(bad) == 0:
-            rounds -= 1
-            break
-        patch_nodes = np.unique(hexes[bad])
-        for _ in range(rings + (rounds - 1) // 2):
-            elems = np.unique(inc[patch_nodes].indices)
-            patch_nodes = np.unique(hexes[elems])
-        free = np.setdiff1d(patch_nodes, fixed)
-        patch_elems = np.unique(inc[free].indices)
-        basis = _tangent_bases(x, free, list(constraints), fixed)
-        x = _optimise_patch(x, hexes, patch_elems, free, basis, threshold + margin, mu, h)
-        for con in constraints:
-            on = np.intersect1d(con.node_ids, free)
-            if len(on):
-                x[on] = con.surface.closest(x[on]).points
-        moved[free] = True
-        # only the elements around the free nodes changed
-        q[patch_elems] = min_scaled_jacobian(x, hexes[patch_elems])
-        now = (int(np.sum(q < threshold)), float(q.min()))
-        if now[0] < best[0] or now[1] > best[1] + 1e-3:
-            best, stalled = (min(now[0], best[0]), max(now[1], best[1])), 0
-        else:
-            stalled += 1
-            if stalled >= stall_rounds:
+    constraints = list(constraints)
+    released = np.zeros(0, np.int64)
+    rounds, total = 0, 0
+
+    def run(n_rounds, first_round):
+        nonlocal x, q, total
+        stalled = 0
+        best = (int(np.sum(q < threshold)), float(q.min()) if len(q) else 1.0)
+        done = 0
+        for r in range(first_round, first_round + n_rounds):
+            bad = np.flatnonzero(q < threshold)
+            if len(bad) == 0:
                 break
+            done += 1
+            total += 1
+            patch_nodes = np.unique(hexes[bad])
+            for _ in range(rings + (r - 1) // 2):
+                elems = np.unique(inc[patch_nodes].indices)
+                patch_nodes = np.unique(hexes[elems])
+            free = np.setdiff1d(patch_nodes, fixed)
+            patch_elems = np.unique(inc[free].indices)
+            basis = _tangent_bases(x, free, constraints, fixed)
+            x = _optimise_patch(x, hexes, patch_elems, free, basis, threshold + margin, mu, h,
+                                maxiter=50 * min(r, 8))
+            for con in constraints:
+                on = np.intersect1d(con.node_ids, free)
+                if len(on):
+                    x[on] = con.surface.closest(x[on]).points
+            moved[free] = True
+            # only the elements around the free nodes changed
+            q[patch_elems] = min_scaled_jacobian(x, hexes[patch_elems])
+            now = (int(np.sum(q < threshold)), float(q.min()))
+            if now[0] < best[0] or now[1] > best[1] + 1e-3:
+                best, stalled = (min(now[0], best[0]), max(now[1], best[1])), 0
+            else:
+                stalled += 1
+                if stalled >= stall_rounds:
+                    break
+        return done
+
+    rounds = run(max_rounds, 1)
+    bad = np.flatnonzero(q < threshold)
+    if release and len(bad) and constraints:
+        ring = np.unique(hexes[np.unique(inc[np.unique(hexes[bad])].indices)])
+        on_any = np.unique(np.concatenate([c.node_ids for c in constraints]))
+        released = np.setdiff1d(np.intersect1d(ring, on_any), fixed)
+        constraints = [SurfaceConstraint(c.name, np.setdiff1d(c.node_ids, released), c.surface)
+                       for c in constraints]
+        rounds += run(release_rounds, 2)
     after = quality_summary(x, hexes, threshold, q=q)
     report = {
         "threshold": float(threshold),
@@ -196,6 +236,7 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
         "elements_still_below_threshold": int(after["n_below_threshold"]),
         "rounds": int(rounds),
         "nodes_moved": int(moved.sum()),
+        "nodes_released_from_surfaces": int(len(released)),
         "quality_before": before,
         "quality_after": after,
     }

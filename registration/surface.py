@@ -11,6 +11,7 @@ whatever the winding of the input, so flipped-normal files behave like correct o
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import numba
@@ -19,44 +20,16 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from solver.geometry import point_triangle
 
-@numba.njit(cache=True)
-def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
-    """Barycentric coordinates (u, v, w) of the point of triangle abc closest to p
-    (Ericson 5.1.5, scalar form: no temporaries)."""
-    abx, aby, abz = bx - ax, by - ay, bz - az
-    acx, acy, acz = cx - ax, cy - ay, cz - az
-    apx, apy, apz = px - ax, py - ay, pz - az
-    d1 = abx * apx + aby * apy + abz * apz
-    d2 = acx * apx + acy * apy + acz * apz
-    if d1 <= 0.0 and d2 <= 0.0:
-        return 1.0, 0.0, 0.0
-    bpx, bpy, bpz = px - bx, py - by, pz - bz
-    d3 = abx * bpx + aby * bpy + abz * bpz
-    d4 = acx * bpx + acy * bpy + acz * bpz
-    if d3 >= 0.0 and d4 <= d3:
-        return 0.0, 1.0, 0.0
-    vc = d1 * d4 - d3 * d2
-    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        v = d1 / (d1 - d3)
-        return 1.0 - v, v, 0.0
-    cpx, cpy, cpz = px - cx, py - cy, pz - cz
-    d5 = abx * cpx + aby * cpy + abz * cpz
-    d6 = acx * cpx + acy * cpy + acz * cpz
-    if d6 >= 0.0 and d5 <= d6:
-        return 0.0, 0.0, 1.0
-    vb = d5 * d2 - d1 * d6
-    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        w = d2 / (d2 - d6)
-        return 1.0 - w, 0.0, w
-    va = d3 * d6 - d5 * d4
-    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        return 0.0, 1.0 - w, w
-    denom = 1.0 / (va + vb + vc)
-    v = vb * denom
-    w = vc * denom
-    return 1.0 - v - w, v, w
+
+# Two triangles whose closest points lie within this of each other (squared distances, relative
+# to 1 + d^2 in mm^2) are a tie: a point whose closest point is on an edge or vertex they share
+# is as close to both, up to the rounding of the projections (~1e-13 mm^2 at head size). A tie
+# goes to the lower triangle index, so that the triangle (and its normal, which the registration
+# tests against thresholds) does not depend on the order of the candidates or on the last bits
+# of the sums, which differ between BLAS kernels and processors.
+TIE_REL = 1e-12
 
 
 @numba.njit(cache=True)
@@ -69,20 +42,22 @@ def _closest_over_candidates(points, vertices, faces, candidates):
     for i in range(n):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         best = np.inf
+        best_face[i] = faces.shape[0]
         for j in range(candidates.shape[1]):
             f = candidates[i, j]
             if f < 0:
                 continue
             ia, ib, ic = faces[f, 0], faces[f, 1], faces[f, 2]
-            u, v, w = _closest_on_triangle(px, py, pz,
-                                           vertices[ia, 0], vertices[ia, 1], vertices[ia, 2],
-                                           vertices[ib, 0], vertices[ib, 1], vertices[ib, 2],
-                                           vertices[ic, 0], vertices[ic, 1], vertices[ic, 2])
+            _, _, _, u, v, w, _ = point_triangle(
+                px, py, pz, vertices[ia, 0], vertices[ia, 1], vertices[ia, 2],
+                vertices[ib, 0], vertices[ib, 1], vertices[ib, 2],
+                vertices[ic, 0], vertices[ic, 1], vertices[ic, 2])
             qx = u * vertices[ia, 0] + v * vertices[ib, 0] + w * vertices[ic, 0]
             qy = u * vertices[ia, 1] + v * vertices[ib, 1] + w * vertices[ic, 1]
             qz = u * vertices[ia, 2] + v * vertices[ib, 2] + w * vertices[ic, 2]
             d = (qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2
-            if d < best:
+            tie = TIE_REL * (1.0 + best)
+            if d < best - tie or (d <= best + tie and f < best_face[i]):
                 best = d
                 out[i, 0], out[i, 1], out[i, 2] = qx, qy, qz
                 bary[i, 0], bary[i, 1], bary[i, 2] = u, v, w
@@ -144,6 +119,11 @@ class TargetSurface:
         self.centroids = tri.mean(axis=1)
         self._tree = cKDTree(self.centroids)
         self.face_edge_boundary = self._boundary_edges(f, len(v))
+        # vertices on an open edge: a closest point at such a vertex is on the border whichever
+        # of the triangles around it the query returns
+        self.vertex_on_boundary = np.zeros(len(v), bool)
+        for k, (a, b) in enumerate(((1, 2), (2, 0), (0, 1))):
+            self.vertex_on_boundary[f[self.face_edge_boundary[:, k]][:, [a, b]].ravel()] = True
         self._orient_outward()
 
     @staticmethod
@@ -242,13 +222,19 @@ class TargetSurface:
             _, cand2 = self._tree.query(p[unsure], k=kk)
             cand2 = np.asarray(cand2, dtype=np.int64).reshape(len(unsure), kk)
             q2, b2, f2, d2 = _closest_over_candidates(p[unsure], self.vertices, self.faces, cand2)
-            better = d2 < dist[unsure]
+            # the wider search holds the first candidates: the same triangle, or a closer one,
+            # or a tie with a lower index (the same rule as within one search)
+            s0, s2 = dist[unsure] ** 2, d2 ** 2
+            tie = TIE_REL * (1.0 + s0)
+            better = (s2 < s0 - tie) | ((s2 <= s0 + tie) & (f2 < face[unsure]))
             idx = unsure[better]
             q[idx], bary[idx], face[idx], dist[idx] = q2[better], b2[better], f2[better], d2[better]
         tol = 1e-6
         # closest point on the edge opposite vertex i <=> bary[i] ~ 0
         on_edge = bary < tol
         on_boundary = np.any(on_edge & self.face_edge_boundary[face], axis=1)
+        at_vertex = bary > 1.0 - tol
+        on_boundary |= np.any(at_vertex & self.vertex_on_boundary[self.faces[face]], axis=1)
         return Closest(q, dist, face, bary, self.face_normals[face], on_boundary)
 
     def sample(self, n: int, seed: int = 0) -> np.ndarray:
@@ -261,5 +247,19 @@ class TargetSurface:
         return np.einsum("ni,nid->nd", w, self.vertices[self.faces[f]])
 
     def transformed(self, scale: float, rotation: np.ndarray, translation: np.ndarray) -> "TargetSurface":
-        v = scale * self.vertices @ np.asarray(rotation).T + np.asarray(translation)
-        return TargetSurface(v, self.faces, self.name)
+        """The surface moved by x -> scale R x + t. A similarity (scale > 0, R proper) keeps
+        which vertices coincide, which triangles are valid, the open edges and the outward
+        orientation: only the geometry is mapped and the centroid tree rebuilt (cleaning and
+        orienting anew cost seconds on a 10^6-triangle scan)."""
+        r = np.asarray(rotation, float)
+        t = np.asarray(translation, float)
+        v = scale * self.vertices @ r.T + t
+        if not (scale > 0 and np.linalg.det(r) > 0):
+            return TargetSurface(v, self.faces, self.name)
+        out = copy.copy(self)
+        out.vertices = v
+        out.centroids = scale * self.centroids @ r.T + t
+        out.face_normals = self.face_normals @ r.T
+        out.face_areas = scale * scale * self.face_areas
+        out._tree = cKDTree(out.centroids)
+        return out

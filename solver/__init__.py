@@ -3,7 +3,8 @@
 Total Lagrangian 8-node hexahedra (2x2x2 Gauss), nearly incompressible hyperelasticity with the
 Q1/P0 mean-dilatation formulation (Simo, Taylor & Pister 1985) or the plain displacement
 formulation, prescribed and local-frame constraints, follower pressure and body force, and a
-Newton-Raphson solver with line search and adaptive load stepping. It knows nothing of faces.
+Newton-Raphson solver with line search and adaptive load stepping (`SolverControl`). It knows
+nothing of faces.
 
 Typical use::
 
@@ -21,6 +22,7 @@ from solver.mechanics import SolidBody
 from solver.bc import LocalFrame, Prescribed, fix
 from solver.loads import BodyForce, FollowerPressure, NodalForce, surface_traction
 from solver.linalg import SymmetricSolver, available_backends
+from solver.control import SolverControl
 from solver.newton import NewtonResult, newton_solve
 from solver.io import read_vtu, write_vtu
 
@@ -30,5 +32,5 @@ __all__ = [
     "HexMesh", "boundary_facets", "check_mesh", "scaled_jacobian", "SolidBody",
     "Prescribed", "LocalFrame", "fix", "BodyForce", "FollowerPressure", "NodalForce",
     "surface_traction", "SymmetricSolver", "available_backends", "NewtonResult",
-    "newton_solve", "read_vtu", "write_vtu",
+    "SolverControl", "newton_solve", "read_vtu", "write_vtu",
 ]

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from solver.mechanics import von_mises
+
 __all__ = ["write_vtu", "read_vtu"]
 
 
@@ -27,8 +29,7 @@ def write_vtu(path, nodes, hexes, displacement=None, cauchy=None, J=None, labels
     if cauchy is not None:
         s = np.asarray(cauchy, dtype=float)
         cdata["cauchy_stress"] = [s.reshape(len(s), 9)]
-        dev = s - np.trace(s, axis1=1, axis2=2)[:, None, None] / 3 * np.eye(3)
-        cdata["von_mises"] = [np.sqrt(1.5 * np.einsum("mij,mij->m", dev, dev))]
+        cdata["von_mises"] = [von_mises(s)]
     if J is not None:
         cdata["J"] = [np.asarray(J, dtype=float)]
     if labels is not None:

@@ -8,12 +8,10 @@ with a real symmetric indefinite matrix type
 the analysis phase (reordering and symbolic factorisation) is run once per sparsity pattern and
 only the numerical factorisation is repeated. CHOLMOD (scikit-sparse) is used when installed and
 asked for; SciPy's SuperLU on the full matrix is the fallback that is always present. "auto"
-picks PARDISO when available: on the 28k-DOF Yeoh-cube tangent here PARDISO (mtype -2, analysis
-reused) refactorises in 2.7-5.7 s, CHOLMOD (scikit-sparse 0.4.16 built against Debian 12's
-SuiteSparse 5.12, supernodal, reference BLAS) in 29-30 s, SciPy SuperLU in 34-38 s, all on the
-shared, heavily loaded 2-core machine (solver/README.md). CHOLMOD is an LL^T factorisation and
-fails on indefinite tangents; PARDISO's Bunch-Kaufman LDL^T does not. Under that load PARDISO
-is faster on one MKL thread (MKL_NUM_THREADS=1: 1.4-1.7 s per factorisation) than on two.
+picks PARDISO when available: it refactorises a tangent of tens of thousands of unknowns
+several times faster than CHOLMOD with reference BLAS or SuperLU (`bench/solver_peer.py`).
+CHOLMOD is an LL^T factorisation and fails on indefinite tangents; PARDISO's Bunch-Kaufman
+LDL^T does not.
 A pattern that changes between calls is factorised inside the union of the patterns seen, so
 the analysis is repeated only while that union grows. `LaggedFactorSolver` solves a sequence of
 Newton systems by conjugate gradients (`preconditioned_cg`, numba kernels) preconditioned with a
@@ -599,10 +597,7 @@ class LaggedFactorSolver:
     `refactor_iterations` (the factor is going stale). From iteration `predict_from` on, CG
     on the kept factor also gives up as soon as its mean rate predicts more than `maxiter`
     iterations (`preconditioned_cg`'s "slow" status), so that a factor made stale by a large
-    change of the tangent (contact switching on) costs 3 substitutions, not 10: on the
-    orbicularis oris worst case of `bench/contact.py` 111 CG iterations instead of 167 for the
-    same 28 Newton iterations and 14 factorisations (solve 5.82 -> 4.94 s); the surgical
-    solve kept its 52 iterations with 28 factorisations instead of 27 (19.8 against 19.4 s).
+    change of the tangent (contact switching on) costs 3 substitutions, not 10.
 
     Indefinite tangents (Cholesky fails, or CG meets a direction of non-positive curvature):
     the solver switches to its indefinite mode until `begin_step` is called. There the

@@ -17,6 +17,7 @@ import scipy.sparse as sp
 
 from solver.element import gauss_hex, gauss_quad, hex8_shape, quad4_gradients, quad4_shape
 from solver.errors import BoundaryConditionError
+from solver.terms import Term
 
 __all__ = ["FollowerPressure", "BodyForce", "NodalForce", "surface_traction"]
 
@@ -28,7 +29,7 @@ def _skew(v):
                      np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
 
 
-class FollowerPressure:
+class FollowerPressure(Term):
     """Pressure `pressure` (kPa, ramped by the load fraction) on quad facets (k, 4).
 
     `pressure` may be a float or a callable load -> float. Facet node order gives the outward
@@ -92,7 +93,7 @@ class FollowerPressure:
         return False
 
 
-class BodyForce:
+class BodyForce(Term):
     """Dead body force rho*b (mN/mm^3, a (3,) vector) on the hexahedra of a mesh, ramped by load.
 
     `cells` restricts it to some elements (default all).
@@ -128,7 +129,7 @@ class BodyForce:
         return False
 
 
-class NodalForce:
+class NodalForce(Term):
     """Dead nodal forces (k, 3) in mN on nodes (k,), ramped by the load fraction."""
 
     def __init__(self, nodes, forces, n_nodes: int, reference=None):

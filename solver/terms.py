@@ -2,29 +2,74 @@
 
 A term adds f(x) to the internal-force residual r = f_int + f - f_ext and its derivative
 K = df/du to the tangent. Degrees of freedom are numbered node-major: node i owns dofs
-3i, 3i+1, 3i+2. `energy` is the term's potential (used by the line search and the log; a
-non-conservative term such as a follower pressure returns the work-like value it can define,
-or 0.0). `end_step` is called once a load step has converged; returning True asks the solver
-to solve the same step again (augmented Lagrangian multiplier update), False to move on.
+3i, 3i+1, 3i+2. `Term` declares every hook the solver calls, each with a default that does
+nothing (as FEBio's `FESurfacePairConstraint` does), so the solver never asks whether a term
+has a method: a term overrides `assemble` and the hooks it needs. A class that does not derive
+from `Term` but defines `assemble`, `energy` and `end_step` still works: the solver wraps it
+with `as_term`.
 """
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+import numpy as np
 
-__all__ = ["Term"]
+__all__ = ["Term", "as_term"]
+
+_NO_PAIRS = np.zeros((0, 2), dtype=np.int64)
 
 
-@runtime_checkable
-class Term(Protocol):
+class Term:
+    """A residual term with the solver's hooks, all optional but `assemble`."""
+
     def assemble(self, x, load):
         """x: (n, 3) current nodal coordinates; load: load fraction in [0, 1].
 
-        Returns (f (3n,), K scipy.sparse (3n, 3n)), K = df/du (symmetric where possible; any
-        format, COO the cheapest: the solver sums its entries into its pattern by position).
+        Returns (f (3n,), K scipy.sparse (3n, 3n) or None), K = df/du (symmetric where
+        possible; any format, COO the cheapest: the solver sums its entries into its pattern
+        by position).
         """
+        raise NotImplementedError(f"{type(self).__name__} must define assemble(x, load)")
 
     def energy(self, x, load) -> float:
-        """Potential of the term at x (mJ)."""
+        """Potential of the term at x (mJ), read by the line search; a non-conservative term
+        returns the work-like value it can define, or 0.0."""
+        return 0.0
 
     def end_step(self, x, load) -> bool:
-        """Called at a converged step; True asks for another solve of the same step."""
+        """Called at a converged step; True asks for another solve of the same step (an
+        augmented Lagrangian multiplier update)."""
+        return False
+
+    def coupling_pairs(self) -> np.ndarray:
+        """(k, 2) node pairs the term may couple beyond the body's elements (contact), so that
+        the global sparsity pattern is reserved once before the solve."""
+        return _NO_PAIRS
+
+    def restart_step(self) -> None:
+        """The solver restarts the current step from its converged start (it rejected its
+        predictor): forget any state decided during the abandoned solve."""
+
+    def augmentation_due(self, x, load) -> bool:
+        """Whether the step at `load`, not yet converged at x, will be augmented anyway (the
+        solver may then stop the solve early, `SolverControl.augmentation_rtol`)."""
+        return False
+
+
+class _Adapted(Term):
+    """A term object that does not derive from `Term`: its own methods where it has them,
+    the defaults elsewhere; any other attribute is the wrapped object's."""
+
+    def __init__(self, term):
+        self.term = term
+        for name in ("assemble", "energy", "end_step", "coupling_pairs", "restart_step",
+                     "augmentation_due"):
+            method = getattr(term, name, None)
+            if callable(method):
+                setattr(self, name, method)
+
+    def __getattr__(self, name):
+        return getattr(self.__dict__["term"], name)
+
+
+def as_term(term) -> Term:
+    """`term` itself if it derives from `Term`, else an adapter giving it the default hooks."""
+    return term if isinstance(term, Term) else _Adapted(term)

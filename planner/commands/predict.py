@@ -16,6 +16,9 @@ def add_arguments(parser) -> None:
                              "stiffness=F or stiffness.LAYER=F (dermis, hypodermis, muscle, mucosa, "
                              "nose), bone_execution=1 (postop/plan_actual.yaml) or "
                              "bone_execution.SEGMENT=[tx,ty,tz,rx,ry,rz] (mm, deg); repeatable")
+    parser.add_argument("--materials", metavar="CALIBRATION_JSON",
+                        help="patient-specific materials from `faceplan calibrate` (its "
+                             "calibration.json); merged into the plan's model.materials")
     parser.add_argument("--allow-large-movements", action="store_true",
                         help="accept bone movements beyond 25 mm / 30 deg (refused by default)")
     parser.add_argument("--no-images", action="store_true", help="skip the renders")
@@ -26,8 +29,12 @@ def run(args) -> int:
     from planner.pipeline import parse_effects, predict_case
 
     effects = parse_effects(args.effect)
+    materials = None
+    if getattr(args, "materials", None):
+        from planner.calibration.materials import read_materials
+        materials = read_materials(args.materials)
     big = {"max_translation_mm": 1e3, "max_rotation_deg": 180.0} if args.allow_large_movements else {}
     out = predict_case(args.case, args.out, resolution=args.resolution, effects=effects,
-                       render=not args.no_images, echo=not args.quiet, **big)
+                       render=not args.no_images, echo=not args.quiet, materials=materials, **big)
     print(out)
     return 0

@@ -20,16 +20,18 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from registration.surface import _closest_on_triangle as _ericson
+from solver.geometry import point_triangle
 
 __all__ = ["TriangleSurface", "ClosestPoints", "vertex_areas"]
 
 
 @numba.njit(cache=True, inline="always")
 def _closest_on_triangle(p, a, b, c):
-    """Closest point to p on triangle abc: barycentric weights (wa, wb, wc) (the registration's
-    Ericson kernel, `registration.surface._closest_on_triangle`, on 3-vectors)."""
-    return _ericson(p[0], p[1], p[2], a[0], a[1], a[2], b[0], b[1], b[2], c[0], c[1], c[2])
+    """Closest point to p on triangle abc: barycentric weights (wa, wb, wc) (the shared
+    Ericson kernel, `solver.geometry.point_triangle`, on 3-vectors)."""
+    _, _, _, wa, wb, wc, _ = point_triangle(p[0], p[1], p[2], a[0], a[1], a[2],
+                                            b[0], b[1], b[2], c[0], c[1], c[2])
+    return wa, wb, wc
 
 
 @numba.njit(cache=True, parallel=False)
@@ -86,11 +88,6 @@ class ClosestPoints:
     on_boundary: np.ndarray  # (p,) bool: `point` lies on the surface's boundary
     beyond_boundary: np.ndarray  # (p,) bool: on the boundary and the query point lies beyond
                                  # the edge (offset not along the normal), i.e. no overlap
-
-    @property
-    def nearest_vertex_slot(self) -> np.ndarray:
-        """Which corner (0, 1, 2) of the triangle is closest (largest weight)."""
-        return np.argmax(self.bary, axis=1)
 
 
 class TriangleSurface:

@@ -20,11 +20,11 @@ coefficients come from `scipy.ndimage.spline_filter` (order 3, Unser 1999); eval
 4 x 4 x 4 coefficients around a point with the cubic B-spline weights and their first and second
 derivatives.
 
-A grid depends only on the surface and its parameters, and the same teeth are met by every
-solve of a session (a plan's prediction, the diagnosis's experiments, a benchmark's runs):
-`SignedDistanceGrid.shared` keeps the last few grids built in this process (keyed by a hash of
-the vertices, faces and parameters; nothing modifies a grid once built) and returns a stored
-one instead of building it again (0.25-0.7 s per arch on the standard face).
+A grid depends only on the surface and its parameters, and the same rigid surface is often met
+by several solves in one process (repeated solves of one model): `SignedDistanceGrid.shared`
+keeps the last few grids built in this process (keyed by a hash of the vertices, faces and
+parameters; nothing modifies a grid once built) and returns a stored one instead of building
+it again.
 """
 from __future__ import annotations
 
@@ -177,7 +177,7 @@ class SignedDistanceGrid:
     """
 
     _shared: OrderedDict = OrderedDict()     # key -> grid, least recently used first
-    shared_size = 8                          # grids kept (a 0.5 mm teeth grid: ~6 MB)
+    shared_size = 8                          # grids kept (a few MB each)
 
     @classmethod
     def shared(cls, vertices, faces=None, band: float = 3.0, spacing: float | None = None,

@@ -7,15 +7,54 @@ lambda <- lambda + eps g after each converged solve). The count restarts at ever
 is bounded, so a step never loops for ever.
 
 Which load steps are augmented is the loop's `schedule`. "every_step" augments each one down to
-the tolerance. "final_only" augments the final state only: fewer solves on small models, but on
-the standard face the multipliers then start the final step far from their values and the later
-steps cut back more (pipeline bench 135 -> 240 s when it was measured). "carried" (default)
-gives an intermediate step one multiplier update without a re-solve and scales the multipliers
-to the next load (a predictor of the contact forces): on the standard face the orbicularis oris
-worst case (`bench/contact.py`) took 28 Newton iterations instead of 46 with "every_step" (37
-with the update carried but not scaled), the surgical prediction 52 instead of 65.
+the tolerance. "final_only" augments the final state only: fewer solves, but the multipliers
+then start the final step far from their values. "carried" (default) gives an intermediate
+step one multiplier update without a re-solve and scales the multipliers to the next load (a
+predictor of the contact forces), so the Uzawa updates are spread over the load increments;
+"every_step" and "final_only" are kept for comparison (experimental: tests only).
+The settings every contact term shares are one `AugmentedLagrangian`; `ContactTerm` is the
+terms' common base.
 """
 from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from solver.terms import Term
+
+
+@dataclass(frozen=True)
+class AugmentedLagrangian:
+    """Penalty and augmented-Lagrangian settings of a contact term.
+
+    penalty: eps (kPa/mm, a pressure per unit gap; a nodal term multiplies it by the node's
+    tributary area). augmented: Uzawa multiplier updates (False: pure penalty). tolerance:
+    deepest penetration (or sliding gap) accepted at convergence (mm). max_augmentations:
+    bound on the re-solves of one step. search_radius: how far outside a surface a point is
+    looked at (mm); max_depth: how deep inside contact is detected (mm). freeze_after: number
+    of evaluations at one load after which the contact status is frozen (None: never);
+    freeze_resolves: a re-solve re-decides the status at its first two evaluations only.
+    uzawa_schedule: which load steps are augmented (`UzawaLoop`).
+    """
+
+    penalty: float = 100.0
+    augmented: bool = True
+    tolerance: float = 0.05
+    max_augmentations: int = 10
+    search_radius: float = 2.0
+    max_depth: float = 2.0
+    freeze_after: int | None = 4
+    freeze_resolves: bool = True
+    uzawa_schedule: str = "carried"
+
+    def __post_init__(self):
+        if not self.penalty > 0:
+            raise ValueError(f"penalty must be > 0, got {self.penalty}")
+        if self.uzawa_schedule not in UzawaLoop.SCHEDULES:
+            raise ValueError(f"schedule must be one of {', '.join(UzawaLoop.SCHEDULES)}, "
+                             f"got {self.uzawa_schedule!r}")
 
 
 class UzawaLoop:
@@ -147,3 +186,38 @@ class StatusFreezing:
         a status still wrong after it is caught by the next `end_step`."""
         if self.freeze_resolves and self.freeze_after is not None:
             self._evals_load, self._evals = load, max(self.freeze_after - 2, 0)
+
+
+class ContactTerm(StatusFreezing, Term):
+    """Common base of the contact terms: their `AugmentedLagrangian` settings (given as
+    `settings`, any field of which a keyword argument overrides, over the class' `DEFAULTS`),
+    status freezing, and the results every contact term gives: `penetration(x)`,
+    `contact_forces(x, load=1.0)` and `contact_pressure(x, load=1.0)`."""
+
+    DEFAULTS = AugmentedLagrangian()
+
+    def _configure(self, settings: AugmentedLagrangian | None, overrides: dict) -> None:
+        settings = dataclasses.replace(settings or self.DEFAULTS, **overrides)
+        self.settings = settings
+        self.penalty = float(settings.penalty)
+        self.augmented = bool(settings.augmented)
+        self.tolerance = float(settings.tolerance)
+        self.uzawa = UzawaLoop(settings.max_augmentations, settings.uzawa_schedule)
+        self.search_radius = float(settings.search_radius)
+        self.max_depth = float(settings.max_depth)
+        self.freeze_after = settings.freeze_after
+        self.freeze_resolves = bool(settings.freeze_resolves)
+        self.last_error = 0.0
+        self._unfreeze()
+
+    def penetration(self, x, load: float = 1.0) -> float:
+        """Deepest penetration (mm, >= 0) at coordinates x."""
+        raise NotImplementedError
+
+    def contact_forces(self, x, load: float = 1.0) -> np.ndarray:
+        """Contact forces on the body's nodes (mN) at x."""
+        raise NotImplementedError
+
+    def contact_pressure(self, x, load: float = 1.0):
+        """Contact pressure (kPa) at the slave nodes at x."""
+        raise NotImplementedError

@@ -1,8 +1,8 @@
 """Node-to-rigid-surface contact and sliding (penalty / augmented Lagrangian `Term`s).
 
 Nodes of a deformable body (the slave facets' nodes) against a rigid triangulated surface that
-moves with a prescribed rigid motion T(load) = [R | t] during the solve (teeth with their bone
-segment, a bone surface under sliding tissue, a press plate). The surface's search structure is
+moves with a prescribed rigid motion T(load) = [R | t] during the solve (a rigid obstacle carried
+by a prescribed part, a rigid surface under sliding tissue, a press plate). The surface's search structure is
 built once in its own frame: a node x is pulled back, y = R^T (x - t), its closest point c on
 the fixed surface and the pseudo-normal sign give the signed gap g(x) = s |y - c| (outward
 positive), with gradient dg/dx = R n and Hessian (I - n n) / g off the face interiors (zero
@@ -23,13 +23,14 @@ With `smooth=True` the faceted gap is replaced by a C2 tricubic-spline signed di
 once in the surface's frame (`solver.contact._sdf`), with its exact gradient and Hessian in the
 tangent eps_i n (x) n - p_i d2g/dx2. With `tangent="projected"` the curvature part -p_i d2g/dx2
 enters the tangent with its negative eigenvalues clipped to zero (projected Newton, Teran et al.
-2005): pressed onto a convex obstacle (a tooth's incisal edge) it is a negative tangential
+2005): pressed onto a convex obstacle (a sharp edge) it is a negative tangential
 stiffness that can make the tangent indefinite when the pressure is large against the tissue's
 stiffness, and Newton then wanders. It is projected while the contact status is free (the
 first `freeze_after` evaluations of a solve, far from the solution); once the status is frozen
 the exact tangent gives back quadratic convergence. The residual is always exact, so the
-solution is the same. Frictionless; optional `stick=True` adds a tangential penalty that ties a node to the surface
-point where it first touched (sticking, the infinite-friction limit).
+solution is the same. Frictionless; optional `stick=True` (experimental, tests only) adds a
+tangential penalty that ties a node to the surface point where it first touched (sticking, the
+infinite-friction limit).
 """
 from __future__ import annotations
 
@@ -38,7 +39,7 @@ import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
 from solver.contact._sdf import SignedDistanceGrid
-from solver.contact._uzawa import StatusFreezing, UzawaLoop
+from solver.contact._uzawa import AugmentedLagrangian, ContactTerm
 from solver.contact._geometry import (EDGE_AB, EDGE_BC, EDGE_CA, FACE, TriangleSurface,
                                       closest_point_on_triangles, nodal_areas, psd_projection)
 
@@ -55,7 +56,7 @@ def ramped_rigid_motion(T, load: float) -> np.ndarray:
     return out
 
 
-class RigidSurfaceContact(StatusFreezing):
+class RigidSurfaceContact(ContactTerm):
     """Contact (or bilateral sliding) of slave nodes against a moving rigid surface.
 
     nodes: (n, 3) reference coordinates of the whole mesh (for the slave areas and the dof
@@ -63,27 +64,27 @@ class RigidSurfaceContact(StatusFreezing):
     (their tributary areas scale the penalty), or `slave_nodes` with `slave_areas`.
     vertices, faces: the rigid surface in its reference position, outward normals.
     motion: a 4x4 rigid matrix reached at load 1 (ramped with `ramped_rigid_motion`), a
-    callable load -> 4x4, or None (fixed). penalty: eps in kPa/mm. bilateral: sliding
-    constraint (the nodes stay on the surface, free tangentially) instead of contact.
-    search_radius: nodes farther than this from the surface are ignored (mm); max_depth:
-    contact is only detected up to this penetration (for open surfaces). tolerance: largest
-    penetration/gap accepted at convergence (mm); max_augmentations bounds the Uzawa loop;
-    uzawa_schedule how load steps are augmented (`solver.contact._uzawa.UzawaLoop`).
+    callable load -> 4x4, or None (fixed). settings: `AugmentedLagrangian` (penalty eps in
+    kPa/mm, tolerance: largest penetration or sliding gap accepted at convergence, mm; nodes
+    farther than search_radius from the surface are ignored, contact is detected up to
+    max_depth inside it, for open surfaces; ...), any field of which may be given as a keyword
+    argument instead. bilateral: sliding constraint (the nodes stay on the surface, free
+    tangentially) instead of contact.
     smooth: use the C2 spline signed distance of `solver.contact._sdf.SignedDistanceGrid`
     (grid step `grid_spacing`) instead of the faceted surface: no gradient jumps across facet
     edges, so nodes pressed onto convex edges do not make Newton cycle (the facets' corners
     are rounded over about one grid step).
     """
 
-    def __init__(self, nodes, vertices, faces, *, slave_facets=None, slave_nodes=None,
-                 slave_areas=None, motion=None, penalty: float = 100.0,
-                 bilateral: bool = False, augmented: bool = True, tolerance: float = 0.05,
-                 max_augmentations: int = 10, search_radius: float = 5.0,
-                 max_depth: float = np.inf, stick: bool = False,
-                 freeze_after: int | None = 4, smooth: bool = False,
-                 grid_spacing: float | None = None, tangent: str = "exact",
-                 freeze_resolves: bool = True, uzawa_schedule: str = "carried"):
+    DEFAULTS = AugmentedLagrangian(search_radius=5.0, max_depth=np.inf)
+
+    def __init__(self, nodes, vertices, faces, *, settings: AugmentedLagrangian | None = None,
+                 slave_facets=None, slave_nodes=None, slave_areas=None, motion=None,
+                 bilateral: bool = False, stick: bool = False, smooth: bool = False,
+                 grid_spacing: float | None = None, tangent: str = "exact", **contact):
         nodes = np.asarray(nodes, dtype=float)
+        self._configure(settings, contact)
+        search_radius, max_depth = self.search_radius, self.max_depth
         if tangent not in ("exact", "projected"):
             raise ValueError(f"tangent must be 'exact' or 'projected', got {tangent!r}")
         self.tangent = tangent
@@ -101,8 +102,6 @@ class RigidSurfaceContact(StatusFreezing):
         self.areas = np.asarray(slave_areas, dtype=float)
         if len(self.areas) != len(self.slaves) or np.any(self.areas <= 0):
             raise ValueError("slave_areas must be positive, one per slave node")
-        if not penalty > 0:
-            raise ValueError(f"penalty must be > 0, got {penalty}")
         self.surface = TriangleSurface(vertices, faces)
         self.grid = None
         if smooth:
@@ -112,21 +111,12 @@ class RigidSurfaceContact(StatusFreezing):
             self.grid = SignedDistanceGrid.shared(self.surface, band=band, spacing=grid_spacing)
         self._hess = None
         self.motion = motion
-        self.penalty = float(penalty)
         self.eps = self.penalty * self.areas
         self.bilateral = bool(bilateral)
-        self.augmented = bool(augmented)
-        self.tolerance = float(tolerance)
-        self.uzawa = UzawaLoop(max_augmentations, uzawa_schedule)
-        self.search_radius = float(search_radius)
-        self.max_depth = float(max_depth)
         self.stick = bool(stick)
         self.multipliers = np.zeros(len(self.slaves))
         self.anchor = np.full((len(self.slaves), 3), np.nan)     # stick points, surface frame
         self.last = None
-        self.freeze_after = freeze_after
-        self.freeze_resolves = bool(freeze_resolves)
-        self._unfreeze()
         self._active = None
         self._face = None
 
@@ -137,11 +127,6 @@ class RigidSurfaceContact(StatusFreezing):
         if callable(self.motion):
             return np.asarray(self.motion(load), dtype=float)
         return ramped_rigid_motion(self.motion, load)
-
-    def moved_surface(self, load: float):
-        """Vertices of the rigid surface at `load` (for output and rendering)."""
-        T = self.transform(load)
-        return self.surface.vertices @ T[:3, :3].T + T[:3, 3]
 
     def gaps(self, x, load, frozen: bool = False):
         """Signed gaps of all slave nodes (nan where farther than the search radius).
@@ -343,12 +328,18 @@ class RigidSurfaceContact(StatusFreezing):
         self.multipliers = self.multipliers * factor
 
     # ------------------------------------------------------------------ results
-    def contact_forces(self, x, load) -> np.ndarray:
+    def penetration(self, x, load: float = 1.0) -> float:
+        """Deepest penetration (mm, >= 0) of a slave node within `max_depth` at x."""
+        g, *_ = self.gaps(x, load)
+        g = g[np.isfinite(g) & (g > -self.max_depth)]
+        return float(max(0.0, -g.min())) if len(g) else 0.0
+
+    def contact_forces(self, x, load: float = 1.0) -> np.ndarray:
         """Force (s, 3) that the rigid surface exerts on each slave node (mN)."""
         g, n, _, _ = self.gaps(x, load)
         return self._pressure(g)[0][:, None] * n
 
-    def contact_pressure(self, x, load) -> np.ndarray:
+    def contact_pressure(self, x, load: float = 1.0) -> np.ndarray:
         """Contact pressure (kPa) at each slave node: force / tributary area."""
         g, _, _, _ = self.gaps(x, load)
         return self._pressure(g)[0] / self.areas

@@ -16,8 +16,8 @@ evaluation until `freeze_after` evaluations at one load; then they are frozen (s
 freezing) so that Newton converges on a smooth problem, and `end_step` asks for another solve
 if a fresh search at the converged state disagrees. `end_step` updates the multipliers (Uzawa) until the
 deepest penetration is below `tolerance`. A re-solve re-decides the status at its first two
-evaluations only, then freezes it (`freeze_resolves`; orbicularis oris on the standard face:
-54 -> 46 Newton iterations).
+evaluations only, then freezes it (`freeze_resolves`): the status is nearly the one the step
+needs.
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from solver.contact._uzawa import StatusFreezing, UzawaLoop, deepest_penetration
+from solver.contact._uzawa import AugmentedLagrangian, ContactTerm, deepest_penetration
 from solver.contact._geometry import facet_normals, nodal_areas, plane_gap, triangulate
 
 __all__ = ["SurfaceContact"]
@@ -130,38 +130,31 @@ class _Pass:
         return s, t, g, grad, hess, dofs
 
 
-class SurfaceContact(StatusFreezing):
+class SurfaceContact(ContactTerm):
     """Frictionless contact between two deformable facet sets (or a set with itself).
 
     nodes: (n, 3) reference coordinates of the mesh. surface_a, surface_b: (k, 3|4) facets,
-    outward normals (right-hand rule). two_pass: both sets act as slaves in turn (symmetric;
-    otherwise a's nodes against b's facets only). penalty: eps (kPa/mm). search_radius (mm):
-    how far from a master plane a slave is looked at (pairs are kept for gaps in
-    (-max_depth, search_radius)). tolerance: deepest penetration accepted (mm).
+    outward normals (right-hand rule). settings: `AugmentedLagrangian` (penalty, tolerance,
+    search radius, ...; any of its fields may be given as a keyword argument instead: pairs
+    are kept for gaps in (-max_depth, search_radius)). two_pass: both sets act as slaves in
+    turn (symmetric; otherwise a's nodes against b's facets only).
     ignore_initial_penetration: surfaces that already overlap in the reference configuration
-    (e.g. lips of a registered mesh) are not pushed apart: each slave node's initial
+    (e.g. surfaces of a registered mesh) are not pushed apart: each slave node's initial
     penetration is added to its gap as a fixed offset (LS-DYNA's "ignore initial
     penetrations"), so contact acts only against further penetration; the largest offset is
-    `initial_penetration` (mm). uzawa_schedule: how the load steps are augmented, "carried"
-    (default), "every_step" or "final_only" (`solver.contact._uzawa.UzawaLoop`).
+    `initial_penetration` (mm).
     pair_hysteresis: a slave keeps the master triangle of its last search while its projection
     lies within this barycentric distance outside it (the triangle's plane is extended that
     far), instead of switching to a neighbour as soon as it crosses the shared edge: a node
     over a crease between two triangles otherwise flips between their planes at each Newton
-    iteration while the status is searched (standard face, orbicularis oris worst case of
-    `bench/contact.py`: 28 -> 23 Newton iterations with 0.05; 0.035 gave 25, 0.08 23, 0.1 a
-    cut-back on first contact).
+    iteration while the status is searched (0: no hysteresis).
     """
 
-    def __init__(self, nodes, surface_a, surface_b, *, two_pass: bool = True,
-                 penalty: float = 100.0, augmented: bool = True, tolerance: float = 0.05,
-                 max_augmentations: int = 10, search_radius: float = 2.0,
-                 max_depth: float = 2.0, freeze_after: int | None = 4,
-                 ignore_initial_penetration: bool = True, freeze_resolves: bool = True,
-                 uzawa_schedule: str = "carried", pair_hysteresis: float = 0.05):
+    def __init__(self, nodes, surface_a, surface_b, *, settings: AugmentedLagrangian | None = None,
+                 two_pass: bool = True, ignore_initial_penetration: bool = True,
+                 pair_hysteresis: float = 0.0, **contact):
         nodes = np.asarray(nodes, dtype=float)
-        if not penalty > 0:
-            raise ValueError(f"penalty must be > 0, got {penalty}")
+        self._configure(settings, contact)
         if not 0.0 <= pair_hysteresis < 0.5:
             raise ValueError(f"pair_hysteresis must be in [0, 0.5), got {pair_hysteresis}")
         self.n_nodes = len(nodes)
@@ -169,16 +162,6 @@ class SurfaceContact(StatusFreezing):
         self.passes = [_Pass(nodes, surface_a, surface_b, pair_hysteresis)]
         if two_pass:
             self.passes.append(_Pass(nodes, surface_b, surface_a, pair_hysteresis))
-        self.penalty = float(penalty)
-        self.augmented = bool(augmented)
-        self.tolerance = float(tolerance)
-        self.uzawa = UzawaLoop(max_augmentations, uzawa_schedule)
-        self.search_radius = float(search_radius)
-        self.max_depth = float(max_depth)
-        self.last_error = 0.0
-        self.freeze_after = freeze_after
-        self.freeze_resolves = bool(freeze_resolves)
-        self._unfreeze()
         self._resolve_load, self._resolved = None, []
         self.initial_penetration = 0.0
         if ignore_initial_penetration:
@@ -259,7 +242,7 @@ class SurfaceContact(StatusFreezing):
                               / (2.0 * self.penalty * ps.areas[lost])))
         return e
 
-    def penetration(self, x) -> float:
+    def penetration(self, x, load: float = 1.0) -> float:
         """Deepest penetration (mm, >= 0) over both passes at coordinates x."""
         return deepest_penetration(g for _, _, g, *_ in self._evaluate(x, hessian=False))
 
@@ -339,7 +322,15 @@ class SurfaceContact(StatusFreezing):
         for ps in self.passes:
             ps.multipliers = ps.multipliers * factor
 
-    def contact_pressure(self, x):
+    def contact_forces(self, x, load: float = 1.0) -> np.ndarray:
+        """Contact forces (n, 3) acting on the nodes (mN) at x: minus the residual term."""
+        f = np.zeros(3 * self.n_nodes)
+        for ps, s, g, grad, hess, dofs, eps, lam, p in self._evaluate(x, hessian=False):
+            a = p > 0
+            np.add.at(f, dofs[a].ravel(), (p[a, None] * grad[a]).ravel())
+        return f.reshape(-1, 3)
+
+    def contact_pressure(self, x, load: float = 1.0):
         """Per pass: (slave node ids, pressure kPa) at coordinates x."""
         res = []
         for ps, s, g, grad, hess, dofs, eps, lam, p in self._evaluate(x, hessian=False):

@@ -173,3 +173,19 @@ def test_landmark_named_only_where_the_camera_sees_it(head):
     assert seen["frontal"] == {"Prn": True, "back": False, "cheekR": False}
     assert seen["profile"] == {"Prn": True, "back": True, "cheekR": True}
     assert seen["profile_left"] == {"Prn": True, "back": True, "cheekR": False}
+
+
+def test_pipeline_head_frame_of_a_rotated_patient_model():
+    # the pipeline's frame: the generic model (built upright) fitted onto the patient model;
+    # a patient model that is the generic one rotated gives back that rotation (rounding only)
+    from types import SimpleNamespace
+
+    import generic_mesh
+    from planner.pipeline import head_frame_of
+
+    g = generic_mesh.load("coarse")
+    q = _rotation(10.0, -20.0, 5.0)
+    model = SimpleNamespace(nodes=np.asarray(g.nodes) @ q.T + [3.0, 4.0, 5.0])
+    assert np.allclose(head_frame_of(model, "coarse"), q, atol=1e-9)
+    # without a resolution (a model not made from the generic one) the scan's axes are used
+    assert np.array_equal(head_frame_of(model, None), np.eye(3))

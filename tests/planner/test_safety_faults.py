@@ -79,13 +79,20 @@ def test_a_live_writer_s_temporary_is_not_touched(tmp_path):
     assert live.is_dir()
 
 
-@pytest.mark.parametrize("delay", [0.2, 1.5, 4.0])
+# the command starts right after the interpreter has imported planner.cli ("ready"); an
+# interrupt before that hits Python's own start-up, which no program can catch
+STARTER = ("import sys, planner.cli; sys.stderr.write('ready\\n'); sys.stderr.flush(); "
+           "sys.exit(planner.cli.main(sys.argv[1:]))")
+
+
+@pytest.mark.parametrize("delay", [0.05, 1.5, 4.0])
 def test_ctrl_c_at_any_moment_exits_130(tmp_path, delay):
     out = tmp_path / "demo"
-    p = subprocess.Popen([sys.executable, "-m", "planner.cli", "demo", "--out", str(out),
-                          "--no-images", "--quiet"], env={**ENV, "FACEPLAN_CACHE": str(tmp_path / "c")},
-                         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(delay)
+    p = subprocess.Popen([sys.executable, "-c", STARTER, "demo", "--out", str(out), "--no-images", "--quiet"],
+                         env={**ENV, "FACEPLAN_CACHE": str(tmp_path / "c")}, cwd=tmp_path,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert p.stderr.readline().strip() == "ready"
+    time.sleep(delay)          # 0.05 s: still importing the commands (numpy, scipy, trimesh...)
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=120)
     assert p.returncode == 130, err
@@ -148,3 +155,32 @@ def test_real_full_or_read_only_disk_refused_before_work(tmp_path, options, word
                                                    "--quiet"])
     assert p.returncode == 2, p.stderr
     assert words in p.stderr and "Traceback" not in p.stderr and str(mnt / "out") in p.stderr
+
+
+def test_disk_full_while_compare_writes(tmp_path, monkeypatch, capsys):
+    """A real command (compare on the analytic face phantom) whose second file write fails with
+    ENOSPC: exit 4, a one-line message, no output folder and no temporary left."""
+    import pyvista as pv
+    import trimesh
+
+    from planner.compare.phantom import face_phantom, write_prediction_folder
+
+    pred, scan = face_phantom(3.0), face_phantom(2.5, jitter=0.5, seed=1, offset=0.3)
+    case = tmp_path / "case"
+    write_prediction_folder(case / "predict", pred.vertices, pred.faces, pred.region, pred.region_names,
+                            pred.landmarks, pred.unoperated_regions)
+    (case / "postop").mkdir()
+    trimesh.Trimesh(scan.vertices, scan.faces, process=False).export(case / "postop" / "skin.stl")
+    real, calls = pv.PolyData.save, []
+
+    def full(self, filename, *a, **k):
+        calls.append(filename)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device", str(filename))
+        return real(self, filename, *a, **k)
+
+    monkeypatch.setattr(pv.PolyData, "save", full)
+    assert cli.main(["compare", str(case), "--no-images"]) == 4
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "Traceback" not in err and len(calls) == 2
+    assert sorted(p.name for p in case.iterdir()) == ["postop", "predict"]

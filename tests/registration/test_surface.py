@@ -1,5 +1,6 @@
 """Closest points against brute force; boundary flags; orientation of flipped surfaces."""
 import numpy as np
+import pytest
 
 from registration.surface import TargetSurface
 from shell import ellipsoid_radius, surface_grid
@@ -52,3 +53,23 @@ def test_duplicated_stl_vertices_are_merged():
     s = TargetSurface(soup_v, soup_f)
     assert len(s.vertices) == len(v)
     assert s.face_edge_boundary.sum() == TargetSurface(v, f).face_edge_boundary.sum()
+
+
+def test_transformed_copy_answers_as_a_rebuilt_surface():
+    """A similarity maps the surface without cleaning and orienting it anew: closest points,
+    distances, normals and border flags of the mapped copy equal those of a surface built from
+    the mapped vertices (to 1e-9 mm: the same projections, the vertices rounded differently)."""
+    from scipy.spatial.transform import Rotation
+
+    v, f = surface_grid(ellipsoid_radius(80, 100, 110), n_theta=30, n_phi=20)
+    s = TargetSurface(v, f)
+    r = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    t = np.array([4.0, -20.0, 7.5])
+    moved, rebuilt = s.transformed(1.13, r, t), TargetSurface(1.13 * v @ r.T + t, f)
+    q = np.random.default_rng(2).normal(scale=90.0, size=(300, 3)) + t
+    a, b = moved.closest(q), rebuilt.closest(q)
+    np.testing.assert_allclose(a.points, b.points, atol=1e-9)
+    np.testing.assert_allclose(a.distance, b.distance, atol=1e-9)
+    np.testing.assert_allclose(a.normal, b.normal, atol=1e-9)
+    np.testing.assert_array_equal(a.on_boundary, b.on_boundary)
+    assert moved.area == pytest.approx(rebuilt.area, rel=1e-12)

@@ -1,0 +1,120 @@
+"""Benchmark: registration on heads faceplan's own generator did not make, with partial skins.
+
+Heads of the superquadric family (`facemodel.synthetic_alt`), each with its skin cut to the
+face region (in front of the ears, down under the chin) at several heights (`--cuts`: a face
+scan to the forehead, a CBCT ending below the eyes, one ending at mid-nose), registered with
+their landmarks (and, with `--no-landmarks`, also without them) at each resolution. One line
+per run: success, minimum scaled Jacobian, inverted elements, skin fit (mean / p95 mm),
+bone fit mean, landmark error (max), coverage, surface nodes the repair released, regions
+not fitted, time; a summary per resolution.
+
+With `--family own` the heads come from faceplan's own generator (`facemodel.synthetic`),
+cut the same way: the comparison.
+
+Usage: python bench/heads.py [--heads 6] [--first 100] [--cuts scan,below_eyes,mid_nose]
+                             [--resolutions coarse,standard] [--fine] [--no-landmarks]
+                             [--family alt|own]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+sys.path.insert(0, str(_HERE.parent))
+
+import generic_mesh  # noqa: E402
+from facemodel import synthetic_alt  # noqa: E402
+from registration import mesh_match_and_repair  # noqa: E402
+from registration.errors import RegistrationFailure, RegistrationInputError  # noqa: E402
+from registration.quality import min_scaled_jacobian  # noqa: E402
+
+
+def run_one(model, head, landmarks: bool):
+    t0 = time.perf_counter()
+    try:
+        patient, rep = mesh_match_and_repair(model, (head.skin.vertices, head.skin.faces),
+                                             {k: (b.vertices, b.faces) for k, b in head.bones.items()},
+                                             landmarks=head.landmarks if landmarks else None, cache=False)
+        q = min_scaled_jacobian(patient.nodes, patient.hexes)
+        status, err = "ok", ""
+    except (RegistrationFailure, RegistrationInputError) as exc:
+        rep = getattr(exc, "report", None) or {}
+        q, status, err = None, "FAIL", str(exc)
+    except Exception as exc:  # noqa: BLE001 -- a crash is a result of the bench too
+        rep, q, status, err = {}, None, "CRASH", f"{type(exc).__name__}: {exc}"
+    dt = time.perf_counter() - t0
+    fit = rep.get("fit", {})
+    lm = rep.get("landmarks") or {}
+    regions = rep.get("regions") or {}
+    unfitted = sorted(k for k, v in regions.items() if not v.get("fitted", True))
+    row = {"status": status, "time_s": dt, "error": err,
+           "min_sj": float(q.min()) if q is not None else
+           (rep.get("quality", {}) or {}).get("min_scaled_jacobian"),
+           "inverted": int((q <= 0).sum()) if q is not None else (rep.get("quality", {}) or {}).get("n_inverted"),
+           "skin_mean": (fit.get("skin") or {}).get("mean_mm"), "skin_p95": (fit.get("skin") or {}).get("p95_mm"),
+           "bone_mean": (fit.get("bone") or {}).get("mean_mm"),
+           "lm_max": max((v["error_mm"] for v in lm.values()), default=None),
+           "coverage": rep.get("coverage"), "unfitted": unfitted,
+           "released": (rep.get("repair") or {}).get("nodes_released_from_surfaces")}
+    return row
+
+
+def fmt(v, spec=".3f"):
+    return "-" if v is None else format(v, spec)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--heads", type=int, default=6)
+    ap.add_argument("--first", type=int, default=100, help="seed of the first head")
+    ap.add_argument("--cuts", default="scan,below_eyes,mid_nose")
+    ap.add_argument("--resolutions", default="coarse,standard")
+    ap.add_argument("--fine", action="store_true", help="also at fine resolution")
+    ap.add_argument("--no-landmarks", action="store_true", help="also register without landmarks")
+    ap.add_argument("--family", choices=("alt", "own"), default="alt",
+                    help="alt: the superquadric family; own: faceplan's generator (the comparison)")
+    args = ap.parse_args(argv)
+    resolutions = args.resolutions.split(",") + (["fine"] if args.fine else [])
+    cuts = args.cuts.split(",")
+    rows = []
+    for res in resolutions:
+        model = generic_mesh.load(res)
+        for seed in range(args.first, args.first + args.heads):
+            if args.family == "alt":
+                head = synthetic_alt.alt_head(seed)
+            else:
+                from facemodel import synthetic
+
+                head = synthetic.synthetic_head(seed)
+            for cut in cuts:
+                cropped = synthetic_alt.crop_face(head, cut)
+                for with_lm in (True, False) if args.no_landmarks else (True,):
+                    r = run_one(model, cropped, with_lm)
+                    r.update(res=res, seed=seed, cut=cut, landmarks=with_lm)
+                    rows.append(r)
+                    print(f"{res:8s} head {seed} {cut:10s} lm={'y' if with_lm else 'n'} {r['status']:5s} "
+                          f"minSJ {fmt(r['min_sj'])} inv {fmt(r['inverted'], 'd')} "
+                          f"skin {fmt(r['skin_mean'])}/{fmt(r['skin_p95'])} mm bone {fmt(r['bone_mean'])} "
+                          f"lm_max {fmt(r['lm_max'], '.2f')} cover {fmt(r['coverage'], '.2f')} released {fmt(r['released'], 'd')} "
+                          f"not_fitted [{','.join(r['unfitted'])}] {r['time_s']:.1f} s {r['error'][:120]}",
+                          flush=True)
+    print()
+    for res in resolutions:
+        sel = [r for r in rows if r["res"] == res]
+        ok = [r for r in sel if r["status"] == "ok"]
+        sj = [r["min_sj"] for r in ok]
+        print(f"{res}: {len(ok)}/{len(sel)} registered; crashes {sum(r['status'] == 'CRASH' for r in sel)}; "
+              f"min SJ {fmt(min(sj) if sj else None)}; inverted {sum((r['inverted'] or 0) for r in ok)}; "
+              f"skin mean max {fmt(max((r['skin_mean'] for r in ok), default=None))} mm; "
+              f"time median {np.median([r['time_s'] for r in sel]):.1f} s max {max(r['time_s'] for r in sel):.1f} s")
+    return 0 if all(r["status"] == "ok" for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,267 @@
+"""Benchmark: registration and prediction on held-out synthetic patients.
+
+The solver and registration settings were chosen on a handful of heads (the demo head, synth
+seeds 7, 11, 13 and the benchmarks' cases). This bench judges them on patients never used to
+choose anything: synthetic heads (`facemodel.synthetic.synthetic_head`) of seeds 1000-1029
+(no test, bench or default uses them), each with a plan drawn over the clinical range of
+bimaxillary surgery -- Le Fort I advancement 0-8 mm and impaction 0-4 mm, mandibular
+(BSSO) movement -10..+10 mm, genioplasty advancement 0-8 mm on the mandible, each segment
+pitched by -3..+3 deg about a transverse axis through it (the maxilla's through A point). The
+case folders are written by `faceplan synth`'s own writer (`planner.commands.synth.write_case`)
+and run through the pipeline's functions (`planner.pipeline.register_case`, `predict_case`),
+at each resolution asked.
+
+Per case and resolution: success or the failure (exception type and message), Newton
+iterations, load steps, cut-backs, minimum scaled Jacobian of the registered and of the
+predicted mesh, inverted elements, landmark errors (registered landmark nodes against the
+head's true landmarks, mm) and the time of each stage; then per resolution the success rate,
+median / max iterations, total cut-backs, the worst scaled Jacobian, landmark error median /
+max, median stage times, and a summary line
+`heldout <res>: ok=<k>/<n> newton_median=.. newton_max=.. cutbacks=.. min_sj=.. inverted=..
+lm_median_mm=.. lm_max_mm=.. predict_median_s=..`.
+
+Flags: `--count N` patients (default 30), `--first-seed S` (default 1000), `--resolutions
+coarse,standard`, `--given-landmarks` (the cases give their true landmarks; by default they
+give none and the registration locates them on the skin, so that the landmark errors measure
+the located landmarks' settings too),
+`--json FILE` (every record). Registrations use a private cache (no result of an earlier run is
+reused; within a run the prediction reuses the registration just made, as `faceplan predict`
+would on a second call).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+# `python bench/heldout.py` puts bench/ first on sys.path, where bench/registration.py would
+# shadow the registration package: drop it.
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
+FIRST_SEED = 1000
+PLAN_STREAM = 20261125     # the plans' own random stream (independent of the head's shape)
+
+
+def _rotation_x(deg: float) -> np.ndarray:
+    t = np.radians(deg)
+    c, s = np.cos(t), np.sin(t)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _rigid(deg: float, centre: np.ndarray, translation) -> np.ndarray:
+    """4x4: a pitch of `deg` about the transverse axis through `centre`, then `translation`."""
+    m = np.eye(4)
+    r = _rotation_x(deg)
+    m[:3, :3] = r
+    m[:3, 3] = centre - r @ centre + np.asarray(translation, float)
+    return m
+
+
+def draw_plan(head, seed: int) -> tuple[dict, dict]:
+    """A plan over the clinical range for `head` (module docstring); returns (plan dict for
+    plan.yaml, the drawn values)."""
+    from facemodel import head_geometry as hg
+
+    rng = np.random.default_rng(np.random.SeedSequence([PLAN_STREAM, int(seed)]))
+    d = {"maxilla_advance_mm": rng.uniform(0.0, 8.0), "maxilla_impaction_mm": rng.uniform(0.0, 4.0),
+         "maxilla_pitch_deg": rng.uniform(-3.0, 3.0), "mandible_mm": rng.uniform(-10.0, 10.0),
+         "mandible_pitch_deg": rng.uniform(-3.0, 3.0), "chin_advance_mm": rng.uniform(0.0, 8.0),
+         "chin_pitch_deg": rng.uniform(-3.0, 3.0)}
+    shape = head.shape
+    a_point = np.asarray(hg.to_cartesian(0.0, -9.0, float(hg.bone_radius(0.0, -9.0, shape, side=1)), shape),
+                         float)
+    maxilla = _rigid(d["maxilla_pitch_deg"], a_point,
+                     [0.0, d["maxilla_advance_mm"], d["maxilla_impaction_mm"]])
+    mand_c = np.asarray(head.bones["mandible"].vertices, float).mean(axis=0)
+    mandible = _rigid(d["mandible_pitch_deg"], mand_c, [0.0, d["mandible_mm"], 0.0])
+    # the chin rides on the mandible: the genioplasty's own motion, then the mandible's
+    chin_c = np.asarray(head.bones["chin"].vertices, float).mean(axis=0)
+    chin = mandible @ _rigid(d["chin_pitch_deg"], chin_c, [0.0, d["chin_advance_mm"], 0.0])
+    segs = {name: {"matrix": [[round(float(v), 9) for v in row] for row in m]}
+            for name, m in (("maxilla", maxilla), ("mandible", mandible), ("chin", chin))}
+    plan = {"faceplan": 1, "frame": "RAS", "segments": segs,
+            "muscles": {"orbicularis_oris": 0.0, "mentalis": 0.0}, "model": {"contact": True}}
+    return plan, {k: round(float(v), 3) for k, v in d.items()}
+
+
+def _predicted_quality(folder: Path) -> float:
+    """Minimum scaled Jacobian (corners and centres) of the elements of prediction.vtu."""
+    import meshio
+
+    from registration.quality import scaled_jacobians
+
+    m = meshio.read(folder / "prediction.vtu")
+    hexes = m.cells_dict["hexahedron"]
+    q = scaled_jacobians(np.asarray(m.points, float), np.asarray(hexes))
+    return float(q.min())
+
+
+def run_case(seed: int, resolution: str, root: Path, landmarks: bool) -> dict:
+    """Register and predict patient `seed` at `resolution`; a record of what happened."""
+    import generic_mesh
+    import yaml
+
+    from facemodel.synthetic import synthetic_head
+    from planner.case import load_case
+    from planner.commands.synth import write_case
+    from planner.pipeline import Progress, predict_case, register_case
+    from registration.quality import min_scaled_jacobian
+
+    rec: dict = {"seed": seed, "resolution": resolution, "ok": False}
+    t0 = time.perf_counter()
+    head = synthetic_head(seed)
+    folder = root / f"heldout_{seed:04d}_{resolution}"
+    folder.mkdir()
+    write_case(folder, head)
+    plan, drawn = draw_plan(head, seed)
+    (folder / "plan.yaml").write_text("# bench/heldout.py: a plan drawn over the clinical range\n"
+                                      + yaml.safe_dump(plan, sort_keys=False))
+    if not landmarks:
+        (folder / "preop" / "landmarks.json").unlink()
+    rec["plan"] = drawn
+    rec["times_s"] = {"make_case": time.perf_counter() - t0}
+    stage = "registration"
+    try:
+        t1 = time.perf_counter()
+        patient, reg = register_case(load_case(folder), resolution, Progress(echo=False))
+        rec["times_s"]["registration"] = time.perf_counter() - t1
+        rec["registration_stages_s"] = {k: round(float(v), 2) for k, v in reg.get("time", {}).items()}
+        generic = generic_mesh.load(resolution)
+        rec["registered_min_sj"] = float(min_scaled_jacobian(patient.nodes, patient.hexes).min())
+        rec["skin_fit_mean_mm"] = reg["fit"]["skin"]["mean_mm"]
+        rec["landmark_error_mm"] = {k: float(np.linalg.norm(patient.nodes[i] - head.landmarks[k]))
+                                    for k, i in generic.landmarks.items() if k in head.landmarks}
+        stage = "prediction"
+        t2 = time.perf_counter()
+        out = predict_case(folder, root / f"predict_{seed:04d}_{resolution}", resolution=resolution,
+                           render=False, echo=False)
+        rec["times_s"]["predict"] = time.perf_counter() - t2
+        report = json.loads((out / "report.json").read_text())
+        solver = report.get("solver", {})
+        info = solver.get("info") or {}
+        rec["newton_iterations"] = solver.get("iterations")
+        rec["load_steps"] = solver.get("steps")
+        rec["cutbacks"] = info.get("cutbacks")
+        rec["predict_stages_s"] = report.get("timings_s", {})
+        rec["predicted_min_sj"] = _predicted_quality(out)
+        mq = report.get("mesh_quality", {})
+        rec["predicted_inverted"] = int(mq.get("inverted_elements", 0))
+        rec["predicted_folded_corners"] = int(mq.get("folded_corner_elements", 0))
+        rec["ok"] = True
+    except Exception as exc:  # a bench records every failure mode and goes on
+        rec["failed_in"] = stage
+        rec["error"] = f"{type(exc).__name__}: {exc}"
+        tb = traceback.extract_tb(exc.__traceback__)
+        if tb:
+            rec["where"] = f"{Path(tb[-1].filename).name}:{tb[-1].lineno} ({tb[-1].name})"
+    rec["times_s"]["total"] = time.perf_counter() - t0
+    return rec
+
+
+def _median(v):
+    return float(np.median(v)) if len(v) else float("nan")
+
+
+def summarise(records: list[dict], resolution: str) -> str:
+    rs = [r for r in records if r["resolution"] == resolution]
+    ok = [r for r in rs if r["ok"]]
+    its = [r["newton_iterations"] for r in ok if r.get("newton_iterations") is not None]
+    cut = [r["cutbacks"] or 0 for r in ok]
+    sj = [r["predicted_min_sj"] for r in ok] + [r["registered_min_sj"] for r in rs if "registered_min_sj" in r]
+    inv = sum(r.get("predicted_inverted", 0) for r in ok)
+    folded = sum(r.get("predicted_folded_corners", 0) for r in ok)
+    lm = [e for r in rs for e in r.get("landmark_error_mm", {}).values()]
+    print(f"\n== {resolution}: {len(ok)}/{len(rs)} succeeded")
+    for r in rs:
+        if not r["ok"]:
+            print(f"  FAILED seed {r['seed']} in {r['failed_in']}: {r['error']} [{r.get('where', '')}] plan {r['plan']}")
+    if its:
+        print(f"  Newton iterations: median {_median(its):.0f}, max {max(its)}; cut-backs: total {sum(cut)}, "
+              f"cases with any {sum(c > 0 for c in cut)}")
+    if sj:
+        print(f"  minimum scaled Jacobian: registered {min(r['registered_min_sj'] for r in rs if 'registered_min_sj' in r):.3f}"
+              + (f", predicted {min(r['predicted_min_sj'] for r in ok):.3f}" if ok else "")
+              + f"; after prediction: {inv} inverted element(s) (a Gauss-point Jacobian <= 0), "
+              f"{folded} with a folded corner only")
+    if lm:
+        print(f"  landmark error (registered node vs truth): median {_median(lm):.2f} mm, "
+              f"p90 {np.percentile(lm, 90):.2f} mm, max {max(lm):.2f} mm")
+        names = sorted({k for r in rs for k in r.get("landmark_error_mm", {})})
+        print("    per landmark (median / max mm): " + ", ".join(
+            f"{k} {_median([r['landmark_error_mm'][k] for r in rs if k in r.get('landmark_error_mm', {})]):.2f}/"
+            f"{max(r['landmark_error_mm'][k] for r in rs if k in r.get('landmark_error_mm', {})):.2f}"
+            for k in names))
+    stages: dict[str, list] = {}
+    for r in rs:
+        for k, v in r["times_s"].items():
+            stages.setdefault(k, []).append(v)
+        for k, v in r.get("predict_stages_s", {}).items():
+            stages.setdefault(f"predict.{k}", []).append(v)
+    print("  time per stage (median / max s): " + ", ".join(
+        f"{k} {_median(v):.1f}/{max(v):.1f}" for k, v in stages.items()))
+    line = (f"heldout {resolution}: ok={len(ok)}/{len(rs)} "
+            f"newton_median={_median(its):.0f} newton_max={max(its) if its else 'nan'} "
+            f"cutbacks={sum(cut)} min_sj={min(sj) if sj else float('nan'):.3f} inverted={inv} folded={folded} "
+            f"lm_median_mm={_median(lm):.2f} lm_max_mm={max(lm) if lm else float('nan'):.2f} "
+            f"predict_median_s={_median(stages.get('predict', [])):.1f}")
+    return line
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--count", type=int, default=30, help="patients (default 30)")
+    parser.add_argument("--first-seed", type=int, default=FIRST_SEED,
+                        help=f"first patient seed (default {FIRST_SEED}; held out: used nowhere else)")
+    parser.add_argument("--resolutions", default="coarse,standard",
+                        help="comma-separated: coarse, standard, fine (default coarse,standard)")
+    parser.add_argument("--given-landmarks", action="store_true",
+                        help="the cases give their true landmarks (default: none given, the "
+                             "registration locates them on the skin)")
+    parser.add_argument("--json", help="write every record to this file")
+    args = parser.parse_args()
+    resolutions = [r.strip() for r in args.resolutions.split(",") if r.strip()]
+    bad = [r for r in resolutions if r not in ("coarse", "standard", "fine")]
+    if bad or args.count < 1:
+        parser.error(f"unknown resolution(s) {bad}" if bad else "--count must be at least 1")
+    seeds = list(range(args.first_seed, args.first_seed + args.count))
+    print(f"held-out patients: seeds {seeds[0]}-{seeds[-1]}, resolutions {', '.join(resolutions)}, "
+          f"landmarks {'given' if args.given_landmarks else 'located'}", flush=True)
+    records: list[dict] = []
+    with tempfile.TemporaryDirectory(prefix="faceplan-heldout-") as tmp:
+        root = Path(tmp)
+        os.environ["XDG_CACHE_HOME"] = str(root / "cache")   # registrations of this run only
+        for res in resolutions:
+            for seed in seeds:
+                rec = run_case(seed, res, root, landmarks=args.given_landmarks)
+                records.append(rec)
+                if rec["ok"]:
+                    lm = rec["landmark_error_mm"]
+                    print(f"  {res} seed {seed}: ok, Newton {rec['newton_iterations']} its "
+                          f"({rec['load_steps']} steps, {rec['cutbacks']} cut-backs), min SJ reg "
+                          f"{rec['registered_min_sj']:.3f} / pred {rec['predicted_min_sj']:.3f}, "
+                          f"landmarks max {max(lm.values()):.2f} mm, registration "
+                          f"{rec['times_s']['registration']:.1f} s, predict {rec['times_s']['predict']:.1f} s",
+                          flush=True)
+                else:
+                    print(f"  {res} seed {seed}: FAILED in {rec['failed_in']}: {rec['error']}", flush=True)
+    lines = [summarise(records, res) for res in resolutions]
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    print()
+    for ln in lines:
+        print(ln)
+    print(f"peak_mb={peak_mb:.0f}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(records, indent=1, default=float))
+    return 0 if all(r["ok"] for r in records) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

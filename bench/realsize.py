@@ -1,0 +1,101 @@
+"""Benchmark: a prediction from input surfaces of real size.
+
+A CT-derived skin or bone surface has 10^5-10^6 triangles, a synthetic one 10^4. This bench
+writes a synthetic patient (`facemodel.synthetic.synthetic_head`, seed 7; written by `faceplan
+synth`'s writer) whose skin is subdivided to ~1M triangles and whose bone segments to ~500k in
+all (midpoint subdivision: the same shapes, four times the triangles per level), then runs
+`faceplan predict` on it end to end (`planner.pipeline.predict_case`, registration included,
+no cache) and prints the time of every stage, the registration's own stages, and the peak
+resident memory (`resource.getrusage`). The last line is
+`realsize: skin_tris=.. bone_tris=.. total_s=.. peak_mb=..` (targets: <= 60 s, <= 4096 MB at
+standard on 2 cores).
+
+Flags: `--skin-triangles N` (default 1e6), `--bone-triangles N` (default 5e5, over all
+segments), `--resolution coarse|standard|fine` (default standard), `--seed S`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+# `python bench/realsize.py` puts bench/ first on sys.path, where bench/registration.py would
+# shadow the registration package: drop it.
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
+
+def subdivided(mesh, target: int):
+    """`mesh` midpoint-subdivided until it has at least ~target / 2 triangles (x4 per level)."""
+    while len(mesh.faces) * 2 < target:
+        mesh = mesh.subdivide()
+    return mesh
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--skin-triangles", type=float, default=1e6)
+    parser.add_argument("--bone-triangles", type=float, default=5e5)
+    parser.add_argument("--resolution", default="standard", choices=("coarse", "standard", "fine"))
+    parser.add_argument("--seed", type=int, default=7)
+    args = parser.parse_args()
+
+    from facemodel.synthetic import synthetic_head
+    from planner.commands.synth import write_case
+    from planner.errors import SolveError
+    from planner.pipeline import predict_case
+
+    with tempfile.TemporaryDirectory(prefix="faceplan-realsize-") as tmp:
+        root = Path(tmp)
+        os.environ["XDG_CACHE_HOME"] = str(root / "cache")   # no registration reused
+        t0 = time.perf_counter()
+        head = synthetic_head(args.seed)
+        case = root / "case"
+        case.mkdir()
+        write_case(case, head)
+        skin = subdivided(head.skin, int(args.skin_triangles))
+        skin.export(case / "preop" / "skin.stl")
+        skin_tris = len(skin.faces)
+        total = sum(len(b.faces) for b in head.bones.values())
+        bone_tris = 0
+        for name, bone in head.bones.items():
+            b = subdivided(bone, int(args.bone_triangles * len(bone.faces) / total))
+            b.export(case / "preop" / "bone" / f"{name}.stl")
+            bone_tris += len(b.faces)
+        print(f"case: skin {len(skin.faces)} triangles (synthetic {len(head.skin.faces)}), bones "
+              f"{bone_tris} triangles in {len(head.bones)} segments (synthetic {total}); written in "
+              f"{time.perf_counter() - t0:.1f} s", flush=True)
+        del skin, head
+        lines: list[str] = []
+        t1 = time.perf_counter()
+        try:
+            out = predict_case(case, root / "predict", resolution=args.resolution, render=False,
+                               echo=lines.append)
+        except SolveError as exc:
+            print(f"the prediction failed after {time.perf_counter() - t1:.1f} s: {exc}")
+            return 3
+        wall = time.perf_counter() - t1
+        report = json.loads((out / "report.json").read_text())
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    print(f"predict at {args.resolution}: stage times (s)")
+    for k, v in report["timings_s"].items():
+        print(f"  {k:16s} {v:8.2f}")
+    reg = report.get("registration", {}).get("time", {})
+    if reg:
+        print("registration stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in reg.items()))
+    solver = report.get("solver", {})
+    print(f"Newton iterations {solver.get('iterations')}, load steps {solver.get('steps')}; "
+          f"elements {report['soft_tissue']['n_elements']}")
+    print(f"realsize: skin_tris={skin_tris} bone_tris={bone_tris} total_s={wall:.1f} "
+          f"peak_mb={peak_mb:.0f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,66 @@
+"""The solver settings of the face model: one named object, `FACE_SOLVER`.
+
+`solver.newton.newton_solve` and the contact terms have generic defaults; the face, nearly
+incompressible soft tissue with lip-lip and lip-teeth contact under large prescribed bone
+motions, is solved with the values gathered here, each with the reason it holds. They were
+chosen on the synthetic faces of `bench/contact.py`, `bench/pipeline.py` and `faceplan synth`;
+`FaceSolverSettings.control` turns them into a `solver.control.SolverControl`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from solver.control import SolverControl
+
+__all__ = ["FaceSolverSettings", "FACE_SOLVER"]
+
+
+@dataclass(frozen=True)
+class FaceSolverSettings:
+    """Newton and contact settings of the face.
+
+    rtol, etol: relative residual and energy tolerances. Node-to-surface contact near facet
+    edges has a clamped curvature term, so the last digits converge linearly: a tight energy
+    tolerance with a moderate residual one converges without chasing round-off.
+    max_retries: re-solves of one load step the contact terms may ask for (status changes
+    and augmentations of the lips and teeth together).
+    stall_iterations (with contact): a step whose residual has not fallen to a tenth after
+    that many iterations is cut back at once; contact switching within too large a step makes
+    Newton wander, and the remaining iterations of a lost step are saved.
+    shrink_iterations: a step whose first solve needed more iterations halves the next: a hard
+    step on the face announces a harder one (contact closing), and halving costs less than a
+    cut-back.
+    augmentation_rtol: a solve whose relative residual is below it stops when the contact
+    terms will augment the step anyway (the multiplier update need not wait for a converged
+    penalty solve).
+    increment_fraction: no contact node moves more than this fraction of the lip facets' size
+    in one Newton iteration (contact switching on can make an undamped update overshoot); the
+    other free nodes follow the bones by several mm per step and are not limited. Larger lets
+    an update reach contact in one go but overshoots; smaller spends iterations creeping.
+    pair_hysteresis: a lip node keeps its master triangle while its projection is within this
+    barycentric distance outside it (a node over a crease otherwise flips between two planes).
+    """
+
+    rtol: float = 1e-6
+    etol: float = 1e-8
+    max_retries: int = 20
+    stall_iterations: int = 8
+    shrink_iterations: int = 7
+    augmentation_rtol: float = 0.5
+    increment_fraction: float = 0.35
+    pair_hysteresis: float = 0.05
+
+    def control(self, steps: int, max_iterations: int, contact_nodes=None,
+                lip_size: float | None = None) -> SolverControl:
+        """The `SolverControl` of one face solve; `contact_nodes` None without contact terms.
+        lip_size: the lip facets' median edge (mm; 2 mm when the lips have no contact)."""
+        contact = contact_nodes is not None
+        return SolverControl(
+            steps=steps, max_iterations=max_iterations, rtol=self.rtol, etol=self.etol,
+            max_retries=self.max_retries, shrink_iterations=self.shrink_iterations,
+            stall_iterations=self.stall_iterations if contact else None,
+            max_increment=self.increment_fraction * (lip_size or 2.0) if contact else None,
+            increment_nodes=contact_nodes, augmentation_rtol=self.augmentation_rtol)
+
+
+FACE_SOLVER = FaceSolverSettings()

@@ -42,15 +42,17 @@ class CaseModel:
         return tuple(self.plan.motions())
 
 
-def prepare_case(name: str, model, plan, bones: dict) -> CaseModel:
-    """The patient model with its attachment sets assigned to the case's bones, and the skin."""
+def prepare_case(name: str, model, plan, bones: dict | None) -> CaseModel:
+    """The patient model with its attachment sets assigned to the case's bones (kept as they
+    are without bones), and the skin."""
     from planner.pipeline import region_of_nodes, skin_surface
     from planner.segments import assign_segments, with_segments
 
-    model = with_segments(model, assign_segments(model, bones, plan))
+    if bones:
+        model = with_segments(model, assign_segments(model, bones, plan))
     _, faces, ids = skin_surface(model)
     region, names = region_of_nodes(model, ids)
-    return CaseModel(name, model, plan, dict(bones), ids, faces, region, tuple(names),
+    return CaseModel(name, model, plan, dict(bones or {}), ids, faces, region, tuple(names),
                      tuple(getattr(model, "unoperated_regions", ())),
                      {k: int(v) for k, v in getattr(model, "landmarks", {}).items()})
 

@@ -3,7 +3,9 @@
 The scan is superimposed on the baseline prediction's unoperated regions and measured against
 it by `faceplan compare` (`planner.compare.compare_surfaces`: trimmed point-to-plane ICP,
 exact signed point-to-surface distances, positive where the real face is fuller than
-predicted, area weights). The scan points that overlap the baseline prediction are then kept
+predicted, area weights). A scan is refused as another patient's when the superimposition
+residual exceeds 3 mm (compare's rule) or when less than half of it lies within 2 mm of the
+predicted face once superimposed. The scan points that overlap the baseline prediction are then kept
 fixed, so that every candidate prediction (an effect added) is measured on the same points with
 the same weights and the same superimposition: `ScanGap.distances(skin)`.
 
@@ -28,9 +30,11 @@ from planner.compare.distances import TriangleSurface, vertex_areas
 from planner.compare.inputs import Prediction as ComparePrediction
 from planner.compare.inputs import Surface
 from planner.compare.metrics import distance_metrics
+from planner.errors import InputError
 
 __all__ = ["ScanGap", "measure_gap", "scan_roughness", "correlation_length", "MIN_COVERAGE"]
 
+MIN_FACE_MATCH = 0.5         # share of the scan within 2 mm of the face once superimposed
 MIN_COVERAGE = 0.20          # a scan covering less of the modelled face gets a warning
 REGION_COVERED = 0.25        # a region with less of its area covered is reported uncovered
 
@@ -53,8 +57,15 @@ class ScanGap:
     baseline_metrics: dict        # the contract's `metrics` block of the baseline
     scan_vertices: np.ndarray     # the whole aligned scan (pictures)
     scan_faces: np.ndarray
+    scan_valid: np.ndarray | None = None   # which scan vertices are the points
     scan_path: str = ""
     warnings: list[str] = field(default_factory=list)
+
+    def on_scan(self, r: np.ndarray) -> np.ndarray:
+        """Values on the fixed points spread to every scan vertex (NaN elsewhere)."""
+        out = np.full(len(self.scan_vertices), np.nan)
+        out[self.scan_valid] = r
+        return out
 
     def distances(self, skin: np.ndarray) -> np.ndarray:
         """Signed distances (post-op minus prediction) of the fixed scan points to `skin`."""
@@ -156,6 +167,15 @@ def measure_gap(case, skin: np.ndarray, scan: Surface, max_residual_mm: float = 
     (residual > `max_residual_mm`), no overlap, flipped normals."""
     pred = baseline_prediction(case, skin)
     comp = compare_surfaces(pred, scan, max_residual_mm=max_residual_mm, landmarks=bool(pred.landmarks))
+    match = float(comp.alignment.face_coverage)
+    if np.isfinite(match) and match < MIN_FACE_MATCH:
+        # the same patient's face lies within 2 mm of its prediction almost everywhere (the
+        # effects move the operated lower face by a few mm at most); another face does not
+        raise InputError(
+            f"the post-op scan does not match this patient's face: once superimposed only "
+            f"{100 * match:.0f}% of it lies within 2 mm of the predicted face (at least "
+            f"{100 * MIN_FACE_MATCH:.0f}% expected; residual {comp.alignment.residual_rms_mm:.2f} mm "
+            "on the unoperated regions): a scan of another patient?", file=str(scan.path))
     valid = np.isfinite(comp.signed)
     weights_all = vertex_areas(comp.scan_vertices, comp.scan_faces)
     points, weights = comp.scan_vertices[valid], weights_all[valid]
@@ -182,7 +202,7 @@ def measure_gap(case, skin: np.ndarray, scan: Surface, max_residual_mm: float = 
     metrics = dict(comp.metrics)
     gap = ScanGap(points, weights, region, tuple(pred.region_names), np.asarray(case.skin_faces),
                   comp.alignment.to_dict(), rough, floor, ell, coverage, region_coverage,
-                  metrics, comp.scan_vertices, comp.scan_faces, str(scan.path), warnings)
+                  metrics, comp.scan_vertices, comp.scan_faces, valid, str(scan.path), warnings)
     uncovered = gap.uncovered_regions
     if uncovered:
         gap.warnings.append("regions without scan coverage (not diagnosed): " + ", ".join(uncovered))

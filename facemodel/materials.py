@@ -100,11 +100,15 @@ def material(label: str) -> MaterialEntry:
         raise KeyError(f"no material for label {label!r}; labels: {', '.join(LABEL_NAMES)}") from None
 
 
+# the parameters a stiffness factor scales (moduli; not the active stress or shape parameters)
+MODULI = ("C10", "C20", "C30", "K", "k1", "G_T", "G_T_active")
+
+
 def parameters(label: str, stiffness: float = 1.0) -> dict:
     """Solver keyword parameters of a label; `stiffness` scales every modulus (C10, C20, C30,
     K, k1, G_T, G_T_active), e.g. for the 'stiffness' effect, leaving the active stress."""
     p = dict(material(label).parameters)
-    for key in ("C10", "C20", "C30", "K", "k1", "G_T", "G_T_active"):
+    for key in MODULI:
         if key in p:
             p[key] = p[key] * stiffness
     return p

@@ -34,11 +34,12 @@ from solver.constitution import Yeoh
 from solver.constitution.muscle import Muscle
 from solver.contact import RigidSurfaceContact, SurfaceContact, TriangleSurface, ramped_rigid_motion
 from solver.contact._geometry import triangulate
+from solver.loads import BodyForce
 from solver.mechanics import SolidBody
 from solver.mesh import HexMesh
 from solver.newton import newton_solve
 
-__all__ = ["simulate", "SimulationResult", "MUSCLES", "default_face_materials",
+__all__ = ["simulate", "build_problem", "SimulationResult", "MUSCLES", "default_face_materials",
            "lip_penetrations", "rigid_motion_ok"]
 
 log = logging.getLogger("facemodel.simulation")
@@ -113,6 +114,7 @@ class SimulationResult:
     info: dict = field(default_factory=dict)
     newton: object = None           # solver.newton.NewtonResult
     terms: dict = field(default_factory=dict)
+    problem: tuple = ()             # (SolidBody, constraints, terms) as solved, for sensitivities
 
 
 def _attachment_sets(model, motions):
@@ -165,26 +167,11 @@ def _shear_modulus(mat) -> float:
     return 5.0
 
 
-def simulate(model, motions: dict | None = None, activations: dict | None = None, *,
-             contact: bool = True, sliding=(), sliding_nodes: dict | None = None,
-             materials: dict | None = None,
-             n_steps: int = 4, log=None, penalty_factor: float = 1.0,
-             contact_tolerance: float = 0.05, max_iterations: int = 25) -> SimulationResult:
-    """Solve the face for bone `motions` {segment: 4x4} and muscle `activations` {muscle: a}.
-
-    contact: lip-lip and lip-teeth contact on/off. sliding: segments whose deep nodes slide
-    on their bone surface instead of being tied. sliding_nodes: {segment: node ids} attached
-    nodes that slide on that segment's bone (normal displacement with the bone, tangential free:
-    a `LocalFrame` in `facemodel.attachments.bone_frames`) while its other nodes stay tied (the
-    tissue a genioplasty degloves, `facemodel.attachments.genioplasty_sliding`).
-    materials: {label name: Material} replacing the defaults (muscle labels may give any
-    material; a `Muscle` gets its activation).
-    n_steps: initial number of load steps. log: optional callable receiving one text line per
-    Newton iteration. penalty_factor: contact penalty eps = factor * 3 mu / h (mu the
-    median shear modulus of the tissue at the contact surface, h its median facet edge). contact_tolerance:
-    largest lip/teeth penetration accepted (mm). Raises ValueError for bad motions or
-    activations and `solver.errors.SolveFailed` if Newton fails.
-    """
+def build_problem(model, motions=None, activations=None, *, contact=True, sliding=(),
+                  sliding_nodes=None, materials=None, growth=None, body_force=None,
+                  penalty_factor=1.0, contact_tolerance=0.05):
+    """The FE problem `simulate` solves: (SolidBody, constraints, contact terms {name: term},
+    other terms [body force], lip facet size or None); arguments as `simulate`'s."""
     motions = dict(motions or {})
     activations = dict(activations or {})
     segments = tuple(model.segments)
@@ -222,11 +209,13 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
         by_label[li] = mat
     fibres = getattr(model, "fibres", None)
     body = SolidBody(HexMesh(X, model.hexes, labels), by_label,
-                     fibres=None if fibres is None else np.asarray(fibres, dtype=float))
+                     fibres=None if fibres is None else np.asarray(fibres, dtype=float),
+                     growth=growth)
 
     # --- essential conditions: attachments tied to their bone (sliding ones excepted)
     attach = _attachment_sets(model, motions)
     constraints, terms = [], {}
+    owners = []                                     # the segment each constraint follows
     sliding_nodes = dict(sliding_nodes or {})
     for seg in sliding_nodes:
         if seg not in segments:
@@ -243,8 +232,10 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
         if len(glide):
             constraints.append(LocalFrame(glide, bone_frames(model, glide), fixed=(0,),
                                           displacement=_rigid_displacement(X[glide], T)))
+            owners.append(seg)
         if len(tied):
             constraints.append(Prescribed(tied, _rigid_displacement(X[tied], T)))
+            owners.append(seg)
 
     # --- contact: lips against each other, lip mucosa against the teeth
     lip_size = None
@@ -271,6 +262,59 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
                     penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
                     search_radius=max(2.0, h), max_depth=max(3.0, 1.5 * h), smooth=True,
                     tangent="projected")
+                terms[f"teeth_{name}"].segment = seg     # the segment whose motion it follows
+
+    extra = []
+    if body_force is not None:
+        extra.append(BodyForce(X, model.hexes, body_force))
+    body.constraint_segments = tuple(owners)
+    return body, constraints, terms, extra, lip_size
+
+
+def moved_constraints(X, constraints, owners, motions) -> list:
+    """The constraints of `build_problem` with each segment's rigid motion replaced by
+    `motions[segment]` (segments not in `motions` keep theirs)."""
+    import dataclasses
+
+    out = []
+    for c, seg in zip(constraints, owners):
+        if seg in motions:
+            c = dataclasses.replace(c, displacement=_rigid_displacement(X[c.nodes], motions[seg]))
+        out.append(c)
+    return out
+
+
+def simulate(model, motions: dict | None = None, activations: dict | None = None, *,
+             contact: bool = True, sliding=(), sliding_nodes: dict | None = None,
+             materials: dict | None = None, growth=None, body_force=None,
+             n_steps: int = 4, log=None, penalty_factor: float = 1.0,
+             contact_tolerance: float = 0.05, max_iterations: int = 25) -> SimulationResult:
+    """Solve the face for bone `motions` {segment: 4x4} and muscle `activations` {muscle: a}.
+
+    contact: lip-lip and lip-teeth contact on/off. sliding: segments whose deep nodes slide
+    on their bone surface instead of being tied. sliding_nodes: {segment: node ids} attached
+    nodes that slide on that segment's bone (normal displacement with the bone, tangential free:
+    a `LocalFrame` in `facemodel.attachments.bone_frames`) while its other nodes stay tied (the
+    tissue a genioplasty degloves, `facemodel.attachments.genioplasty_sliding`).
+    materials: {label name: Material} replacing the defaults (muscle labels may give any
+    material; a `Muscle` gets its activation).
+    growth: volumetric growth ratio per element (m,) (swelling, `facemodel.effects.growth_field`;
+    the solver's F = F_e theta^(1/3) I). body_force: (3,) dead body-force density in mN/mm^3
+    (gravity, `facemodel.effects.gravity_density`), ramped with the load.
+    n_steps: initial number of load steps. log: optional callable receiving one text line per
+    Newton iteration. penalty_factor: contact penalty eps = factor * 3 mu / h (mu the
+    median shear modulus of the tissue at the contact surface, h its median facet edge). contact_tolerance:
+    largest lip/teeth penetration accepted (mm). Raises ValueError for bad motions or
+    activations and `solver.errors.SolveFailed` if Newton fails.
+    """
+    body, constraints, terms, extra, lip_size = build_problem(
+        model, motions, activations, contact=contact, sliding=sliding, sliding_nodes=sliding_nodes,
+        materials=materials, growth=growth, body_force=body_force, penalty_factor=penalty_factor,
+        contact_tolerance=contact_tolerance)
+    X = np.asarray(model.nodes, dtype=float)
+    labels = np.asarray(model.labels, dtype=np.int64)
+    activations = dict(activations or {})
+    sliding = tuple(sliding or ())
 
     def callback(rec):
         if log is not None:
@@ -298,7 +342,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     # next (standard face, contact, Newton iterations / cut-backs with 8 -> 7: demo plan
     # 52 / 1 -> 47 / 0, `faceplan synth` seed 7 99 / 3 -> 95 / 3, seed 11 222 / 6 -> 206 / 4;
     # the orbicularis worst case 28 either way; with 6 the demo plan took 168 in 22 steps)
-    res = newton_solve(body, constraints, list(terms.values()), steps=n_steps,
+    res = newton_solve(body, constraints, list(terms.values()) + extra, steps=n_steps,
                        max_iterations=max_iterations, max_retries=20, callback=callback,
                        max_increment=max_inc, stall_iterations=8 if terms else None,
                        increment_nodes=_contact_nodes(terms),
@@ -325,7 +369,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
                             volume_ratio=body.volume_ratio(x), converged=bool(res.converged),
                             load=float(res.load), iterations=int(res.iterations),
                             steps=len(res.steps), time_s=elapsed, info=info, newton=res,
-                            terms=terms)
+                            terms=terms, problem=(body, constraints, list(terms.values()) + extra))
 
 
 def _contact_nodes(terms):

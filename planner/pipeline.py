@@ -31,52 +31,38 @@ from planner import report as rep
 from planner.errors import InputError, SolveError
 from planner.plan import EFFECTS, Plan, check_against_bones, load_plan
 from planner.segments import as_trimesh, assign_segments, with_segments
+from solver.loads import BodyForce as _BodyForce
+from facemodel import effects as fe
+from facemodel.effects import EFFECT_NAMES, Effects
 
-# Effects `--effect NAME=VALUE` can add to a prediction, and how each maps onto the model.
-# sliding: 0/1 (1: the soft tissue slides on every moved bone segment); muscle_tone: resting activation of the
-# perioral muscles in [0, 1]; stiffness: factor on every tissue's stiffness parameters.
-SUPPORTED_EFFECTS = ("sliding", "muscle_tone", "stiffness")
+# Effects `--effect NAME=VALUE` and `model.effects` add to a prediction (contract, "Effect
+# names"; definitions, parameters and sources in `facemodel.effects`).
+SUPPORTED_EFFECTS = EFFECT_NAMES
 # muscle_tone: the resting tone of the lip sphincter and the chin/lower-lip muscles.
 TONE_MUSCLES = ("orbicularis_oris", "mentalis", "depressor_labii_inferioris")
 
 
-def parse_effects(items: list[str] | None) -> dict[str, float]:
-    """`NAME=VALUE` strings (VALUE defaults to 1) -> {name: value}; InputError if unknown."""
-    out = {}
-    for item in items or []:
-        name, _, value = item.partition("=")
-        name = name.strip()
-        if name not in EFFECTS:
-            raise InputError(f"unknown effect {name!r} (known: {', '.join(EFFECTS)})", field="--effect")
-        if name not in SUPPORTED_EFFECTS:
-            raise InputError(f"effect {name!r} is not available in predictions yet "
-                             f"(available: {', '.join(SUPPORTED_EFFECTS)})", field="--effect")
-        try:
-            v = float(value) if value.strip() else 1.0
-        except ValueError:
-            raise InputError(f"effect {name}: value must be a number, got {value!r}", field="--effect") from None
-        if not np.isfinite(v):
-            raise InputError(f"effect {name}: value must be finite", field="--effect")
-        if name in ("sliding", "muscle_tone") and not 0.0 <= v <= 1.0:
-            raise InputError(f"effect {name}: value must be in [0, 1], got {v:g}", field="--effect")
-        if name == "stiffness" and not 0.1 <= v <= 10.0:
-            raise InputError(f"effect stiffness: factor must be in [0.1, 10], got {v:g}", field="--effect")
-        out[name] = v
-    return out
+def parse_effects(items: list[str] | dict | None) -> Effects:
+    """`NAME=VALUE` strings (VALUE defaults to 1; dotted names set one part of an effect) or a
+    mapping -> `facemodel.effects.Effects`; InputError naming the effect otherwise."""
+    try:
+        return fe.parse_effects(items)
+    except fe.EffectError as exc:
+        raise InputError(str(exc), field=f"--effect {exc.field}") from None
 
 
-def check_effects(plan: Plan, effects: dict[str, float] | None = None) -> dict[str, float]:
-    """The plan's effects overridden by the command line's; InputError for one not available."""
-    for name, value in plan.model.effects.items():
-        if name not in SUPPORTED_EFFECTS:
-            raise InputError(f"effect {name!r} is not available in predictions yet "
-                             f"(available: {', '.join(SUPPORTED_EFFECTS)})", file=plan.path,
-                             field=f"model.effects.{name}")
-        try:
-            parse_effects([f"{name}={value}"])
-        except InputError as exc:
-            raise InputError(str(exc).split(": ", 1)[-1], file=plan.path, field=f"model.effects.{name}") from None
-    return dict(plan.model.effects, **(effects or {}))
+def check_effects(plan: Plan, effects=None) -> Effects:
+    """The plan's `model.effects` overridden by the command line's (an `Effects`, a list of
+    `NAME=VALUE` strings or a mapping); InputError naming the file and field for a bad one."""
+    try:
+        base = fe.parse_effects(dict(plan.model.effects))
+    except fe.EffectError as exc:
+        raise InputError(str(exc), file=plan.path, field=f"model.effects.{exc.field}") from None
+    if effects is None:
+        return base
+    if not isinstance(effects, Effects):
+        effects = parse_effects(effects)
+    return fe.merge(base, effects)
 
 
 class Progress:
@@ -126,7 +112,8 @@ class Prediction:
     solver: dict
     bone_vertices: dict[str, np.ndarray] = field(default_factory=dict)
     assignment: dict = field(default_factory=dict)
-    effects: dict[str, float] = field(default_factory=dict)
+    effects: dict = field(default_factory=dict)       # the effects applied, flat (`Effects.as_dict`)
+    setup: dict = field(default_factory=dict, repr=False)   # what `effect_sensitivities` rebuilds from
 
     @property
     def predicted_nodes(self) -> np.ndarray:
@@ -135,11 +122,13 @@ class Prediction:
 
 # --------------------------------------------------------------------------- model options
 
-def face_materials(model, overrides: dict[str, dict[str, float]] | None = None, stiffness: float = 1.0):
+def face_materials(model, overrides: dict[str, dict[str, float]] | None = None, stiffness: float = 1.0,
+                   label_factors: dict[str, float] | None = None):
     """Solver materials per tissue label from the default table (`facemodel.materials`: Yeoh for
     passive tissue, the active transversely isotropic `Muscle` for muscles), with the plan's
     parameter overrides and the `stiffness` effect (a factor on every modulus, active stress
-    excepted, as `facemodel.materials.parameters` defines it)."""
+    excepted, as `facemodel.materials.parameters` defines it; `label_factors` one per label,
+    `Effects.label_factors`, times the uniform `stiffness`)."""
     from facemodel import materials as fm
     from solver.constitution import Yeoh
     from solver.constitution.muscle import Muscle
@@ -153,12 +142,14 @@ def face_materials(model, overrides: dict[str, dict[str, float]] | None = None, 
     out = {}
     for label in model.label_names:
         entry = fm.material(label)
-        params = dict(fm.parameters(label, stiffness))
+        factor = stiffness * (label_factors or {}).get(label, 1.0)
+        params = dict(fm.parameters(label, factor))
         for k, v in overrides.get(label, {}).items():
             if k not in params:
                 raise InputError(f"material {label!r} has no parameter {k!r} "
                                  f"(parameters: {', '.join(params)})", field=f"model.materials.{label}.{k}")
-            params[k] = v
+            # a user's value is the generic value of the patient: the effect scales it too
+            params[k] = v * (factor if k in fm.MODULI else 1.0)
         law = laws.get(entry.law)
         if law is None:
             raise SolveError(f"material table: unknown law {entry.law!r} for {label!r}")
@@ -175,13 +166,11 @@ def _sliding_sets(model, segments: tuple[str, ...]) -> tuple[str, ...]:
 
 # --------------------------------------------------------------------------- solve
 
-def _call_simulate(model, motions, *, activations, contact, sliding, materials, progress: Progress,
-                   sliding_nodes=None):
+def _call_simulate(model, motions, *, activations, progress: Progress, **kw):
     """`facemodel.simulation.simulate` with every Newton iteration sent to the progress log."""
     from facemodel.simulation import simulate
 
-    return simulate(model, motions, activations, contact=contact, sliding=sliding,
-                    sliding_nodes=sliding_nodes, materials=materials, log=progress.say)
+    return simulate(model, motions, activations, log=progress.say, **kw)
 
 
 def _unpack_result(result, model) -> tuple[np.ndarray, np.ndarray | None, dict]:
@@ -213,9 +202,88 @@ def _jsonable(v, depth=0):
     return str(v)
 
 
-def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[str, float] | None = None,
+def segment_centroids(model, plan: Plan, bone_vertices: dict) -> dict:
+    """Pre-op centroid of each segment of the model: of its bone surface points (cut by the
+    plan's cut planes) when given, else of its attachment nodes. A bone_execution correction
+    turns about the centroid carried by the segment's movement."""
+    out = {}
+    X = np.asarray(model.nodes, float)
+    for seg in model.segments:
+        sp = plan.segments.get(seg)
+        source = (sp.source if sp is not None and sp.source else seg)
+        pts = None
+        if source in bone_vertices:
+            pts = np.asarray(bone_vertices[source], float)
+            for cp in (sp.cut_planes if sp is not None else ()):
+                pts = pts[cp.keeps(pts)]
+        if pts is None or not len(pts):
+            ids = np.asarray(model.node_sets.get("attach_" + seg, ()), np.int64)
+            pts = X[ids] if len(ids) else None
+        if pts is not None:
+            out[seg] = pts.mean(axis=0)
+    return out
+
+
+def effect_motions(plan: Plan, effects: Effects, centroids: dict, plan_actual: Plan | None = None) -> dict:
+    """Segment -> 4x4 movement with the bone_execution effect: the achieved movements of
+    `plan_actual` when `effects.plan_actual`, then each segment's correction (tx, ty, tz, rx,
+    ry, rz) about its centroid as moved, composed after the movement."""
+    source = plan
+    if effects.plan_actual:
+        if plan_actual is None:
+            raise InputError("effect bone_execution=1 needs the achieved movements "
+                             "postop/plan_actual.yaml", field="bone_execution")
+        source = plan_actual
+    motions = {k: np.asarray(v, float) for k, v in source.motions(include_identity=True).items()}
+    for seg, p in effects.bone_execution:
+        if not any(v != 0.0 for v in p):
+            continue
+        if seg not in centroids:
+            raise InputError(f"effect bone_execution.{seg}: the model has no segment {seg!r} "
+                             "with attachment nodes or a bone surface", field=f"bone_execution.{seg}")
+        T = motions.get(seg, np.eye(4))
+        c = T[:3, :3] @ centroids[seg] + T[:3, 3]
+        motions[seg] = fe.correction_matrix(p, c) @ T
+    return motions
+
+
+def model_inputs(setup: dict, effects: Effects) -> dict:
+    """Keyword arguments of `facemodel.simulation.simulate` for the effects, from the fixed
+    part of a prediction's set-up (`Prediction.setup`): motions (bone_execution), activations
+    (muscle_tone), materials (stiffness), growth (swelling, about the operated segments),
+    body force (gravity), sliding segments (sliding)."""
+    model, plan = setup["model"], setup["plan"]
+    motions = effect_motions(plan, effects, setup["centroids"], setup.get("plan_actual"))
+    operated = tuple(k for k, m in motions.items() if not np.allclose(m, np.eye(4), atol=1e-12))
+    sliding = tuple(plan.model.sliding)
+    if effects.sliding == ("*",):     # the tissue slides on every moved segment
+        sliding = operated
+    elif effects.sliding:
+        sliding = tuple(dict.fromkeys(sliding + tuple(effects.sliding)))
+    sliding = _sliding_sets(model, sliding)
+    activations = dict(plan.muscles)
+    if effects.muscle_tone > 0:
+        for m in TONE_MUSCLES:
+            if m in model.label_names:
+                activations[m] = max(activations.get(m, 0.0), effects.muscle_tone)
+    layers = dict(effects.stiffness_layers)
+    materials = face_materials(model, plan.model.materials, effects.stiffness,
+                               {label: layers.get(layer, 1.0) for layer, labels in fe.LAYERS.items()
+                                for label in labels})
+    growth = fe.growth_field(model, operated, effects.swelling, setup.get("follow_up_months"))
+    degloved = {s: ids for s, ids in setup["degloved"].items() if s not in sliding}
+    return dict(motions=motions, activations=activations, contact=plan.model.contact,
+                sliding=sliding, sliding_nodes=degloved, materials=materials, growth=growth,
+                body_force=fe.gravity_density(effects.gravity))
+
+
+def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
+               plan_actual: Plan | None = None, follow_up_months: float | None = None,
                progress: Progress | None = None) -> Prediction:
-    """Assign attachments, impose the plan's movements and solve. `bones`: surfaces by name."""
+    """Assign attachments, impose the plan's movements and solve. `bones`: surfaces by name.
+    effects: an `Effects`, `NAME=VALUE` strings or a mapping (over the plan's
+    `model.effects`); plan_actual: the achieved movements (postop/plan_actual.yaml) for
+    `bone_execution=1`; follow_up_months: the post-op scan's time (swelling resolution)."""
     progress = progress or Progress(echo=False)
     effects = check_effects(plan, effects)
     bone_vertices = {k: np.asarray(as_trimesh(v).vertices, float) for k, v in (bones or {}).items()}
@@ -228,17 +296,6 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
             assignment = a.summary()
             for seg, s in assignment.items():
                 progress.say(f"  {seg}: {s['nodes']} attachment nodes (median {s['median_distance_mm']} mm from bone)")
-    sliding = tuple(plan.model.sliding)
-    if effects.get("sliding", 0.0) >= 0.5:     # the effect: tissue slides on every moved segment
-        sliding = tuple(n for n, m in plan.motions().items())
-    sliding = _sliding_sets(model, sliding)
-    activations = dict(plan.muscles)
-    tone = effects.get("muscle_tone", 0.0)
-    if tone > 0:
-        for m in TONE_MUSCLES:
-            if m in model.label_names:
-                activations[m] = max(activations.get(m, 0.0), tone)
-    materials = face_materials(model, plan.model.materials, effects.get("stiffness", 1.0))
     from solver import errors as solver_errors
 
     teeth_shift = {}
@@ -255,17 +312,25 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
         moved = {k: round(v, 3) for k, v in teeth_shift.items() if v > 0}
         if moved:
             progress.say(f"  teeth moved back to start contact clear of the lips (mm): {moved}")
-    motions = plan.motions(include_identity=True)
     # a genioplasty degloves the anterior mandible and chin: that tissue slides on its bone
     # (segments that slide as a whole, `sliding`, keep their own treatment)
     from facemodel.attachments import genioplasty_sliding
 
-    degloved = {s: ids for s, ids in genioplasty_sliding(model, motions).items() if s not in sliding}
+    setup = {"model": model, "plan": plan, "plan_actual": plan_actual,
+             "follow_up_months": follow_up_months,
+             "centroids": segment_centroids(model, plan, bone_vertices),
+             "degloved": genioplasty_sliding(model, plan.motions(include_identity=True))}
+    inputs = model_inputs(setup, effects)
+    motions, activations, sliding = inputs["motions"], inputs["activations"], inputs["sliding"]
+    degloved = inputs["sliding_nodes"]
     if degloved:
         progress.say("  genioplasty: degloved tissue slides on the bone ("
                      + ", ".join(f"{s} {len(ids)} nodes" for s, ids in degloved.items()) + ")")
+    if effects.active:
+        progress.say(f"  effects: {json.dumps(effects.as_dict())}")
     moving = {k: m for k, m in motions.items() if not np.allclose(m, np.eye(4), atol=1e-12)}
-    if not moving and not any(a > 0 for a in activations.values()):
+    if (not moving and not any(a > 0 for a in activations.values()) and inputs["growth"] is None
+            and inputs["body_force"] is None):
         # No bone moves, no muscle contracts, no load: the stress-free reference configuration
         # is in equilibrium whatever the materials, so it is the exact solution.
         progress.say("  nothing moves and no muscle is active: the prediction is the pre-op face")
@@ -273,12 +338,10 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
         stats = {"converged": True, "steps": 0, "iterations": 0,
                  "note": "no movement planned: the rest state is the solution"}
         return Prediction(model, plan, u, np.zeros((len(model.hexes), 3, 3)), stats, bone_vertices,
-                          assignment, effects)
+                          assignment, effects.as_dict(), setup)
     with progress.stage("solve"):
         try:
-            result = _call_simulate(model, motions, activations=activations, contact=plan.model.contact,
-                                    sliding=sliding, materials=materials, progress=progress,
-                                    sliding_nodes=degloved)
+            result = _call_simulate(model, progress=progress, **inputs)
         except solver_errors.SolveFailed as exc:
             label = ""
             if exc.worst_element is not None and 0 <= exc.worst_element < len(model.labels):
@@ -308,7 +371,113 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects: dict[st
     stats["degloved_sliding_nodes"] = {s: int(len(ids)) for s, ids in degloved.items()}
     stats["activations"] = activations
     stats["teeth_clearance_shift_mm"] = {k: round(float(v), 4) for k, v in teeth_shift.items()}
-    return Prediction(model, plan, u, stress, stats, bone_vertices, assignment, effects)
+    setup["problem"] = result.problem
+    setup["effects"] = effects
+    return Prediction(model, plan, u, stress, stats, bone_vertices, assignment, effects.as_dict(), setup)
+
+
+# central-difference steps of the residual per parameter kind (the residual is smooth in
+# each; these are far above round-off of forces ~1e-3 mN and far below the parameters' scales)
+_FD_STEP = {"mm": 1e-3, "deg": 1e-3, "-": 1e-4}
+
+
+def effect_parameter_names(pred: Prediction, effects: tuple = fe.EFFECT_NAMES) -> list:
+    """Flat names of the continuous parameters of `effects` for this prediction
+    (bone_execution: six per segment the plan moves)."""
+    moved = tuple(pred.plan.motions())
+    return [p.name for e in effects for p in fe.parameters(e, moved)]
+
+
+def effect_sensitivities(pred: Prediction, names=None) -> dict:
+    """d(node positions)/dp (n, 3) at the converged prediction for each flat effect parameter
+    name (default: every continuous parameter, `effect_parameter_names`): the direct
+    differentiation du/dp = -K^-1 dR/dp (`solver.sensitivity.linear_response`) with the
+    converged tangent (contact included), dR/dp at the converged positions by central
+    differences of the residual (body force and growth, materials and activations rebuild the
+    body; bone_execution moves the constrained nodes and the teeth). A derivative of the
+    linearised problem: exact at the prediction, not across a change of contact state."""
+    import copy
+
+    from facemodel.simulation import build_problem, moved_constraints
+    from solver.sensitivity import constraint_set, linear_response
+
+    setup = pred.setup
+    if "problem" not in setup:
+        raise ValueError("the prediction has no solved problem (nothing moved): no sensitivities")
+    body, constraints, terms = setup["problem"]
+    effects = setup["effects"]
+    model = setup["model"]
+    names = effect_parameter_names(pred) if names is None else list(names)
+    X = np.asarray(model.nodes, float)
+    x = X + pred.displacement
+    cons0 = constraint_set(body, constraints)
+    owners = body.constraint_segments
+    dr = np.zeros((x.size, len(names)))
+    duc = np.zeros((len(cons0.dofs), len(names)))
+    base = model_inputs(setup, effects)
+
+    def residual_parts(eff):
+        """(body internal force or None, term forces, constrained targets) for effects `eff`."""
+        inp = model_inputs(setup, eff)
+        f_body = None
+        if (eff.swelling != effects.swelling or eff.stiffness != effects.stiffness
+                or eff.stiffness_layers != effects.stiffness_layers
+                or eff.muscle_tone != effects.muscle_tone):
+            b = build_problem(model, inp["motions"], inp["activations"], contact=False,
+                              sliding=inp["sliding"], sliding_nodes=inp["sliding_nodes"],
+                              materials=inp["materials"], growth=inp["growth"])[0]
+            f_body = b.evaluate(x, 1.0, tangent=False).force
+        f_terms = np.zeros(x.size)
+        changed = {k: T for k, T in inp["motions"].items()
+                   if not np.array_equal(T, base["motions"].get(k, np.eye(4)))}
+        for t in terms:
+            seg = getattr(t, "segment", None)       # a rigid teeth arch follows its segment
+            if seg in changed:
+                t = copy.copy(t)
+                t.motion = changed[seg]
+            if isinstance(t, _BodyForce):
+                continue
+            f_terms += t.assemble(x, 1.0)[0]
+        rho_b = inp["body_force"]
+        if rho_b is not None:
+            f_terms += _BodyForce(X, model.hexes, rho_b).f_unit
+        cons = moved_constraints(X, constraints, owners, changed) if changed else constraints
+        return f_body, f_terms, constraint_set(body, cons).targets(1.0, X)
+
+    for j, name in enumerate(names):
+        head = name.split(".")[0]
+        unit = next(p.unit for p in fe.parameters(head, tuple(pred.plan.motions()) or fe.SEGMENTS)
+                    if p.name == name) if head != "bone_execution" else "mm"
+        h = _FD_STEP[unit]
+        v0 = effects.value(name)
+        lo = 0.0 if head == "muscle_tone" else -np.inf    # activations cannot be negative
+        steps = (h, -h) if v0 - h >= lo else (h, 0.0)
+        parts = [residual_parts(effects.with_value(name, v0 + d)) for d in steps]
+        span = steps[0] - steps[1]
+        fb = [p[0] for p in parts]
+        if fb[0] is not None:
+            f0 = fb[1] if fb[1] is not None else _internal_force(body, x)
+            dr[:, j] += (fb[0] - f0) / span
+        dr[:, j] += (parts[0][1] - parts[1][1]) / span
+        duc[:, j] = (parts[0][2] - parts[1][2]) / span
+    du = linear_response(body, constraints, terms, x, dr, duc)
+    return {name: du[:, j].reshape(-1, 3) for j, name in enumerate(names)}
+
+
+def _internal_force(body, x):
+    saved, body.mixed = body.mixed, None      # the displacement-based residual
+    try:
+        return body.evaluate(x, 1.0, tangent=False).force
+    finally:
+        body.mixed = saved
+
+
+def skin_sensitivities(pred: Prediction, names=None) -> tuple:
+    """(skin node ids (k,), {name: d(skin node positions)/dp (k, 3)}) at the prediction;
+    see `effect_sensitivities`."""
+    _, _, ids = skin_surface(pred.model)
+    sens = effect_sensitivities(pred, names)
+    return ids, {k: v[ids] for k, v in sens.items()}
 
 
 def _inverted_message(model, bad: np.ndarray) -> str:
@@ -586,13 +755,24 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
         plan = load_plan(plan_path, max_translation_mm=max_translation_mm, max_rotation_deg=max_rotation_deg)
         bone_vertices = {k: np.asarray(v.vertices, float) for k, v in case.bones.items()}
         check_against_bones(plan, bone_vertices)
-        check_effects(plan, effects)
+        merged = check_effects(plan, effects)
+        plan_actual = None
+        if merged.plan_actual:
+            actual_path = Path(case_dir) / "postop" / "plan_actual.yaml"
+            if not actual_path.is_file():
+                raise InputError("effect bone_execution=1 needs the achieved movements in "
+                                 "postop/plan_actual.yaml (same format as plan.yaml)",
+                                 file=str(actual_path), field="bone_execution")
+            plan_actual = load_plan(actual_path, max_translation_mm=max_translation_mm,
+                                    max_rotation_deg=max_rotation_deg)
+            check_against_bones(plan_actual, bone_vertices)
         res = resolution or plan.model.resolution
         progress.say(f"  case {case.info.id}: {len(case.bones)} bone surface(s), plan moves "
                      f"{', '.join(plan.motions()) or 'nothing'}; resolution {res}")
     with progress.stage("registration"):
         patient, reg = register_case(case, res, progress)
-    pred = solve_plan(patient, plan, case.bones, effects=effects, progress=progress)
+    pred = solve_plan(patient, plan, case.bones, effects=merged, plan_actual=plan_actual,
+                      follow_up_months=case.info.follow_up_months, progress=progress)
     inputs = {
         "case": str(Path(case_dir).resolve()), "case_id": case.info.id,
         "skin": str(case.skin_path) if case.skin_path else None,

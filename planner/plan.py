@@ -92,7 +92,7 @@ class ModelOptions:
                                            # (`sliding: true` in the plan: every moved segment)
     contact: bool = True
     materials: dict[str, dict[str, float]] = field(default_factory=dict)
-    effects: dict[str, float] = field(default_factory=dict)
+    effects: dict = field(default_factory=dict)   # flat {name: value} (facemodel.effects)
 
 
 @dataclass(frozen=True)
@@ -403,10 +403,17 @@ def parse_plan(data: Any, file: str = "plan.yaml", plan_dir: Path | None = None,
             if val <= 0:
                 r.fail(f"model.materials.{label}.{pname}", "material parameters must be positive")
             materials[label][pname] = val
-    effects = {}
-    eff = r.mapping(mt.get("effects") or {}, "model.effects", EFFECTS)
-    for name, val in eff.items():
-        effects[name] = r.number(float(val) if isinstance(val, bool) else val, f"model.effects.{name}")
+    # model.effects: the names and values of `--effect` (dotted names or nested mappings),
+    # validated by facemodel.effects and kept in its flat form
+    from facemodel.effects import EffectError, parse_effects
+
+    eff = mt.get("effects") or {}
+    if not isinstance(eff, dict):
+        r.fail("model.effects", f"must be a mapping, got {type(eff).__name__}")
+    try:
+        effects = parse_effects(eff).as_dict()
+    except EffectError as exc:
+        r.fail(f"model.effects.{exc.field}", str(exc))
     model = ModelOptions(resolution, sliding_t, contact, materials, effects)
     return Plan(file, int(version), frame, plans, muscles, model, max_t, max_r)
 

@@ -12,6 +12,16 @@ energy of an uncoupled material W = W_iso(C_bar) + U(J):
 * ``"displacement"`` — the plain compressible formulation, Pi = int (W_iso + U(J)) dV
   (locks for nearly incompressible materials; kept for comparison and compressible use).
 
+Volumetric growth (an eigenstretch field): with `growth` theta_e per element the deformation
+gradient splits as F = F_e F_g with F_g = theta^(1/3) I (isotropic growth, Rodriguez, Hoger &
+McCulloch 1994, J Biomech 27:455), and the stored energy per reference volume is
+theta W(F_e) (the energy of the grown, stress-free intermediate configuration). For a
+growth constant over an element this is exactly the same element on a uniformly scaled
+reference: shape-function gradients dN/dX theta^(-1/3) (so that x (x) grad N gives F_e), Gauss
+weights and element volume times theta (the intermediate volume). The mean dilatation then
+becomes Theta = v / (theta V) = the elastic volume ratio, so Q1/P0 and every material law
+apply unchanged; a free element with uniform growth reaches v = theta V stress-free.
+
 The isochoric part is evaluated with the material's `isochoric(C, fibres, load)` for every
 label group, vectorised over all Gauss points; element matrices come from numba kernels and
 are scattered into a fixed CSR pattern (see `solver.assembly`).
@@ -54,10 +64,15 @@ class SolidBody:
 
     mesh: `HexMesh` (or anything with nodes, hexes, labels). materials: one `Material` for all
     elements, or a dict label -> Material covering every label of the mesh. fibres: optional
-    (m, 3) reference fibre directions passed to the materials.
+    (m, 3) reference fibre directions passed to the materials. growth: optional volumetric
+    growth ratio theta > 0 per element (m,) or one for all (F = F_e theta^(1/3) I; see the
+    module docstring), ramped with the load fraction like the other loads,
+    theta(load) = 1 + (theta - 1) load; `volume_ratio` and `cauchy_stress` then refer to F_e
+    at the full growth.
     """
 
-    def __init__(self, mesh, materials, formulation: str = "mean_dilatation", fibres=None):
+    def __init__(self, mesh, materials, formulation: str = "mean_dilatation", fibres=None,
+                 growth=None):
         if not isinstance(mesh, HexMesh):
             mesh = HexMesh(mesh.nodes, mesh.hexes, getattr(mesh, "labels", None))
         if formulation not in FORMULATIONS:
@@ -90,6 +105,17 @@ class SolidBody:
         Jinv, detJ = inverse_and_det(Jac)
         self.dNdX = np.ascontiguousarray(np.matmul(dNdxi[None], Jinv))  # (m, q, 8, 3)
         self.dV = np.ascontiguousarray(detJ * wg[None, :])
+        self.growth = None
+        self._growth_load = 1.0
+        if growth is not None:
+            theta = np.broadcast_to(np.asarray(growth, dtype=float), (mesh.n_cells,)).copy()
+            if not np.all(np.isfinite(theta)) or not np.all(theta > 0.0):
+                raise ValueError("growth ratios must be finite and > 0")
+            self.growth = theta
+            # the arrays start ungrown (load 0, where Newton starts); `_set_growth` moves them
+            # to the grown intermediate configuration of a load fraction
+            self._dNdX0, self._dV0 = self.dNdX.copy(), self.dV.copy()
+            self._growth_load = 0.0
         self.volume = self.dV.sum(axis=1)                            # V_e
         self.pattern = UpperPattern.build(mesh.hexes, mesh.n_nodes)
         m, nq = self.dV.shape
@@ -188,8 +214,24 @@ class SolidBody:
         return U, dU, d2U
 
     # ------------------------------------------------------------------ evaluation
+    def _set_growth(self, load: float) -> None:
+        """Reference arrays at the growth theta(load) = 1 + (theta - 1) load."""
+        if self.growth is None or load == self._growth_load:
+            return
+        theta = 1.0 + (self.growth - 1.0) * float(load)
+        self.dNdX = np.ascontiguousarray(self._dNdX0 / np.cbrt(theta)[:, None, None, None])
+        self.dV = np.ascontiguousarray(self._dV0 * theta[:, None])
+        self.volume = self.dV.sum(axis=1)
+        if self.hybrid:
+            g = self._generic_elems
+            self._g_dNdX = np.ascontiguousarray(self.dNdX[g])
+            self._g_dV = np.ascontiguousarray(self.dV[g])
+            self._g_volume = np.ascontiguousarray(self.volume[g])
+        self._growth_load = float(load)
+
     def evaluate(self, x: np.ndarray, load: float = 1.0, tangent: bool = True) -> Evaluation:
         """Internal forces, tangent (CSR data of `self.pattern`) and energy at coordinates x."""
+        self._set_growth(load)
         if self.fused:
             return self._evaluate_fused(x, tangent)
         if self.hybrid:
@@ -320,10 +362,11 @@ class SolidBody:
         return self.formulation == "mean_dilatation"
 
     def begin_mixed(self, x):
-        """Start three-field Newton from x: theta = v/V, p = U'(theta) per element."""
+        """Start three-field Newton from x (at load 0): theta = v/V, p = U'(theta) per element."""
         if not self.supports_mixed:
             return
-        theta = self.volume_ratio(x)
+        self._set_growth(0.0)
+        theta = self._volume_ratio(x)
         self.mixed = (theta, self._volumetric(theta)[1])
 
     def mixed_snapshot(self):
@@ -374,6 +417,7 @@ class SolidBody:
     # ------------------------------------------------------------------ post-processing
     def cauchy_stress(self, x: np.ndarray, load: float = 1.0) -> np.ndarray:
         """Element-averaged Cauchy stress (m, 3, 3) in kPa."""
+        self._set_growth(1.0)
         F = self.deformation_gradient(x)
         _, Jq = inverse_and_det(F)
         C = np.einsum("mqkI,mqkJ->mqIJ", F, F, optimize=True)
@@ -388,7 +432,12 @@ class SolidBody:
         return np.einsum("mqij,mq->mij", sig, self.dV) / self.volume[:, None, None]
 
     def volume_ratio(self, x: np.ndarray) -> np.ndarray:
-        """Element volume ratio v/V (the mean dilatation) -> (m,)."""
+        """Element volume ratio v/V (the mean dilatation; elastic, v / (theta V), with growth
+        at its full value) -> (m,)."""
+        self._set_growth(1.0)
+        return self._volume_ratio(x)
+
+    def _volume_ratio(self, x: np.ndarray) -> np.ndarray:
         F = self.deformation_gradient(x)
         _, Jq = inverse_and_det(F)
         return np.einsum("mq,mq->m", Jq, self.dV) / self.volume

@@ -80,7 +80,7 @@ def test_bad_command_line_and_case(tmp_path, case_template, capsys):
     case = _case(tmp_path, case_template)
     out = tmp_path / "out"
     for argv, words in [
-        (["predict", str(case), "--out", str(out), "--effect", "swelling=1"], "swelling"),
+        (["predict", str(case), "--out", str(out), "--effect", "swelling=0.5"], "swelling"),
         (["predict", str(case), "--out", str(out), "--effect", "nonsense=1"], "nonsense"),
         (["predict", str(tmp_path / "no-such-case"), "--out", str(out)], "no-such-case"),
     ]:
@@ -105,7 +105,7 @@ def test_large_movement_accepted_when_asked_explicitly(tmp_path, case_template):
 
 
 def test_unavailable_effect_in_the_plan(tmp_path, case_template, capsys):
-    plan = dict(GOOD_PLAN, model={"resolution": "coarse", "effects": {"gravity": 1.0}})
+    plan = dict(GOOD_PLAN, model={"resolution": "coarse", "effects": {"gravity": 5.0}})
     case = _case(tmp_path, case_template, plan)
     assert main(["predict", str(case), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     err = capsys.readouterr().err

@@ -1,10 +1,12 @@
 """Which effect explains the gap, and how far it shrinks: fitting, cross-validation, verdict.
 
 For every available effect (`planner.diagnosis.effects`) and every case: the sensitivity of the
-gap to each continuous parameter at the baseline, J = dr/dtheta, by finite differences of full
-forward solves (central, or one-sided second order at a bound; the effects' semi-analytic
-tangent sensitivity is used instead when `facemodel.effects` provides it), and each discrete
-choice (a switch such as `sliding=1`) solved outright. Parameters the data cannot pin down
+gap to each continuous parameter at the baseline, J = dr/dtheta, from the model's tangent
+(`planner.pipeline.skin_sensitivities`: du/dp = -K^-1 dR/dp at the converged baseline, one
+factorisation for all parameters, mapped onto the scan points by `ScanGap.linearised`), or by
+finite differences of full forward solves where the tangent is not available (central, or
+one-sided second order at a bound), and each discrete choice (a switch such as `sliding=1`)
+solved outright. Parameters the data cannot pin down
 (Fisher information, `planner.diagnosis.fit`) stay at "none". The identifiable ones are fitted
 by bounded Gauss-Newton on the linearised gap, then refined by full nonlinear solves at the
 fitted values (Levenberg-Marquardt style: a step that does not lower the weighted residual is
@@ -112,28 +114,40 @@ def _ok(skin) -> bool:
 
 # --------------------------------------------------------------------------- sensitivities
 
-def _sensitivity_requests(data: list[CaseData], effects: list[Effect]) -> list:
+def _fd_params(e: Effect, tangent_c) -> list[int]:
+    """Indices of the effect's parameters that need finite differences in one case."""
+    have = tangent_c if isinstance(tangent_c, dict) else {}
+    return [k for k, p in enumerate(e.parameters) if p.key not in have]
+
+
+def _fd_points(e: Effect, ks: list[int]):
+    theta0 = e.origin
+    pts = fit.finite_difference_points(theta0, np.array([p.step for p in e.parameters]),
+                                       np.array([p.bounds[0] for p in e.parameters]),
+                                       np.array([p.bounds[1] for p in e.parameters]))
+    return [pt for pt in pts if pt[0] in ks]
+
+
+def _sensitivity_requests(data: list[CaseData], effects: list[Effect], tangent: list) -> list:
     reqs = []
     for e in effects:
         for c in range(len(data)):
-            if e.parameters:
-                theta0 = e.origin
-                for k, a, b in fit.finite_difference_points(theta0, np.array([p.step for p in e.parameters]),
-                                                             np.array([p.bounds[0] for p in e.parameters]),
-                                                             np.array([p.bounds[1] for p in e.parameters])):
-                    for off in (a, b):
-                        t = theta0.copy()
-                        t[k] += off
-                        reqs.append((c, effect_strings(e.values(t))))
+            for k, a, b in _fd_points(e, _fd_params(e, tangent[c])):
+                for off in (a, b):
+                    t = e.origin.copy()
+                    t[k] += off
+                    reqs.append((c, effect_strings(e.values(t))))
             for choice in e.choices:
                 reqs.append((c, effect_strings(dict(choice))))
     return reqs
 
 
-def _single_candidate(e: Effect, data: list[CaseData], forward) -> Candidate:
-    """The effect's anchors and Jacobians from the solves of `_sensitivity_requests`."""
+def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -> Candidate:
+    """The effect's anchors and Jacobians: the tangent sensitivities where given, else the
+    finite-difference solves of `_sensitivity_requests`."""
     n = len(data)
     cand = Candidate(e.name, (e,), e.shared and n > 1, n, e.parameters)
+    methods = set()
     for c, d in enumerate(data):
         anchor = d.r0
         choice = ()
@@ -153,26 +167,30 @@ def _single_candidate(e: Effect, data: list[CaseData], forward) -> Candidate:
             _, choice, anchor = best
         cand.choices.append(tuple(choice))
         cand.anchor_r.append(anchor)
-        if e.parameters:
-            theta0 = e.origin
-            evals = []
-            for k, a, b in fit.finite_difference_points(theta0, np.array([p.step for p in e.parameters]),
-                                                         cand.lower, cand.upper):
-                rs = []
-                for off in (a, b):
-                    t = theta0.copy()
-                    t[k] += off
-                    skin = forward.solve([(c, effect_strings(e.values(t)))])[0]
-                    cand.solves += 1
-                    if not _ok(skin):
-                        cand.failed = f"case {d.case.name}: {p_key(e, k)} at {e.parameters[k].value(t[k]):.4g} failed: {skin}"
-                        return cand
-                    rs.append(d.gap.distances(skin))
-                evals.append((a, b, rs[0], rs[1]))
-            cand.J.append(fit.finite_difference_jacobian(d.r0, evals))
-        else:
-            cand.J.append(np.zeros((len(d.r0), 0)))
+        J = np.zeros((len(d.r0), len(e.parameters)))
+        fd = _fd_params(e, tangent[c])
+        skin0 = forward.baseline(c)
+        for k, p in enumerate(e.parameters):
+            if k not in fd:
+                # d r / d theta = d r / d value * d value / d theta (value = exp(theta) for factors)
+                J[:, k] = d.gap.linearised(skin0, tangent[c][p.key]) * (p.none if p.log else 1.0)
+                methods.add("tangent")
+        for k, a, b in _fd_points(e, fd):
+            rs = []
+            for off in (a, b):
+                t = e.origin.copy()
+                t[k] += off
+                skin = forward.solve([(c, effect_strings(e.values(t)))])[0]
+                cand.solves += 1
+                if not _ok(skin):
+                    cand.failed = f"case {d.case.name}: {e.parameters[k].key} at {e.parameters[k].value(t[k]):.4g} failed: {skin}"
+                    return cand
+                rs.append(d.gap.distances(skin))
+            J[:, k] = fit.finite_difference_jacobian(d.r0, [(a, b, rs[0], rs[1])])[:, 0]
+            methods.add("finite differences")
+        cand.J.append(J)
         cand.theta.append(cand.origin.copy())
+    cand.sensitivity = " and ".join(sorted(methods)) if methods else "none (discrete choices)"
     return cand
 
 
@@ -366,15 +384,28 @@ def _pair(a: Candidate, b: Candidate, data: list[CaseData]) -> Candidate:
     return cand
 
 
-def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: None) -> dict:
-    """Fit, rank and judge every effect; returns the pieces of diagnosis.json."""
+def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: None,
+            tangent: bool = True) -> dict:
+    """Fit, rank and judge every effect; returns the pieces of diagnosis.json. `tangent`:
+    use the model's tangent sensitivities where it gives them (else finite differences)."""
     n_eff = sum(d.gap.n_eff() for d in data)
     W = sum(float(d.gap.weights.sum()) for d in data)
     rms0 = _pooled_rms(data, [d.r0 for d in data])
     bic0 = fit.bic(sum(_rss(d, d.r0) for d in data), W, n_eff, 0)
-    say(f"sensitivities of {len(effects)} effect(s): finite differences of full solves")
-    forward.solve(_sensitivity_requests(data, effects))            # one parallel batch
-    cands = [_single_candidate(e, data, forward) for e in effects]
+    names = tuple(p.key for e in effects for p in e.parameters)
+    sens = [None] * len(data)
+    notes = []
+    if tangent and names:
+        say(f"tangent sensitivities of {len(names)} parameter(s) at the baseline")
+        for c, (_, s) in enumerate(forward.sensitivities([names] * len(data))):
+            sens[c] = s
+            if not isinstance(s, dict):
+                notes.append(f"{data[c].case.name}: {s}; finite differences instead")
+                say(f"  {notes[-1]}")
+    reqs = _sensitivity_requests(data, effects, sens)
+    say(f"{len(set(reqs))} solve(s) for finite differences and discrete choices")
+    forward.solve(reqs)                                             # one parallel batch
+    cands = [_single_candidate(e, data, forward, sens) for e in effects]
     say("fitting and refining with full nonlinear solves")
     refine(cands, data, forward)
     scored = [score(c, data, rms0, n_eff) for c in cands if c.failed is None]
@@ -399,7 +430,7 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
     for s in scored + pairs:
         s.probability = prob[s.cand.name]
     verdict = _verdict(data, best, pairs, prob)
-    return {"rms0": rms0, "bic0": bic0, "n_eff": n_eff, "scored": scored, "pairs": pairs,
+    return {"rms0": rms0, "bic0": bic0, "n_eff": n_eff, "scored": scored, "pairs": pairs, "notes": notes,
             "failed": failed, "verdict": verdict, "probabilities": prob, "best": best,
             "winner": verdict.get("_scored")}
 

@@ -90,7 +90,8 @@ def effect_strings(values: dict) -> tuple[str, ...]:
     return tuple(sorted(f"{k}={_fmt(v)}" for k, v in collect_effects(values).items()))
 
 
-STIFFNESS_LAYERS = ("dermis", "hypodermis", "muscle", "mucosa")
+STIFFNESS_LAYERS = ("dermis", "hypodermis", "muscle", "mucosa", "nose")
+BONE_DOF = ("tx", "ty", "tz", "rx", "ry", "rz")
 MOVED_SEGMENTS = ("maxilla", "mandible", "chin")
 
 # Bounds are the plausible ranges of the effects' published values (see docs/diagnosis.md):
@@ -122,13 +123,16 @@ def _accepted(strings: list[str]) -> bool:
     return True
 
 
-def _stiffness() -> Effect | None:
-    """Per-layer factors where the pipeline takes them, else the uniform factor."""
+def _stiffness(layers: bool = True) -> Effect | None:
+    """Per-layer factors where the pipeline takes them (`layers`), else the uniform factor.
+    The uniform factor is the direction along which every layer changes together: under
+    displacement-only loading the data cannot see it, so one layer is left at "none" by the
+    identifiability selection and the others are fitted relative to it."""
     base = next(e for e in EFFECT_LIBRARY if e.name == "stiffness")
-    layers = tuple(Parameter(f"stiffness.{layer}", 1.0, 1 / 3, 3.0, 0.2, log=True, unit="factor")
-                   for layer in STIFFNESS_LAYERS if _accepted([f"stiffness.{layer}=1.5"]))
-    if layers:
-        return Effect("stiffness", layers, shared=True, description=base.description)
+    found = tuple(Parameter(f"stiffness.{layer}", 1.0, 1 / 3, 3.0, 0.2, log=True, unit="factor")
+                  for layer in STIFFNESS_LAYERS if layers and _accepted([f"stiffness.{layer}=1.5"]))
+    if found:
+        return Effect("stiffness", found, shared=True, description=base.description)
     if _accepted(["stiffness=1.5"]):
         return Effect("stiffness", (Parameter("stiffness", 1.0, 1 / 3, 3.0, 0.2, log=True, unit="factor"),),
                       shared=True, description=base.description)
@@ -140,30 +144,33 @@ def _sliding(moved: tuple[str, ...]) -> Effect | None:
     choices = []
     if _accepted(["sliding=1"]):
         choices.append((("sliding", 1),))
-    for seg in moved:
+    for seg in moved if len(moved) > 1 else ():       # one moved segment: the same as sliding=1
         if _accepted([f"sliding={seg}"]):
             choices.append((("sliding", seg),))
     return Effect("sliding", choices=tuple(choices), shared=False, description=base.description) if choices else None
 
 
-def _bone_execution(moved: tuple[str, ...]) -> Effect | None:
+def _bone_execution(moved: tuple[str, ...], plan_actual: bool = False) -> Effect | None:
     """Rigid corrections per moved segment: the three translations (mm) and three rotations
-    (degrees) of `bone_execution.SEGMENT=[tx, ty, tz, rx, ry, rz]`."""
+    (degrees, about the segment's centroid) of `bone_execution.SEGMENT=[tx, ty, tz, rx, ry,
+    rz]`; with a `postop/plan_actual.yaml`, the achieved movements are a choice too."""
     params = []
     for seg in moved:
         if not _accepted([f"bone_execution.{seg}=[0.5, 0, 0, 0, 0, 0]"]):
             continue
-        for i, axis in enumerate(("tx", "ty", "tz", "rx", "ry", "rz")):
-            params.append(Parameter(f"bone_execution.{seg}[{i}]", 0.0, -3.0 if i < 3 else -4.0,
+        for i, dof in enumerate(BONE_DOF):
+            params.append(Parameter(f"bone_execution.{seg}.{dof}", 0.0, -3.0 if i < 3 else -4.0,
                                     3.0 if i < 3 else 4.0, 0.5, unit="mm" if i < 3 else "deg"))
-    if not params:
+    choices = ((), (("bone_execution", 1),)) if plan_actual and _accepted(["bone_execution=1"]) else ()
+    if not params and not choices:
         return None
-    return Effect("bone_execution", tuple(params), shared=False,
+    return Effect("bone_execution", tuple(params), choices=choices, shared=False,
                   description="bones moved other than planned")
 
 
 def available_effects(moved_segments: tuple[str, ...] = MOVED_SEGMENTS,
-                      names: tuple[str, ...] | None = None) -> list[Effect]:
+                      names: tuple[str, ...] | None = None, *, plan_actual: bool = False,
+                      stiffness_layers: bool = True) -> list[Effect]:
     """The effects the pipeline can add to a prediction today (in the contract's order)."""
     out = []
     for e in EFFECT_LIBRARY:
@@ -172,9 +179,9 @@ def available_effects(moved_segments: tuple[str, ...] = MOVED_SEGMENTS,
         if e.name == "sliding":
             spec = _sliding(moved_segments)
         elif e.name == "stiffness":
-            spec = _stiffness()
+            spec = _stiffness(stiffness_layers)
         elif e.name == "bone_execution":
-            spec = _bone_execution(moved_segments)
+            spec = _bone_execution(moved_segments, plan_actual)
         else:
             p = e.parameters[0]
             spec = e if _accepted([f"{p.key}={_fmt(p.value(p.origin + p.step))}"]) else None
@@ -184,14 +191,14 @@ def available_effects(moved_segments: tuple[str, ...] = MOVED_SEGMENTS,
 
 
 def collect_effects(values: dict) -> dict:
-    """{key: value} with indexed keys (`bone_execution.maxilla[2]`) gathered into vectors."""
+    """{key: value} with the flat bone-correction keys (`bone_execution.maxilla.tz`) gathered
+    into the vectors `--effect bone_execution.maxilla=[tx, ty, tz, rx, ry, rz]` takes."""
     out: dict = {}
     vectors: dict[str, list] = {}
     for k, v in values.items():
-        if k.endswith("]") and "[" in k:
-            base, idx = k[:-1].split("[")
-            vec = vectors.setdefault(base, [0.0] * 6)
-            vec[int(idx)] = float(v)
+        parts = k.split(".")
+        if parts[0] == "bone_execution" and len(parts) == 3:
+            vectors.setdefault(f"bone_execution.{parts[1]}", [0.0] * 6)[BONE_DOF.index(parts[2])] = float(v)
         else:
             out[k] = v
     for k, vec in vectors.items():

@@ -29,20 +29,23 @@ class CaseModel:
     name: str
     model: object                   # registered FaceModel with the patient's segment sets
     plan: object                    # planner.plan.Plan
-    bones: dict                     # segment -> trimesh surface
+    bones: dict                     # segment -> (vertices, faces) of its bone surface
     skin_ids: np.ndarray            # model node ids of the skin vertices
     skin_faces: np.ndarray          # (t, 3) triangles over the skin vertices
     region: np.ndarray              # (n_skin,) region index, -1 for none
     region_names: tuple[str, ...]
     unoperated: tuple[str, ...]
     landmark_ids: dict = field(default_factory=dict)   # name -> node id
+    plan_actual: object = None      # the achieved movements (postop/plan_actual.yaml)
+    follow_up_months: float | None = None
 
     @property
     def moved_segments(self) -> tuple[str, ...]:
         return tuple(self.plan.motions())
 
 
-def prepare_case(name: str, model, plan, bones: dict | None) -> CaseModel:
+def prepare_case(name: str, model, plan, bones: dict | None, plan_actual=None,
+                 follow_up_months: float | None = None) -> CaseModel:
     """The patient model with its attachment sets assigned to the case's bones (kept as they
     are without bones), and the skin."""
     from planner.pipeline import region_of_nodes, skin_surface
@@ -52,31 +55,71 @@ def prepare_case(name: str, model, plan, bones: dict | None) -> CaseModel:
         model = with_segments(model, assign_segments(model, bones, plan))
     _, faces, ids = skin_surface(model)
     region, names = region_of_nodes(model, ids)
-    return CaseModel(name, model, plan, dict(bones or {}), ids, faces, region, tuple(names),
+    # plain arrays travel to the workers (an unpickled trimesh keeps stale caches)
+    arrays = {k: (np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)) for k, m in (bones or {}).items()}
+    return CaseModel(name, model, plan, arrays, ids, faces, region, tuple(names),
                      tuple(getattr(model, "unoperated_regions", ())),
-                     {k: int(v) for k, v in getattr(model, "landmarks", {}).items()})
+                     {k: int(v) for k, v in getattr(model, "landmarks", {}).items()},
+                     plan_actual, follow_up_months)
+
+
+def _solve(case: CaseModel, strings: tuple[str, ...]):
+    from planner.pipeline import Progress, parse_effects, solve_plan
+
+    import trimesh
+
+    # the bones give the segment centroids that bone corrections turn about (the attachment
+    # sets are re-assigned to the same result)
+    bones = {k: trimesh.Trimesh(v, f, process=False) for k, (v, f) in case.bones.items()}
+    return solve_plan(case.model, case.plan, bones or None, effects=parse_effects(list(strings)),
+                      plan_actual=case.plan_actual, follow_up_months=case.follow_up_months,
+                      progress=Progress(echo=False))
 
 
 def solve_skin(case: CaseModel, strings: tuple[str, ...]):
     """Skin vertex positions (n_skin, 3) of the prediction with the effects `strings`, or the
     error message (str) when the model cannot be solved there."""
-    from planner.pipeline import Progress, parse_effects, solve_plan
-
-    effects = parse_effects(list(strings))
     try:
-        # the attachment sets are already the patient's (prepare_case): no re-assignment
-        pred = solve_plan(case.model, case.plan, None, effects=effects, progress=Progress(echo=False))
+        pred = _solve(case, strings)
     except SolveError as exc:
         return f"{exc}"
     return np.asarray(pred.predicted_nodes, float)[case.skin_ids]
 
 
-def _solve_task(case: CaseModel, strings: tuple[str, ...]):
+def solve_with_sensitivities(case: CaseModel, names: tuple[str, ...]):
+    """(baseline skin, {parameter: d(skin vertex positions)/dp (n_skin, 3)} or the reason
+    they are not available): the direct differentiation at the converged baseline
+    (`planner.pipeline.skin_sensitivities`, one factorisation for every parameter)."""
+    try:
+        pred = _solve(case, ())
+    except SolveError as exc:
+        return f"{exc}", None
+    skin = np.asarray(pred.predicted_nodes, float)[case.skin_ids]
+    try:
+        from planner.pipeline import skin_sensitivities
+    except ImportError:
+        return skin, "the pipeline gives no sensitivities"
+    try:
+        ids, sens = skin_sensitivities(pred, list(names))
+    except (ValueError, KeyError, ArithmeticError, RuntimeError) as exc:
+        return skin, f"sensitivities not available: {exc}"
+    if not np.array_equal(np.asarray(ids), np.asarray(case.skin_ids)):
+        return skin, "sensitivities on another skin vertex set"
+    return skin, {k: np.asarray(v, float) for k, v in sens.items()}
+
+
+def _solve_task(case: CaseModel, request):
+    """A request is effect strings (a solve) or ("sensitivities", names)."""
     import os
 
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
-    return solve_skin(case, strings)
+    if request and request[0] == SENSITIVITIES:
+        return solve_with_sensitivities(case, tuple(request[1]))
+    return solve_skin(case, request)
+
+
+SENSITIVITIES = "sensitivities"
 
 
 class Runner:
@@ -136,13 +179,24 @@ class Forward:
 
             def done(k):
                 i, s = todo[k]
-                self.say(f"    solved {self.cases[i].name} [{', '.join(s) or 'baseline'}]")
+                what = ("baseline and sensitivities" if s and s[0] == SENSITIVITIES
+                        else ", ".join(s) or "baseline")
+                self.say(f"    solved {self.cases[i].name} [{what}]")
 
             for r, skin in zip(todo, self.runner.map(self.cases, todo, done)):
                 self._store[r] = skin
             self.n_solves += len(todo)
             self.solve_time_s += time.perf_counter() - t0
         return [self._store[r] for r in requests]
+
+    def sensitivities(self, names_per_case: list[tuple[str, ...]]) -> list:
+        """Per case (baseline skin, {name: d skin/dp} or reason) in one parallel batch; the
+        baseline skins are stored as the baseline solves."""
+        reqs = [(i, (SENSITIVITIES, tuple(n))) for i, n in enumerate(names_per_case)]
+        out = self.solve(reqs)
+        for i, (skin, _) in enumerate(out):
+            self._store.setdefault((i, ()), skin)
+        return out
 
     def baseline(self, i: int) -> np.ndarray:
         skin = self.solve([(i, ())])[0]

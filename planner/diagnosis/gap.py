@@ -12,10 +12,11 @@ the same weights and the same superimposition: `ScanGap.distances(skin)`.
 The noise floor comes from the data: the larger of the superimposition residual on the
 unoperated regions (scanner noise plus what registration leaves there) and the scan's own
 roughness (the residual of a local quadric fitted to each vertex's neighbourhood, corrected for
-the fit's six degrees of freedom). A region's gap is `significant` when its area-weighted mean
-square exceeds the floor's square by more than three standard deviations of a mean square of
-independent Gaussian noise, sigma^2 (1 + 3 sqrt(2 / n_eff)), n_eff the region's independent
-samples (below). Spatially correlated residuals carry fewer independent samples than points:
+the fit's six degrees of freedom). A region's gap is `significant` when its systematic part
+exceeds the floor, rms^2 - sigma^2 >= sigma^2 (a miss as large as the noise itself), and its
+area-weighted mean square exceeds sigma^2 by more than three standard deviations of a mean
+square of independent Gaussian noise, sigma^2 (1 + 3 sqrt(2 / n_eff)), n_eff the region's
+independent samples (below). Spatially correlated residuals carry fewer independent samples than points:
 n_eff = area / (pi l^2) with l the distance at which the gap's empirical correlogram first falls
 below 1/e (Cressie, *Statistics for spatial data*, 1993, ch. 2), at least the scan's spacing.
 """
@@ -67,6 +68,26 @@ class ScanGap:
         out[self.scan_valid] = r
         return out
 
+    def linearised(self, skin: np.ndarray, dskin: np.ndarray) -> np.ndarray:
+        """d(distances)/dp for skin vertex velocities `dskin` (n_skin, 3) about `skin`: the
+        closest point moves with its triangle's barycentric combination of the vertices'."""
+        key = id(skin)
+        if getattr(self, "_lin_key", None) != key:
+            self._lin = TriangleSurface(np.asarray(skin, float), self.faces).closest(self.points)
+            self._lin_key = key
+            cp = self._lin
+            # the signed distance is s = u . (p - c) with u the unit direction from the closest
+            # point to p (outward-signed): ds = -u . dc; u is the face normal where p lies over
+            # a triangle's interior, the direction to an edge or corner otherwise
+            off = self.points - cp.point
+            far = np.abs(cp.signed) > 1e-9
+            u = np.where(far[:, None], off / np.where(far, cp.signed, 1.0)[:, None], cp.normal)
+            self._lin_u = u
+        cp = self._lin
+        tri = self.faces[cp.face]                                  # (n, 3) vertex ids
+        dc = np.einsum("nj,njk->nk", cp.bary, np.asarray(dskin, float)[tri])
+        return -np.einsum("nk,nk->n", self._lin_u, dc)
+
     def distances(self, skin: np.ndarray) -> np.ndarray:
         """Signed distances (post-op minus prediction) of the fixed scan points to `skin`."""
         return TriangleSurface(np.asarray(skin, float), self.faces).closest(self.points).signed
@@ -87,8 +108,11 @@ class ScanGap:
         return float(np.sqrt(np.sum(w * r * r) / max(w.sum(), 1e-300)))
 
     def significant(self, rms: float, mask: np.ndarray | None = None) -> bool:
+        """The gap's systematic part, sqrt(rms^2 - floor^2), is at least the floor, and the
+        mean square exceeds the floor's beyond three standard deviations of noise."""
         n = self.n_eff(mask)
-        return bool(rms ** 2 > self.noise_floor_mm ** 2 * (1.0 + 3.0 * np.sqrt(2.0 / max(n, 1.0))))
+        s2 = self.noise_floor_mm ** 2
+        return bool(rms ** 2 >= 2.0 * s2 and rms ** 2 > s2 * (1.0 + 3.0 * np.sqrt(2.0 / max(n, 1.0))))
 
     def region_masks(self, min_points: int = 8) -> dict[str, np.ndarray]:
         out = {}

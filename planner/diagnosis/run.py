@@ -38,22 +38,29 @@ def load_diagnosis_case(case_dir: Path, resolution: str | None, say):
     progress = Progress(echo=lambda s: None)
     say(f"{case_dir.name}: registering the {res} model onto the patient")
     model, _ = register_case(case, res, progress)
-    return prepare_case(case_dir.resolve().name, model, plan, case.bones), scan, res
+    plan_actual = None
+    if case.postop_plan_path is not None:
+        plan_actual = load_plan(case.postop_plan_path)
+        check_against_bones(plan_actual, {k: np.asarray(v.vertices, float) for k, v in case.bones.items()})
+    return (prepare_case(case_dir.resolve().name, model, plan, case.bones, plan_actual,
+                         case.info.follow_up_months), scan, res)
 
 
 def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runner: Runner | None = None,
-                   say=lambda s: None, effect_names: tuple[str, ...] | None = None) -> dict:
+                   say=lambda s: None, effect_names: tuple[str, ...] | None = None,
+                   tangent: bool = True) -> dict:
     t0 = time.perf_counter()
     loaded = [load_diagnosis_case(Path(c), resolution, say) for c in case_dirs]
     out = diagnose_data([m for m, _, _ in loaded], [s for _, s, _ in loaded], runner=runner, say=say,
-                        effect_names=effect_names)
+                        effect_names=effect_names, tangent=tangent)
     out["record"]["resolution"] = sorted({r for _, _, r in loaded})
     out["record"]["timings_s"]["total"] = round(time.perf_counter() - t0, 2)
     return out
 
 
 def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say=lambda s: None,
-                  effect_names: tuple[str, ...] | None = None, forward: Forward | None = None) -> dict:
+                  effect_names: tuple[str, ...] | None = None, forward: Forward | None = None,
+                  effects: list | None = None, tangent: bool = True) -> dict:
     """The diagnosis of prepared cases (`forward.CaseModel`) against their scans; returns
     {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}."""
     t0 = time.perf_counter()
@@ -73,9 +80,11 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
         for w in gap.warnings:
             say(f"  warning: {w}")
     moved = tuple(dict.fromkeys(s for c in cases for s in c.moved_segments))
-    effects = available_effects(moved, effect_names)
+    if effects is None:
+        effects = available_effects(moved, effect_names,
+                                    plan_actual=all(c.plan_actual is not None for c in cases))
     t_fit = time.perf_counter()
-    result = analysis.analyse(data, effects, forward, say)
+    result = analysis.analyse(data, effects, forward, say, tangent=tangent)
     record = build_record(data, result, effects)
     record["timings_s"] = {"baseline_and_gap": round(t_fit - t0, 2),
                            "effects": round(time.perf_counter() - t_fit, 2)}
@@ -167,8 +176,8 @@ def build_record(data: list, result: dict, effects) -> dict:
         "effects_failed": [{"name": c.name, "reason": c.failed} for c in result["failed"]],
         "effects_tested": [e.name for e in effects],
         "method": {
-            "sensitivity": "finite differences of full nonlinear solves (central; one-sided second "
-                           "order at a bound)",
+            "sensitivity": sorted({s.cand.sensitivity for s in result["scored"]}),
+            "sensitivity_notes": result["notes"],
             "refinement": f"bounded Gauss-Newton with up to {analysis.MAX_REFINEMENTS} full solves per fit",
             "heldout": "spatial cross-validation over regions" if single else
                        "leave one case out (shared parameters); spatial cross-validation per case (case-specific)",

@@ -53,12 +53,14 @@ def perturbed_case(case, seed: int, modulus_pct: float = 15.0, thickness_pct: fl
     x[~fixed] = skin[near][~fixed] + depth[~fixed] * (1.0 + a[~fixed, None])
     # thin elements (lips, nostrils) whose nodes see different nearest skin nodes may fold:
     # those nodes keep their place
-    from planner.report import gauss_jacobians
+    from planner.report import corner_jacobians, gauss_jacobians
 
     hexes = np.asarray(model.hexes)
-    ratio_floor = 0.3 * gauss_jacobians(x0, hexes).min(axis=1)
-    for _ in range(10):
-        bad = gauss_jacobians(x, hexes).min(axis=1) <= ratio_floor
+    gauss_floor = 0.3 * gauss_jacobians(x0, hexes).min(axis=1)
+    corner_floor = 0.3 * np.maximum(corner_jacobians(x0, hexes).min(axis=1), 0.0)
+    for _ in range(20):
+        bad = ((gauss_jacobians(x, hexes).min(axis=1) <= gauss_floor)
+               | (corner_jacobians(x, hexes).min(axis=1) <= corner_floor))
         if not bad.any():
             break
         nodes = np.unique(hexes[bad])

@@ -201,24 +201,45 @@ def p_key(e: Effect, k: int) -> str:
 # --------------------------------------------------------------------------- fitting
 
 def _identify(cand: Candidate, data: list[CaseData]) -> None:
-    """Standard errors and the free (identifiable) parameters."""
+    """Standard errors and the free (identifiable) parameters: the least determined parameter
+    (largest standard error relative to its range) is fixed at "none" until every remaining
+    one is pinned to `fit.IDENTIFIABLE_FRACTION` of its range. Under displacement-only loading
+    this leaves out one stiffness layer (the uniform direction) and fits the others relative
+    to it."""
     k = len(cand.params)
     if k == 0:
         cand.free = np.zeros(0, bool)
         cand.se = np.zeros(0)
         return
     rng = cand.upper - cand.lower
-    sigma = max(d.gap.noise_floor_mm for d in data)
-    if cand.shared:
-        J = np.concatenate(cand.J)
-        w = np.concatenate([d.gap.weights for d in data])
-        n_eff = sum(d.gap.n_eff() for d in data)
-        se = fit.standard_errors(J, w, sigma, n_eff)
-    else:
-        se = np.max([fit.standard_errors(cand.J[c], d.gap.weights, d.gap.noise_floor_mm, d.gap.n_eff())
-                     for c, d in enumerate(data)], axis=0)
+
+    def errors(free):
+        sub = np.zeros(k)
+        sub[:] = np.inf
+        if not free.any():
+            return sub
+        if cand.shared:
+            J = np.concatenate([Jc[:, free] for Jc in cand.J])
+            w = np.concatenate([d.gap.weights for d in data])
+            sigma = max(d.gap.noise_floor_mm for d in data)
+            sub[free] = fit.standard_errors(J, w, sigma, sum(d.gap.n_eff() for d in data))
+        else:
+            sub[free] = np.max([fit.standard_errors(cand.J[c][:, free], d.gap.weights, d.gap.noise_floor_mm,
+                                                    d.gap.n_eff()) for c, d in enumerate(data)], axis=0)
+        return sub
+
+    free = np.ones(k, bool)
+    se = errors(free)
+    while free.any():
+        rel = np.where(free, se / rng, -np.inf)
+        worst = int(np.argmax(rel))
+        if rel[worst] <= fit.IDENTIFIABLE_FRACTION:
+            break
+        free[worst] = False
+        se_new = errors(free)
+        se = np.where(free, se_new, se)
     cand.se = se
-    cand.free = se <= fit.IDENTIFIABLE_FRACTION * rng
+    cand.free = free
 
 
 def _fit_theta(cand: Candidate, data: list[CaseData], cases: list[int], masks=None) -> np.ndarray:

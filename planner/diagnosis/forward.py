@@ -170,9 +170,17 @@ class Forward:
         self.n_solves = 0
         self.solve_time_s = 0.0
 
+    def _key(self, r):
+        # by the case object: the same patient listed twice is solved once
+        return (id(self.cases[r[0]]), r[1])
+
     def solve(self, requests: list[tuple[int, tuple[str, ...]]]) -> list:
         """Skins (or error messages) for (case index, effect strings) requests."""
-        todo = list(dict.fromkeys(r for r in requests if r not in self._store))
+        todo, seen = [], set()
+        for r in requests:
+            if self._key(r) not in self._store and self._key(r) not in seen:
+                seen.add(self._key(r))
+                todo.append(r)
         if todo:
             t0 = time.perf_counter()
             self.say(f"  {len(todo)} forward solve(s) on {self.runner.n_workers} worker(s) ...")
@@ -184,10 +192,10 @@ class Forward:
                 self.say(f"    solved {self.cases[i].name} [{what}]")
 
             for r, skin in zip(todo, self.runner.map(self.cases, todo, done)):
-                self._store[r] = skin
+                self._store[self._key(r)] = skin
             self.n_solves += len(todo)
             self.solve_time_s += time.perf_counter() - t0
-        return [self._store[r] for r in requests]
+        return [self._store[self._key(r)] for r in requests]
 
     def sensitivities(self, names_per_case: list[tuple[str, ...]]) -> list:
         """Per case (baseline skin, {name: d skin/dp} or reason) in one parallel batch; the
@@ -195,7 +203,7 @@ class Forward:
         reqs = [(i, (SENSITIVITIES, tuple(n))) for i, n in enumerate(names_per_case)]
         out = self.solve(reqs)
         for i, (skin, _) in enumerate(out):
-            self._store.setdefault((i, ()), skin)
+            self._store.setdefault(self._key((i, ())), skin)
         return out
 
     def baseline(self, i: int) -> np.ndarray:

@@ -38,6 +38,8 @@ def perturbed_case(case, seed: int, modulus_pct: float = 15.0, thickness_pct: fl
     for name, ids in model.node_sets.items():
         if name.startswith("attach_") or name in ("deep_free", "border"):
             fixed[np.asarray(ids, int)] = True
+    for quads in model.facet_sets.values():          # skin, lip and mucosa contact surfaces
+        fixed[np.asarray(quads, int).ravel()] = True
     # layer thickness: every inner node's depth below its nearest skin node scaled by a smooth
     # random factor 1 + a(x), |a| <= thickness_pct (the deep surfaces stay on the bone)
     from scipy.spatial import cKDTree

@@ -36,7 +36,9 @@ def patient():
 
 @pytest.fixture(scope="module")
 def forward(patient):
-    return Forward([patient])
+    # the patient twice: single-case diagnoses use index 0, the two-case one both; solves are
+    # stored by case object, so both indices share them
+    return Forward([patient, patient])
 
 
 def _scan(case, strings, seed, perturb=True, forward=None, **kw):
@@ -55,6 +57,7 @@ _RESULTS = {}
 def _diagnose(patient, forward, name, strings, seed, **kw):
     if name not in _RESULTS:
         scan = _scan(patient, strings, seed, forward=forward, **kw)
+        _RESULTS[name + "_scan"] = scan
         _RESULTS[name] = diagnose_data([patient], [scan], forward=forward, effect_names=EFFECTS)
     return _RESULTS[name]
 
@@ -81,9 +84,14 @@ def test_uniform_stiffness_is_not_identifiable(patient, forward):
     so its Fisher information is nil and it is not ranked."""
     rec = _diagnose(patient, forward, "tone", ["muscle_tone=0.15"], seed=1)["record"]
     stiff = next(e for e in rec["effects"] if e["name"] == "stiffness")
-    if "stiffness" in stiff.get("parameters", {}):     # the uniform factor (no per-layer factors)
-        assert stiff["identifiable"] is False and not stiff["significant"]
-        assert rec["effects"][-1]["name"] == "stiffness"
+    # per-layer factors: one layer (the uniform direction) is left out, the others fitted
+    # relative to it
+    assert not all(p["identifiable"] for p in stiff["parameters"].values())
+    uniform = available_effects(("maxilla",), ("stiffness",), stiffness_layers=False)
+    rec = diagnose_data([patient], [_RESULTS["tone_scan"]], forward=forward, effects=uniform)["record"]
+    e = rec["effects"][0]
+    assert list(e["parameters"]) == ["stiffness"]
+    assert e["identifiable"] is False and not e["significant"] and e["params"] == {}
 
 
 def test_withheld_sliding_is_named(patient, forward):
@@ -111,6 +119,24 @@ def test_perturbation_only_is_not_forced_onto_an_effect(patient, forward):
     rec = _diagnose(patient, forward, "perturbed", [], seed=4, modulus_pct=15.0, thickness_pct=20.0)["record"]
     v = rec["verdict"]
     assert v["effect"] in (None, "unexplained") or v["confidence"] <= 0.5
+
+
+def test_two_cases(patient, forward):
+    """Two scans of the patient with different resting tones: the case-specific tone is fitted
+    per case (spatial cross-validation in each), the shared stiffness leaving one case out; the
+    verdict names the tone and the record lists both cases."""
+    first = _diagnose(patient, forward, "tone", ["muscle_tone=0.15"], seed=1)
+    scan2 = _scan(patient, ["muscle_tone=0.1"], seed=8)
+    scan1 = _RESULTS["tone_scan"]
+    rec = diagnose_data([patient, patient], [scan1, scan2], forward=forward, effect_names=EFFECTS)["record"]
+    assert rec["verdict"]["effect"] == "muscle_tone"
+    assert len(rec["cases"]) == 2 and all("localization" in c and "baseline" in c for c in rec["cases"])
+    tone = next(e for e in rec["effects"] if e["name"] == "muscle_tone")
+    fitted = [c["muscle_tone"] for c in tone["params"]["per_case"]]
+    assert fitted[0] == pytest.approx(first["record"]["effects"][0]["params"]["muscle_tone"], rel=1e-6)
+    assert fitted[1] == pytest.approx(0.1, rel=0.25)
+    stiff = next(e for e in rec["effects"] if e["name"] == "stiffness")
+    assert stiff["shared"] is True
 
 
 def test_another_patient_is_refused(patient, forward):

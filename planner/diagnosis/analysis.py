@@ -19,10 +19,11 @@ are fitted leaving each case out in turn and case-specific ones per case with sp
 cross-validation. The held-out prediction uses the local model about the refined fit,
 r(theta) = r* + J* (theta - theta*). An effect is `significant` when its BIC beats the
 baseline's by strong evidence (`fit.STRONG_EVIDENCE`) and it removes at least
-`MIN_HELDOUT_SHRINK_PCT` of the held-out gap. When the best significant effect leaves a
-significant gap, pairs with it are tried greedily. The verdict is the best significant effect
-(or pair, when the pair is itself strongly better than the single effect and shrinks the
-held-out gap further), null when no region's gap exceeds the noise floor, or "unexplained"
+`MIN_HELDOUT_SHRINK_PCT` of the held-out gap. When the best effect (significant or not: two
+effects can act together where neither does alone) leaves a significant gap, pairs with it are
+tried greedily. The verdict is the best significant effect (or pair, when the pair is itself
+significant and, if a single effect is, strongly better than it and shrinks the held-out gap
+further), null when no region's gap exceeds the noise floor, or "unexplained"
 when a significant gap remains that no effect reduces significantly; its confidence is the
 BIC model probability among the baseline and every effect compared.
 """
@@ -192,10 +193,6 @@ def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -
         cand.theta.append(cand.origin.copy())
     cand.sensitivity = " and ".join(sorted(methods)) if methods else "none (discrete choices)"
     return cand
-
-
-def p_key(e: Effect, k: int) -> str:
-    return e.parameters[k].key
 
 
 # --------------------------------------------------------------------------- fitting
@@ -437,12 +434,16 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
     sig_before = any(_significant_regions(data, [d.r0 for d in data]))
     pairs = []
     best = next((s for s in ranked if s.significant), None)
-    if best is not None and _significant_regions(data, best.heldout):
-        partners = [s for s in ranked if s is not best and not set(e.name for e in s.cand.effects)
-                    & set(e.name for e in best.cand.effects)][:PAIR_PARTNERS]
+    # the greedy step starts from the best effect even when it is not significant alone: two
+    # effects can interact (tone with sliding tissue moves the chin as neither does alone)
+    lead = best or (ranked[0] if ranked else None)
+    if sig_before and lead is not None and _significant_regions(data, lead.heldout):
+        partners = [s for s in ranked if s is not lead and not set(e.name for e in s.cand.effects)
+                    & set(e.name for e in lead.cand.effects)][:PAIR_PARTNERS]
         if partners:
-            say("the best effect leaves a significant gap: trying pairs with " + ", ".join(p.cand.name for p in partners))
-            pair_cands = [_pair(best.cand, p.cand, data) for p in partners]
+            say(f"{lead.cand.name} leaves a significant gap: trying pairs with "
+                + ", ".join(p.cand.name for p in partners))
+            pair_cands = [_pair(lead.cand, p.cand, data) for p in partners]
             refine(pair_cands, data, forward)
             pairs = [score(c, data, rms0, n_eff) for c in pair_cands]
             _judge(pairs, bic0)
@@ -487,14 +488,14 @@ def _verdict(data, best, pairs, prob) -> dict:
     sig = _significant_regions(data, r0s)
     if not sig:
         return {"effect": None, "confidence": round(prob["baseline"], 4), "regions": []}
-    if best is None:
-        return {"effect": "unexplained", "confidence": round(prob["baseline"], 4), "regions": sig}
     winner = best
     for p in sorted(pairs, key=lambda s: -s.heldout_shrink_pct):
-        if (p.significant and best.bic - p.bic >= fit.STRONG_EVIDENCE
-                and p.heldout_shrink_pct >= best.heldout_shrink_pct + MIN_PAIR_GAIN_PCT):
+        if p.significant and (best is None or (best.bic - p.bic >= fit.STRONG_EVIDENCE and p.heldout_shrink_pct
+                                               >= best.heldout_shrink_pct + MIN_PAIR_GAIN_PCT)):
             winner = p
             break
+    if winner is None:
+        return {"effect": "unexplained", "confidence": round(prob["baseline"], 4), "regions": sig}
     return {"effect": winner.cand.name, "confidence": round(prob[winner.cand.name], 4),
             "regions": _explained_regions(data, r0s, winner.heldout) or sig,
             "remaining_significant_regions": _significant_regions(data, winner.heldout),

@@ -17,9 +17,9 @@ import numpy as np
 from planner.diagnosis import analysis
 from planner.diagnosis.effects import available_effects
 from planner.diagnosis.forward import Forward, Runner, prepare_case
-from planner.diagnosis.gap import measure_gap, metrics_block, region_table
+from planner.diagnosis.gap import measure_gap, region_table
 
-__all__ = ["load_diagnosis_case", "diagnose_cases", "diagnose_data"]
+__all__ = ["load_diagnosis_case", "diagnose_cases", "diagnose_data", "build_record"]
 
 
 def load_diagnosis_case(case_dir: Path, resolution: str | None, say):
@@ -129,7 +129,8 @@ def _effect_entry(s: analysis.Scored) -> dict:
         "solves": c.solves,
     }
     if c.params:
-        entry["parameters"] = {p.key: {"identifiable": bool(f), "standard_error": _r(se if not p.log else se, 4),
+        # the standard error is in the fit's coordinate: the value, or its logarithm for factors
+        entry["parameters"] = {p.key: {"identifiable": bool(f), "standard_error": _r(se, 4),
                                        "coordinate": "log" if p.log else "value", "unit": p.unit,
                                        "bounds": [p.lower, p.upper], "none": p.none}
                                for p, f, se in zip(c.params, c.free, c.se)}
@@ -140,9 +141,9 @@ def build_record(data: list, result: dict, effects) -> dict:
     r0s = [d.r0 for d in data]
     single = len(data) == 1
     scored = result["scored"] + result["pairs"]
-    ranked = sorted([s for s in result["scored"] if s.identifiable], key=lambda s: -s.heldout_shrink_pct)
-    ranked += sorted(result["pairs"], key=lambda s: -s.heldout_shrink_pct)
-    ranked += [s for s in result["scored"] if not s.identifiable]
+    # best first: identifiable effects and pairs by held-out shrinkage, the others after
+    ranked = sorted([s for s in scored if s.identifiable], key=lambda s: -s.heldout_shrink_pct)
+    ranked += [s for s in scored if not s.identifiable]
     winner = result["winner"]
     verdict = {k: v for k, v in result["verdict"].items() if not k.startswith("_")}
     case_records = []
@@ -258,5 +259,3 @@ def _pooled_localization(data, rs) -> list[dict]:
                     "significant": sig, "covered": covered})
     return out
 
-
-__all__ += ["build_record", "metrics_block"]

@@ -101,6 +101,16 @@ def test_withheld_sliding_is_named(patient, forward):
     assert rec["effects"][0]["heldout_shrink_pct"] >= 25.0
 
 
+def test_two_withheld_effects_are_named_as_a_pair(patient, forward):
+    """Tone and sliding together: the best single effect leaves a significant gap, the greedy
+    pair removes it."""
+    rec = _diagnose(patient, forward, "pair", ["muscle_tone=0.15", "sliding=1"], seed=9)["record"]
+    assert set(rec["verdict"]["effect"].split("+")) == {"muscle_tone", "sliding"}
+    pair = next(e for e in rec["effects"] if "+" in e["name"])
+    singles = [e for e in rec["effects"] if e["name"] in ("muscle_tone", "sliding")]
+    assert pair["heldout_shrink_pct"] >= max(e["heldout_shrink_pct"] for e in singles) + 10.0
+
+
 def test_none_gives_null(patient, forward):
     """The diagnosed model itself with scan noise and offset only: nothing beats the noise."""
     rec = _diagnose(patient, forward, "none", [], seed=3, perturb=False)["record"]

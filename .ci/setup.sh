@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
 # Idempotent set-up used by `make demo` and `make test`:
 #  1. system packages that Python wheels cannot bring (CGAL/Eigen headers for pygalmesh,
-#     Mesa for off-screen VTK rendering), installed with apt-get only when missing;
+#     Mesa for off-screen VTK rendering, Chromium for the report's browser test), installed
+#     with apt-get only when missing;
 #  2. a virtual environment in .venv with the project (editable) and every dependency.
 # Re-running skips what is already there (a stamp file records the pyproject hash).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SYS_PKGS="libcgal-dev libeigen3-dev libgmp-dev libmpfr-dev libegl1 libgl1 libosmesa6 libxrender1"
+SYS_PKGS="libcgal-dev libeigen3-dev libgmp-dev libmpfr-dev libegl1 libgl1 libosmesa6 libxrender1 chromium"
 missing=""
 for p in $SYS_PKGS; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing="$missing $p"

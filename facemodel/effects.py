@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import ast
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -44,6 +44,10 @@ LAYERS = {"dermis": ("dermis",), "hypodermis": ("hypodermis",), "muscle": tuple(
 RHO = 1.05e-6            # kg/mm^3, soft tissue (Duck 1990)
 G = 9810.0               # mm/s^2; rho g in mN/mm^3 = kPa/mm
 SWELLING_RADIUS_MM = 15.0
+# the peak (first post-operative days) growth ratio: with a follow-up time only
+# (peak - 1) x residual acts (at 3 months 20 %, at 12 months 7 %), so the residual swelling
+# of 0.5-2 mm of skin at 3-12 months asks for peaks up to ~3 (skin swollen by ~1 cm)
+SWELLING_MAX = 4.0
 # (months after surgery, residual fraction of the peak swelling): van der Vlis et al. 2014
 SWELLING_CURVE = ((0.0, 1.0), (0.7, 0.5), (3.0, 0.2), (12.0, 0.07))
 BONE_DOF = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -195,7 +199,7 @@ def parameters(effect: str, segments=()) -> list:
     if effect == "muscle_tone":
         return [Parameter("muscle_tone", effect, "-", 0.0, 1.0, 0.0, "resting perioral activation")]
     if effect == "swelling":
-        return [Parameter("swelling", effect, "-", 1.0, 1.5, 1.0, "peak volumetric growth ratio")]
+        return [Parameter("swelling", effect, "-", 1.0, SWELLING_MAX, 1.0, "peak volumetric growth ratio")]
     if effect == "gravity":
         return [Parameter("gravity", effect, "-", 0.0, 2.0, 0.0, "posture factor m")]
     if effect == "stiffness":
@@ -311,7 +315,7 @@ def parse_effects(items=None, *, segments=SEGMENTS) -> Effects:
         elif head == "swelling":
             if rest:
                 raise EffectError("effect swelling takes no sub-name", name)
-            kw["swelling"] = _in(_number(raw, name), 1.0, 1.5, name, "growth ratio")
+            kw["swelling"] = _in(_number(raw, name), 1.0, SWELLING_MAX, name, "growth ratio")
         elif head == "gravity":
             if rest:
                 raise EffectError("effect gravity takes no sub-name", name)

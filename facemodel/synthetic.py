@@ -274,3 +274,198 @@ def synthetic_head(seed: int, size: float = SCAN_SIZE, distance: float = 0.25,
                         mesher=mesher, zoom=zoom)
     return SyntheticHead(seed=int(seed), shape=shape, skin=skin, bones=bone_surfaces(shape),
                          teeth=teeth, landmarks=landmarks(shape, skin))
+
+
+# ------------------------------------------------------------------ post-operative truth models
+# The post-operative "truth" of a synthetic case is predicted on a model that is not the one a
+# diagnosis fits: the generic face with its layers re-proportioned and its moduli perturbed per
+# case (`perturb_layers`, `perturbed_materials`), then seen as a scanner sees it
+# (`scan_like_surface`).
+
+PERTURB_LAYER = 0.2       # +-20 % dermis and deep (muscle/mucosa) layer thickness
+PERTURB_MODULUS = 0.15    # +-15 % per layer on the generic moduli
+BULK_RATIO = (500.0, 2000.0)   # K / mu of the truth model (the generic uses 1000)
+
+
+def perturb_layers(model, n_layers: int, dermis: float = 1.0, deep: float = 1.0):
+    """The generic face with its dermis (outer layer) and deep layers (the inner half: muscles,
+    mucosa) `dermis` and `deep` times as thick; the hypodermis between takes the difference
+    and the deep and skin surfaces stay where they are. Works on the column structure of the
+    generic mesh (`generic_mesh.builder`: node id = column * (n_layers + 1) + layer, deep to
+    skin): every interior node slides along its column's polyline."""
+    from dataclasses import replace
+
+    X = np.asarray(model.nodes, float)
+    nk = int(n_layers)
+    if len(X) % (nk + 1):
+        raise ValueError(f"the mesh has no columns of {nk + 1} nodes")
+    P = X.reshape(-1, nk + 1, 3)
+    seg = np.linalg.norm(np.diff(P, axis=1), axis=2)                  # (c, nk)
+    L = np.concatenate([np.zeros((len(P), 1)), np.cumsum(seg, axis=1)], axis=1)
+    total = L[:, -1:]
+    n_deep = nk // 2
+    l_deep = np.minimum(L[:, n_deep:n_deep + 1] * deep, 0.45 * total)
+    l_derm = np.minimum((total - L[:, nk - 1:nk]) * dermis, 0.45 * total)
+    new = L.copy()
+    k = np.arange(nk + 1)[None, :]
+    old_deep, old_top = L[:, n_deep:n_deep + 1], L[:, nk - 1:nk]
+    inner = np.where(k <= n_deep, L * l_deep / np.maximum(old_deep, 1e-12),
+                     l_deep + (L - old_deep) * (total - l_derm - l_deep)
+                     / np.maximum(old_top - old_deep, 1e-12))
+    new = np.where(k < nk, inner, total)
+    new[:, nk - 1:nk] = total - l_derm
+    new[:, 0] = 0.0
+    out = np.empty_like(P)
+    for c in range(len(P)):
+        for d in range(3):
+            out[c, :, d] = np.interp(new[c], L[c], P[c, :, d])
+    return replace(model, nodes=out.reshape(-1, 3))
+
+
+def perturbed_materials(rng) -> tuple:
+    """Material overrides of a truth model ({label: {C10, C20, K}}, the plan's
+    `model.materials` form) and their record: each layer's moduli times a factor in
+    1 +- PERTURB_MODULUS, K = ratio * mu with the ratio in BULK_RATIO."""
+    from facemodel import materials as fm
+    from facemodel.effects import LAYERS
+
+    ratio = float(rng.uniform(*BULK_RATIO))
+    factors = {layer: float(rng.uniform(1 - PERTURB_MODULUS, 1 + PERTURB_MODULUS)) for layer in LAYERS}
+    out = {}
+    for layer, labels in LAYERS.items():
+        for label in labels:
+            p = fm.material(label).parameters
+            c10, c20 = p["C10"] * factors[layer], p["C20"] * factors[layer]
+            out[label] = {"C10": c10, "C20": c20, "K": ratio * 2.0 * c10}
+    return out, {"modulus_factors": {k: round(v, 4) for k, v in factors.items()},
+                 "bulk_to_shear": round(ratio, 1)}
+
+
+@numba.njit(cache=True)
+def _zbuffer(V, F, x0, z0, h, nx, nz):
+    """Largest y (the surface nearest a frontal viewer looking along -y) on the (x, z) grid."""
+    depth = np.full((nz, nx), -np.inf)
+    for t in range(F.shape[0]):
+        a, b, c = V[F[t, 0]], V[F[t, 1]], V[F[t, 2]]
+        xmin = min(a[0], b[0], c[0])
+        xmax = max(a[0], b[0], c[0])
+        zmin = min(a[2], b[2], c[2])
+        zmax = max(a[2], b[2], c[2])
+        i0 = max(int(math.ceil((xmin - x0) / h)), 0)
+        i1 = min(int(math.floor((xmax - x0) / h)), nx - 1)
+        j0 = max(int(math.ceil((zmin - z0) / h)), 0)
+        j1 = min(int(math.floor((zmax - z0) / h)), nz - 1)
+        det = (b[0] - a[0]) * (c[2] - a[2]) - (c[0] - a[0]) * (b[2] - a[2])
+        if abs(det) < 1e-14:
+            continue
+        for j in range(j0, j1 + 1):
+            pz = z0 + j * h
+            for i in range(i0, i1 + 1):
+                px = x0 + i * h
+                l1 = ((px - a[0]) * (c[2] - a[2]) - (c[0] - a[0]) * (pz - a[2])) / det
+                l2 = ((b[0] - a[0]) * (pz - a[2]) - (px - a[0]) * (b[2] - a[2])) / det
+                l0 = 1.0 - l1 - l2
+                if l0 >= -1e-12 and l1 >= -1e-12 and l2 >= -1e-12:
+                    y = l0 * a[1] + l1 * b[1] + l2 * c[1]
+                    if y > depth[j, i]:
+                        depth[j, i] = y
+    return depth
+
+
+def scan_like_surface(vertices, faces, landmarks: dict, rng, *, spacing: float = 0.6,
+                      noise: float = 0.2, max_shift: float = 2.0, max_angle_deg: float = 2.0,
+                      grazing: float = 0.3):
+    """The surface as a frontal surface scanner gives it: a range image on a `spacing` mm grid
+    seen along -y (RAS: the viewer in front), triangulated (0.6 mm grid: median triangle edge
+    ~0.8 mm with the diagonals and the face's slopes); the front of the face only (the
+    landmarks' box: ear to ear is not seen), no triangle seen at a grazing angle (|n_y| <
+    `grazing`: the sides and under the chin), nothing across depth jumps, holes at the mouth
+    slit (between the stomia, commissure to commissure) and the nostrils (beside subnasale);
+    Gaussian noise of `noise` mm along the normals and a random rigid offset (translation up
+    to `max_shift` mm, rotation up to `max_angle_deg` about the scan's centroid).
+    Returns (vertices, faces, record of what was drawn)."""
+    V = np.asarray(vertices, float)
+    F = np.asarray(faces, np.int64)
+    lm = {k: np.asarray(v, float) for k, v in landmarks.items()}
+    x_half = 0.5 * abs(lm["ChL"][0] - lm["ChR"][0]) + 30.0
+    # menton is the lowest point of the face: below it a frontal view sees the neck
+    z_lo, z_hi = lm["Me"][2] - 1.0, lm["Prn"][2] + 50.0
+    x0, z0 = -x_half, z_lo
+    nx, nz = int(2 * x_half / spacing) + 1, int((z_hi - z_lo) / spacing) + 1
+    depth = _zbuffer(np.ascontiguousarray(V), np.ascontiguousarray(F), x0, z0, spacing, nx, nz)
+    gx, gz = np.meshgrid(x0 + spacing * np.arange(nx), z0 + spacing * np.arange(nz))
+    ok = np.isfinite(depth)
+    # the face ends at the lower border of the mandible, rising from menton towards the
+    # angles (~0.9 mm per mm sideways from 12 mm off the midline): below it the view sees
+    # the neck
+    ok &= gz >= lm["Me"][2] - 1.0 + 0.9 * np.maximum(np.abs(gx - lm["Me"][0]) - 12.0, 0.0)
+    # holes: the mouth slit (the stomion line between the commissures, 1.2 mm high) and the
+    # nostrils (ellipses 3 x 2 mm at 6 mm either side of subnasale, 2 mm above it)
+    z_st = 0.5 * (lm["Stms"][2] + lm["Stmi"][2])
+    half_w = 0.5 * abs(lm["ChL"][0] - lm["ChR"][0])
+    ok &= ~((np.abs(gx - 0.5 * (lm["ChL"][0] + lm["ChR"][0])) < 0.95 * half_w) & (np.abs(gz - z_st) < 0.6))
+    for side in (-1.0, 1.0):
+        cx, cz = lm["Sn"][0] + 6.0 * side, lm["Sn"][2] + 2.0
+        ok &= ~(((gx - cx) / 3.0) ** 2 + ((gz - cz) / 2.0) ** 2 < 1.0)
+    idx = -np.ones((nz, nx), np.int64)
+    idx[ok] = np.arange(ok.sum())
+    pts = np.stack([gx[ok], depth[ok], gz[ok]], axis=1)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    tri = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
+    tri = tri[(tri >= 0).all(axis=1)]
+    p = pts[tri]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    if np.median(n[:, 1]) < 0:                       # outward: towards the viewer (+y)
+        tri = tri[:, [0, 2, 1]]
+        n = -n
+    edge = np.max(np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2), axis=1)
+    tri = tri[(n[:, 1] >= grazing) & (edge < 4.0 * spacing)]
+    used = np.unique(tri)
+    remap = -np.ones(len(pts), np.int64)
+    remap[used] = np.arange(len(used))
+    pts, tri = pts[used], remap[tri]
+    import trimesh
+
+    mesh = trimesh.Trimesh(pts, tri, process=False)
+    # keep the largest connected piece (specks left between holes are not scanned)
+    parts = mesh.split(only_watertight=False)
+    if len(parts) > 1:
+        mesh = max(parts, key=lambda m: len(m.faces))
+    pts = np.asarray(mesh.vertices, float).copy()
+    tri = np.asarray(mesh.faces, np.int64)
+    pts += rng.normal(0.0, noise, size=(len(pts), 1)) * np.asarray(mesh.vertex_normals, float)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = float(rng.uniform(0.0, max_angle_deg))
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    shift = direction * float(rng.uniform(0.0, max_shift))
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec(np.radians(angle) * axis).as_matrix()
+    centre = pts.mean(axis=0)
+    pts = (pts - centre) @ R.T + centre + shift
+    e = np.linalg.norm(pts[tri] - pts[np.roll(tri, 1, axis=1)], axis=2)
+    record = {"grid_mm": spacing, "median_edge_mm": round(float(np.median(e)), 3),
+              "noise_sigma_mm": noise, "rigid_offset": {
+                  "translation_mm": [round(float(v), 4) for v in shift],
+                  "rotation_axis": [round(float(v), 4) for v in axis], "rotation_deg": round(angle, 4),
+                  "centre": [round(float(v), 3) for v in centre]},
+              "n_vertices": int(len(pts))}
+    return pts, tri, record
+
+
+def displaced_surface(vertices, fe_nodes, fe_triangles, fe_displacement):
+    """Vertices of a surface moved by the displacement of the FE skin it lies on: each
+    vertex takes the displacement interpolated (barycentric) at its closest point on the FE
+    skin triangles (the registered FE skin is within a fraction of a mm of the patient skin)."""
+    import trimesh
+
+    V = np.asarray(vertices, float)
+    mesh = trimesh.Trimesh(np.asarray(fe_nodes, float), np.asarray(fe_triangles, np.int64), process=False)
+    closest, _, tri = trimesh.proximity.closest_point(mesh, V)
+    corners = mesh.vertices[mesh.faces[tri]]
+    bary = trimesh.triangles.points_to_barycentric(corners, closest)
+    u = np.einsum("ka,kai->ki", bary, np.asarray(fe_displacement, float)[mesh.faces[tri]])
+    return V + u

@@ -14,7 +14,9 @@ negating x and y) or from an older Slicer fiducial list `preop/landmarks.fcsv`. 
 surface is checked for what goes wrong in practice: unreadable, empty, NaN coordinates, and
 the size of a head in metres rather than millimetres. Every problem raises
 `planner.errors.InputError` naming the file and the field. Surfaces extracted from a CT are
-cached by the CT's content hash.
+cached by the CT's content hash: `KEY.npz` and, written last, `KEY.sha256` (its SHA-256); an
+entry without a matching digest or with arrays that are not triangle surfaces is deleted
+with a warning and the CT segmented again, never used.
 """
 from __future__ import annotations
 
@@ -41,6 +43,24 @@ METRES_DIAGONAL_MM = 1.0
 # ~20 mm on the face), so 30 mm leaves room for both. (An LPS/RAS mix-up on a closed head
 # surface can land on the back of the head and pass; on a face-only surface it is caught.)
 LANDMARK_MAX_SKIN_DISTANCE_MM = 30.0
+# The accepted landmark names are all soft-tissue landmarks, placed on the skin: placement and
+# surface differences (another isosurface of the same CT) stay within ~1-2 mm, so a median
+# distance above this is another frame or another scan.
+LANDMARK_MEDIAN_SKIN_DISTANCE_MM = 4.0
+# A bone segment whose nearest point is farther than this from the skin is not under that skin
+# (facial soft tissue is 3-25 mm thick over bone): another frame origin, units or patient.
+BONE_MAX_SKIN_DISTANCE_MM = 30.0
+# A skin facing the other way than RAS anterior is looked for along the antero-posterior line
+# through the jaws, within this radius (mm) of it in the x-z plane.
+FACING_LINE_RADIUS_MM = 15.0
+# Landmark spellings accepted besides the model's names (matched case-insensitively).
+LANDMARK_ALIASES = {
+    "pronasale": "Prn", "subnasale": "Sn", "labrale_superius": "Ls", "labialesuperius": "Ls",
+    "labrale_inferius": "Li", "labialeinferius": "Li", "stomion_superius": "Stms",
+    "stomion_inferius": "Stmi", "cheilion_left": "ChL", "cheilion_right": "ChR",
+    "pogonion": "Pog", "soft_tissue_pogonion": "Pog", "menton": "Me", "soft_tissue_menton": "Me",
+}
+LANDMARKS_MAX_BYTES = 10_000_000
 CASE_INFO_KEYS = ("id", "follow_up_months", "notes", "age_years", "sex", "synthetic", "seed", "ct")
 CT_KEYS = ("skin_hu", "bone_hu")   # case.yaml `ct:` thresholds, e.g. for a CBCT's grey values
 SLICER_UNITS_TO_MM = {"mm": 1.0, "um": 1e-3}
@@ -220,26 +240,86 @@ def _ct_cache_key(ct_path: Path, options: dict) -> str:
     return h.hexdigest()[:24]
 
 
+class CacheWarning(UserWarning):
+    """A damaged CT cache entry was found, deleted and is being rebuilt."""
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def _cache_load(path: Path):
+    """The cached {"skin", "bone"} surfaces of entry `path` (KEY.npz), None when absent; a
+    damaged entry is deleted with a CacheWarning (the caller extracts the surfaces again)."""
+    import warnings
+
     import trimesh
 
+    digest = path.with_suffix(".sha256")
+    if not path.is_file():
+        return None
     try:
-        with np.load(path) as z:
-            return {k: trimesh.Trimesh(z[f"{k}_vertices"], z[f"{k}_faces"], process=False)
-                    for k in ("skin", "bone")}
-    except (OSError, KeyError, ValueError):
-        return None  # absent or damaged: extract again
+        recorded = digest.read_text().strip() if digest.is_file() else None
+        if recorded is None:
+            raise ValueError("no digest (the entry was never completed)")
+        if recorded != _sha256(path):
+            raise ValueError("content does not match its recorded SHA-256 (truncated or altered)")
+        out = {}
+        with np.load(path, allow_pickle=False) as z:
+            for k in ("skin", "bone"):
+                v, f = np.asarray(z[f"{k}_vertices"], float), np.asarray(z[f"{k}_faces"])
+                if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or not len(f) \
+                        or not np.all(np.isfinite(v)) or f.min() < 0 or f.max() >= len(v):
+                    raise ValueError(f"{k} is not a valid triangle surface")
+                out[k] = trimesh.Trimesh(v, f, process=False)
+        return out
+    except (OSError, KeyError, ValueError, EOFError, TypeError) as exc:
+        warnings.warn(f"CT cache entry {path} is damaged: {exc}; it is deleted and the CT "
+                      "segmented again", CacheWarning, stacklevel=3)
+        for q in (path, digest):
+            q.unlink(missing_ok=True)
+        return None
 
 
 def _cache_store(path: Path, surfaces: dict) -> None:
-    tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
+    """Write KEY.npz through a temporary file, then KEY.sha256 (also through one) last; a cache
+    that cannot be written only costs time, and nothing half-written stays behind."""
+    tmp = path.with_name(f"{path.stem}.tmp-{os.getpid()}.npz")
+    tmp_digest = path.with_name(f"{path.stem}.tmp-{os.getpid()}.sha256")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        path.with_suffix(".sha256").unlink(missing_ok=True)
         np.savez_compressed(tmp, **{f"{k}_{a}": getattr(m, a) for k, m in surfaces.items()
                                     for a in ("vertices", "faces")})
+        tmp_digest.write_text(_sha256(tmp))
         os.replace(tmp, path)
+        os.replace(tmp_digest, path.with_suffix(".sha256"))
     except OSError:
-        tmp.unlink(missing_ok=True)  # a cache that cannot be written only costs time
+        tmp.unlink(missing_ok=True)
+        tmp_digest.unlink(missing_ok=True)
+    _clean_orphans(path.parent)
+
+
+def _clean_orphans(folder: Path) -> None:
+    """Remove `*.tmp-PID.*` files of writers that no longer run (killed mid-write)."""
+    try:
+        entries = list(folder.glob("*.tmp-*"))
+    except OSError:
+        return
+    for p in entries:
+        pid = p.name.rsplit(".tmp-", 1)[-1].split(".", 1)[0]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            p.unlink(missing_ok=True)
+        except OSError:
+            pass
 
 
 def _surfaces_from_ct(ct_path: Path, thresholds: dict, cache_dir: Path | None) -> dict:
@@ -250,7 +330,7 @@ def _surfaces_from_ct(ct_path: Path, thresholds: dict, cache_dir: Path | None) -
     cached = None
     if cache_dir is not None:
         cached = cache_dir / f"{_ct_cache_key(ct_path, options)}.npz"
-        hit = _cache_load(cached) if cached.is_file() else None
+        hit = _cache_load(cached)
         if hit is not None:
             return hit
     try:
@@ -302,16 +382,62 @@ def _point(value, file: str, name: str) -> np.ndarray:
     return p
 
 
+def known_landmark_names() -> tuple[str, ...]:
+    from facemodel.model import LANDMARK_NAMES
+
+    return tuple(LANDMARK_NAMES)
+
+
+def canonical_landmarks(landmarks: dict, file: str) -> dict[str, np.ndarray]:
+    """Landmarks renamed to the model's names (`Prn`, `Sn`, ...): a name matching one of them
+    or an alias (`pronasale`) case-insensitively is accepted; any other name is refused (a
+    landmark silently ignored would misalign the face), with the known names suggested."""
+    import difflib
+
+    known = known_landmark_names()
+    lookup = {k.lower(): k for k in known}
+    lookup.update({a.lower(): k for a, k in LANDMARK_ALIASES.items()})
+    out: dict[str, np.ndarray] = {}
+    unknown = []
+    for name, p in landmarks.items():
+        key = lookup.get(str(name).strip().lower().replace(" ", "_").replace("-", "_"))
+        if key is None:
+            unknown.append(str(name))
+            continue
+        if key in out:
+            raise InputError(f"landmarks: {key} is given twice (as {name!r} too)", file=file,
+                             field=f"landmarks.{name}")
+        out[key] = p
+    if unknown:
+        hints = []
+        for u in unknown[:5]:
+            close = difflib.get_close_matches(u.lower(), list(lookup), n=1, cutoff=0.5)
+            if close:
+                hints.append(f"{u!r} -> {lookup[close[0]]}?")
+        raise InputError(f"landmarks: unrecognised name(s) {', '.join(map(repr, unknown))}; known "
+                         f"names (any case): {', '.join(known)}" + (f" (did you mean {'; '.join(hints)})"
+                                                                    if hints else ""),
+                         file=file, field=f"landmarks.{unknown[0]}")
+    return out
+
+
 def load_landmarks(path) -> dict[str, np.ndarray]:
     """Landmarks in mm RAS from the simple json form, a 3D Slicer `.mrk.json` markups file or
-    an older Slicer `.fcsv` fiducial list."""
+    an older Slicer `.fcsv` fiducial list, under the model's names (`canonical_landmarks`)."""
     path = Path(path)
+    return canonical_landmarks(_read_landmarks(path), str(path))
+
+
+def _read_landmarks(path: Path) -> dict[str, np.ndarray]:
     file = str(path)
     if path.name.lower().endswith(".fcsv"):
         return _slicer_fcsv(path)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        if path.stat().st_size > LANDMARKS_MAX_BYTES:
+            raise InputError(f"landmarks: the file is over {LANDMARKS_MAX_BYTES // 10**6} MB, not a "
+                             "landmarks file", file=file, field="landmarks")
+        data = json.loads(path.read_text(encoding="utf-8"), object_pairs_hook=_unique_keys(file))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise InputError(f"landmarks: unreadable json ({exc})", file=file, field="landmarks") from exc
     if isinstance(data, dict) and "markups" in data:
         return _slicer_markups(data, file)
@@ -324,6 +450,17 @@ def load_landmarks(path) -> dict[str, np.ndarray]:
             raise InputError("landmarks: empty landmark name", file=file, field="landmarks")
         out[name] = _point(value, file, name)
     return out
+
+
+def _unique_keys(file: str):
+    def hook(pairs):
+        out = {}
+        for k, v in pairs:
+            if k in out:
+                raise InputError(f"landmarks: the key {k!r} appears twice", file=file, field=f"landmarks.{k}")
+            out[k] = v
+        return out
+    return hook
 
 
 def _slicer_markups(data: dict, file: str) -> dict[str, np.ndarray]:
@@ -433,6 +570,14 @@ def _check_landmarks_near_skin(landmarks: dict, skin, file: str) -> None:
     if check.any():
         _, distance[check], _ = trimesh.proximity.closest_point(skin, points[check])
     far = distance > LANDMARK_MAX_SKIN_DISTANCE_MM
+    if not far.any() and len(points) >= 3:
+        # every accepted name is a soft-tissue landmark: together they lie on the skin
+        _, exact, _ = trimesh.proximity.closest_point(skin, points)
+        if np.median(exact) > LANDMARK_MEDIAN_SKIN_DISTANCE_MM:
+            k = int(np.argmax(exact))
+            raise InputError(f"the landmarks do not lie on the skin (median {np.median(exact):.1f} mm off, "
+                             f"{names[k]} {exact[k]:.1f} mm): the skin or the landmarks are in another "
+                             "frame (LPS vs RAS) or of another scan", file=file, field=f"landmarks.{names[k]}")
     if far.any():
         k = int(np.argmax(distance))
         raise InputError(f"landmark {names[k]} lies {distance[k]:.0f} mm from the skin surface "
@@ -441,17 +586,87 @@ def _check_landmarks_near_skin(landmarks: dict, skin, file: str) -> None:
                          file=file, field=f"landmarks.{names[k]}")
 
 
+# ------------------------------------------------------------------------------------ anatomy
+def _jaw_centre(bones: dict) -> np.ndarray | None:
+    jaws = [np.asarray(bones[s].vertices, float) for s in ("maxilla", "mandible", "chin") if s in bones]
+    return np.concatenate(jaws).mean(axis=0) if jaws else None
+
+
+def check_anatomy(skin, bones: dict, files: dict, landmarks: dict | None = None) -> None:
+    """Refuse (InputError naming the file) what cannot be a head in patient RAS mm:
+    maxilla below the mandible or chin above the maxilla (bone files swapped); a jaw segment
+    (maxilla, mandible, chin) whose nearest point is > 30 mm from the skin (another frame or patient); a face looking
+    along -y (LPS surfaces read as RAS); an open skin whose normals point into the tissue
+    (inside-out); landmarks behind the jaws or with left and right swapped (an LPS or mirrored
+    landmarks file). files: 'skin', 'bone.<segment>', 'landmarks' -> path, for the messages."""
+    from scipy.spatial import cKDTree
+
+    def where(key):
+        return str(files.get(key, key))
+
+    z = {s: float(np.asarray(m.vertices, float)[:, 2].mean()) for s, m in bones.items()}
+    for low, high in (("mandible", "maxilla"), ("chin", "maxilla"), ("maxilla", "skull")):
+        if low in z and high in z and z[low] >= z[high]:
+            raise InputError(f"bone.{high} lies below bone.{low} (mean height {z[high]:.0f} mm against "
+                             f"{z[low]:.0f} mm): are the two bone files swapped ({where('bone.' + high)}, "
+                             f"{where('bone.' + low)})?", file=where("bone." + high), field=f"bone.{high}")
+    sv = np.asarray(skin.vertices, float)
+    tree = cKDTree(sv)
+    # the jaws lie under the facial skin; the skull may lie under parts a face scan leaves out
+    near_face = [s for s in ("maxilla", "mandible", "chin") if s in bones] or list(bones)
+    gaps = {}
+    for s in near_face:
+        bv = np.asarray(bones[s].vertices, float)
+        gaps[s] = float(tree.query(bv[:: max(1, len(bv) // 4000)])[0].min())
+    for s, d in gaps.items():
+        if d > BONE_MAX_SKIN_DISTANCE_MM:
+            raise InputError(f"bone.{s} lies {d:.0f} mm from the skin at its nearest point (soft tissue "
+                             f"is at most ~25 mm thick): skin and bones are not in the same frame, "
+                             "units or patient", file=where("bone." + s), field=f"bone.{s}")
+    c = _jaw_centre(bones)
+    if c is None:
+        return
+    near = np.hypot(sv[:, 0] - c[0], sv[:, 2] - c[2]) < FACING_LINE_RADIUS_MM
+    front, back = sv[near & (sv[:, 1] > c[1]), 1] - c[1], c[1] - sv[near & (sv[:, 1] < c[1]), 1]
+    if len(back) and (not len(front) or back.min() < front.min()):
+        raise InputError("the face looks along -y (the skin in front of the jaws is behind them): the "
+                         "surfaces are in LPS (DICOM) coordinates or rotated; faceplan reads RAS (negate "
+                         "x and y)", file=where("skin"), field="skin")
+    if not skin.is_watertight:
+        # the skin nearest the jaws must face away from them
+        jv = np.concatenate([np.asarray(bones[s].vertices, float) for s in ("maxilla", "mandible", "chin")
+                             if s in bones])
+        jv = jv[:: max(1, len(jv) // 2000)]
+        _, i = tree.query(jv)
+        i = np.unique(i)
+        _, j = cKDTree(jv).query(sv[i])
+        outward = np.einsum("ij,ij->i", np.asarray(skin.vertex_normals)[i], sv[i] - jv[j])
+        if np.mean(outward < 0) > 0.7:
+            raise InputError("the skin is inside-out: its normals point into the tissue (towards the "
+                             "bones); flip the triangles' orientation when exporting", file=where("skin"),
+                             field="skin")
+    if landmarks:
+        p = np.array(list(landmarks.values()), float)
+        if np.median(p[:, 1]) < c[1]:
+            k = list(landmarks)[int(np.argmin(p[:, 1]))]
+            raise InputError(f"the landmarks lie behind the jaws (median y {np.median(p[:, 1]):.0f} mm, "
+                             f"jaws at {c[1]:.0f} mm): LPS coordinates in a RAS file? (Slicer .mrk.json "
+                             "files declare their coordinateSystem)", file=where("landmarks"),
+                             field=f"landmarks.{k}")
+        if "ChL" in landmarks and "ChR" in landmarks and landmarks["ChL"][0] > landmarks["ChR"][0]:
+            raise InputError("ChL (the patient's left) lies on the right of ChR (RAS: +x is the "
+                             "patient's right): left and right swapped, or LPS coordinates",
+                             file=where("landmarks"), field="landmarks.ChL")
+
+
 # ----------------------------------------------------------------------------------- case.yaml
 def load_case_info(path: Path | None, default_id: str) -> CaseInfo:
     if path is None or not path.is_file():
         return CaseInfo(id=default_id)
-    import yaml
+    from planner.plan import read_yaml
 
     file = str(path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise InputError(f"case.yaml: unreadable YAML ({exc})", file=file, field="case") from exc
+    data = read_yaml(path, file)
     if data is None:
         return CaseInfo(id=default_id)
     if not isinstance(data, dict):
@@ -543,6 +758,10 @@ def load_case(path, *, cache: bool = True, cache_dir: str | Path | None = None) 
     if landmark_file is not None:
         landmarks = load_landmarks(landmark_file)
         _check_landmarks_near_skin(landmarks, skin, str(landmark_file))
+    if has_bone_dir:
+        files = {"skin": skin_path, "landmarks": landmark_file,
+                 **{f"bone.{p.name[: -len(p.suffix)]}": p for p in bone_dir.iterdir() if p.is_file()}}
+        check_anatomy(skin, bones, files, landmarks)
 
     plan_path = _optional(root / "plan.yaml") or _optional(root / "plan.yml")
     postop = root / "postop"

@@ -2,14 +2,20 @@
 
 Each sub-command is a small function in its own module, registered here. Exit status follows
 the contract: 0 done, 2 bad input (`planner.errors.InputError`), 3 the model could not be solved
-(`planner.errors.SolveError`). User mistakes never show a traceback.
+(`planner.errors.SolveError`), 4 the machine refused (disk full, read-only or failing file
+system, permission denied while writing: `planner.atomic.is_environment_error`; nothing
+half-written is left), 130 interrupted (Ctrl-C, or SIGTERM: 143). User mistakes and faults of
+the machine never show a traceback.
 """
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 
-from planner.errors import InputError, SolveError
+EXIT_ENVIRONMENT = 4
+EXIT_INTERRUPTED = 130
 
 # name -> (module path, one-line help). Modules expose `add_arguments(parser)` and `run(args)`.
 COMMANDS = {
@@ -21,6 +27,54 @@ COMMANDS = {
     "synth": ("planner.commands.synth", "synthetic case folders"),
     "calibrate": ("planner.commands.calibrate", "material parameters from aspiration / indentation data"),
 }
+
+
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that `with` blocks clean up as for Ctrl-C."""
+
+
+class _Interrupts:
+    """SIGINT / SIGTERM handling that a library cannot swallow.
+
+    The first signal raises KeyboardInterrupt (Terminated for SIGTERM) in the main thread, as
+    Python does. Some libraries catch BaseException around their optional imports (an
+    interrupt during start-up then vanishes, or resurfaces later as an unrelated NameError), so
+    until `main` has returned, the signal is delivered again every `REPEAT_S` seconds, and any
+    exception after an interrupt counts as the interrupt."""
+
+    REPEAT_S = 0.5
+
+    def __init__(self):
+        self.pending: int | None = None
+        self.done = threading.Event()
+        self.saved = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            current = signal.getsignal(sig)
+            if current in (signal.SIG_DFL, signal.default_int_handler):
+                self.saved[sig] = current
+                signal.signal(sig, self._handler)
+
+    def restore(self) -> None:
+        self.done.set()
+        for sig, handler in self.saved.items():
+            signal.signal(sig, handler)
+
+    def _handler(self, signum, frame):
+        if self.done.is_set():        # main has returned: a late repeat is ignored
+            return
+        if self.pending is None:
+            self.pending = signum
+            threading.Thread(target=self._repeat, args=(threading.main_thread().ident,),
+                             daemon=True).start()
+        raise KeyboardInterrupt() if self.pending == signal.SIGINT else Terminated()
+
+    def _repeat(self, ident: int) -> None:
+        while not self.done.wait(self.REPEAT_S):
+            signal.pthread_kill(ident, self.pending)
 
 
 def _load(name: str):
@@ -39,6 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="faceplan",
         description="Predict the face after orthognathic surgery and diagnose where predictions miss.",
+        epilog="exit status: 0 done, 2 bad input, 3 the model could not be solved, 4 disk full / "
+               "not writable, 130 interrupted",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, help_text) in COMMANDS.items():
@@ -52,7 +108,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def _run(argv: list[str] | None) -> int:
+    from planner.atomic import is_environment_error
+    from planner.errors import InputError, SolveError
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
@@ -70,9 +129,35 @@ def main(argv: list[str] | None = None) -> int:
     except SolveError as exc:
         print(f"faceplan {args.command}: the model could not be solved: {exc}", file=sys.stderr)
         return 3
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    except OSError as exc:
+        if not is_environment_error(exc):
+            raise
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"faceplan {args.command}: error: {exc.strerror or exc}{where}; nothing was written",
+              file=sys.stderr)
+        return EXIT_ENVIRONMENT
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one command; every exit path, including Ctrl-C during start-up, returns a status."""
+    interrupts = _Interrupts()
+    interrupts.install()
+    try:
+        try:
+            status = _run(argv)
+            if interrupts.pending is None or status == 0:
+                return status
+            signum = interrupts.pending    # an error that followed an interrupt is the interrupt's
+        except BaseException as exc:
+            if interrupts.pending is None and not isinstance(exc, (KeyboardInterrupt, Terminated)):
+                raise
+            signum = interrupts.pending or (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
+        interrupts.done.set()
+        print(f"faceplan: {'interrupted' if signum == signal.SIGINT else 'terminated'}; "
+              "nothing was written", file=sys.stderr)
+        return EXIT_INTERRUPTED if signum == signal.SIGINT else 128 + signal.SIGTERM
+    finally:
+        interrupts.restore()
 
 
 if __name__ == "__main__":

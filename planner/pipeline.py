@@ -11,9 +11,10 @@ the tissue the operation degloves slides on its bone instead of being tied
 the osteotomy and the chin segment's anterior face; the pedicle on the chin's inferior border
 stays tied) -> nonlinear FE solve (`facemodel.simulation.simulate`, load
 steps with a convergence log) -> outputs written into a temporary folder and moved into place
-only when complete (`planner.atomic`): `prediction.vtu`, `skin_predicted.{stl,ply,vtp}`, renders,
-`report.json` and `report.html`. Solver failures become `SolveError` (exit 3), bad input
-`InputError` (exit 2).
+only when complete (`planner.atomic`): `prediction.vtu`, `skin_predicted.{stl,ply,vtp}` (the model's
+skin patch), the predicted whole face `face_predicted.{glb,obj}`, `landmarks_predicted.mrk.json`,
+`model.feb` (`planner.export`), renders of the whole face, `report.json` and `report.html`.
+Solver failures become `SolveError` (exit 3), bad input `InputError` (exit 2).
 """
 from __future__ import annotations
 
@@ -358,6 +359,9 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
         except ValueError as exc:   # simulate refuses motions/activations/materials it cannot use
             raise InputError(f"the face model refused the plan: {exc}", file=plan.path) from exc
         u, stress, stats = _unpack_result(result, model)
+    if not stats["converged"] or stats["load"] < 1.0 - 1e-9:
+        raise SolveError(f"the solver stopped at load fraction {stats['load']:.3g} without converging; "
+                         "a partial state is not a prediction")
     if not np.all(np.isfinite(u)):
         raise SolveError("the solution contains NaN or infinite displacements")
     bad = rep.inverted_elements(np.asarray(model.nodes, float) + u, model.hexes)
@@ -446,10 +450,10 @@ def effect_sensitivities(pred: Prediction, names=None) -> dict:
 
     for j, name in enumerate(names):
         head = name.split(".")[0]
-        unit = next(p.unit for p in fe.parameters(head, tuple(pred.plan.motions()) or fe.SEGMENTS)
-                    if p.name == name) if head != "bone_execution" else "mm"
+        v0 = effects.value(name)            # KeyError for a name that is no parameter
+        unit = ("deg" if name.rsplit(".", 1)[-1].startswith("r") else "mm") \
+            if head == "bone_execution" else "-"
         h = _FD_STEP[unit]
-        v0 = effects.value(name)
         lo = 0.0 if head == "muscle_tone" else -np.inf    # activations cannot be negative
         steps = (h, -h) if v0 - h >= lo else (h, 0.0)
         parts = [residual_parts(effects.with_value(name, v0 + d)) for d in steps]
@@ -545,6 +549,8 @@ def write_volume(pred: Prediction, path: Path) -> None:
 
 
 def write_skin(pred: Prediction, out: Path) -> dict:
+    """The model's skin patch: `skin_predicted.{stl,ply,vtp}` (the vtp with region, node id and
+    displacement point data) and `region_names.json`."""
     import pyvista as pv
     import trimesh
 
@@ -575,61 +581,138 @@ def midline_profile(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.asarray(trimesh.intersections.mesh_plane(mesh, [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]))
 
 
-def profile_chart(pre, post, path: Path) -> Path | None:
+# Landmarks on the facial midline: their mean fixes the mid-sagittal plane of the profile.
+MIDLINE_LANDMARKS = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "Pog", "Me")
+# Views of the pre-op and predicted faces, and those of the displacement map.
+FACE_VIEWS = ("frontal", "profile", "profile_left", "three_quarter", "three_quarter_left", "submental")
+DISPLACEMENT_VIEWS = ("frontal", "profile", "three_quarter")
+ISOLINES_MM = (1.0, 2.0, 3.0)
+
+
+def head_frame_of(model, resolution: str | None) -> np.ndarray:
+    """The patient's head axes in the scan: the rotation of the best rigid fit of the generic
+    model of `resolution` (built in the canonical RAS pose) onto the registered patient model
+    (`render.head_frame`); the identity when the generic model does not match node for node."""
+    from planner import render
+
+    if resolution is None:
+        return np.eye(3)
+    try:
+        import generic_mesh
+
+        generic = generic_mesh.load(resolution)
+    except (ValueError, KeyError, FileNotFoundError):
+        return np.eye(3)
+    if np.shape(generic.nodes) != np.shape(model.nodes):
+        return np.eye(3)
+    return render.head_frame(generic.nodes, model.nodes)
+
+
+def whole_face(pred: Prediction, patient_skin=None):
+    """The pre-op whole face (the patient's skin, or the model's skin patch without one) and
+    the predicted whole face (`export.blend_face`)."""
+    from planner.export import BlendedFace, blend_face
+
+    x_pre, tris, ids = skin_surface(pred.model)
+    u = pred.displacement[ids]
+    if patient_skin is None:
+        return (x_pre, tris), BlendedFace(x_pre + u, tris, u, np.ones(len(ids)))
+    v = np.asarray(patient_skin.vertices, float)
+    f = np.asarray(patient_skin.faces, np.int64)
+    return (v, f), blend_face(v, f, x_pre, tris, u)
+
+
+def profile_chart(pre, post, path: Path, landmarks_pre=None, landmarks_post=None, notes=None,
+                  frame=None) -> Path | None:
     """The mid-sagittal skin profile before and after, seen from the patient's right (anterior
-    to the right, superior up), equal axes in mm."""
-    import matplotlib
+    to the right, superior up), equal axes in mm, with the landmarks named and `notes` (the
+    soft-to-hard tissue ratios) beside them. The plane: the head frame's sagittal plane
+    through the mean of the midline landmarks (x = 0 without them)."""
+    from planner import render
 
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-    from matplotlib.collections import LineCollection
-
-    lines = [midline_profile(*pre), midline_profile(*post)]
-    if any(len(seg) == 0 for seg in lines):
-        return None
-
-    fig, ax = plt.subplots(figsize=(5, 6), dpi=100)
-    for seg, colour, label in zip(lines, ("#777777", "#d95f02"), ("pre-op", "predicted")):
-        ax.add_collection(LineCollection(seg[:, :, 1:], colors=colour, linewidths=2, label=label))
-    allpts = np.concatenate([seg.reshape(-1, 3) for seg in lines])
-    ax.set_xlim(allpts[:, 1].min() - 5, allpts[:, 1].max() + 5)
-    ax.set_ylim(allpts[:, 2].min() - 5, allpts[:, 2].max() + 5)
-    ax.set_aspect("equal")
-    ax.set_xlabel("antero-posterior y (mm)")
-    ax.set_ylabel("vertical z (mm)")
-    ax.set_title("mid-sagittal profile")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="lower left")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    frame = np.eye(3) if frame is None else np.asarray(frame, float)
+    origin = np.zeros(3)
+    mid = [landmarks_pre[n] for n in MIDLINE_LANDMARKS if landmarks_pre and n in landmarks_pre]
+    if mid:
+        origin = np.mean(np.asarray(mid, float), axis=0)
+    sets = [{n: p for n, p in d.items() if n in MIDLINE_LANDMARKS} for d in (landmarks_pre, landmarks_post)
+            if d is not None]
+    return render.landmark_profile_chart([pre, post], path, labels=("pre-op", "predicted"),
+                                         landmarks=sets, notes=notes, frame=frame, origin=origin)
 
 
-def write_images(surfaces: dict, images: Path) -> list[tuple[Path, str]]:
+def _ratio_notes(landmarks: dict) -> dict[str, str]:
+    return {n: f"soft/hard {e['soft_to_hard_ratio_ap']:.2f}" for n, e in landmarks.items()
+            if e.get("soft_to_hard_ratio_ap") is not None}
+
+
+def write_images(pre_face, post_face, images: Path, *, frame=None, landmarks_pre=None,
+                 landmarks_post=None, notes=None, patch=None):
+    """Pictures of the whole face: pre-op and predicted from every view with the same camera,
+    the displacement map with iso-lines, the landmark profile, an overlay and a turntable GIF.
+    Returns (list of (path, caption), list of (view, pre-op path, predicted path))."""
     from planner import render
 
     images.mkdir(parents=True, exist_ok=True)
-    out = []
-    for name, caption in (("preop", "pre-op"), ("predicted", "predicted")):
-        mesh = surfaces["pre"] if name == "preop" else surfaces["post"]
-        for view, path in render.render_views(mesh, images / name, title=f"{caption} face").items():
-            out.append((path, f"{caption}, {view.replace('_', '-')}"))
-    mag = np.asarray(surfaces["magnitude"], float)
+    out: list[tuple[Path, str]] = []
+    pre_v, pre_f = pre_face
+    box = render.union_bounds([render.to_polydata(pre_face), render.to_polydata((post_face.vertices, post_face.faces))])
+    pre_imgs = render.render_views(pre_face, images / "preop", title="pre-op face", views=FACE_VIEWS,
+                                   frame=frame, bounds=box, landmarks=landmarks_pre)
+    post_imgs = render.render_views((post_face.vertices, post_face.faces), images / "predicted",
+                                    title="predicted face", views=FACE_VIEWS, frame=frame, bounds=box,
+                                    landmarks=landmarks_post, title_position="upper_right")
+    pairs = [(view, pre_imgs[view], post_imgs[view]) for view in FACE_VIEWS]
+    mag = post_face.magnitude
     top = max(float(mag.max()), 1e-6)
-    for view, path in render.render_views(surfaces["post"], images / "displacement", scalars=mag,
-                                          cmap="viridis", clim=(0.0, top), scalar_bar_title="mm",
-                                          title="soft-tissue displacement (mm)").items():
-        out.append((path, f"displacement magnitude (mm), {view.replace('_', '-')}"))
-    path = profile_chart(surfaces["pre"], surfaces["post"], images / "profile_midline.png")
+    for view, path in render.render_views((post_face.vertices, post_face.faces), images / "displacement",
+                                          scalars=mag, cmap="YlOrRd", clim=(0.0, top),
+                                          scalar_bar_title="mm", title="soft-tissue displacement (mm)",
+                                          views=DISPLACEMENT_VIEWS, frame=frame, bounds=box,
+                                          isolines=[v for v in ISOLINES_MM if v < top]).items():
+        out.append((path, f"displacement magnitude (mm, lines at 1, 2, 3 mm), "
+                          f"{render.VIEW_TITLES[view]}"))
+    path = profile_chart(pre_face, (post_face.vertices, post_face.faces), images / "profile_midline.png",
+                         landmarks_pre, landmarks_post, notes, frame)
     if path is not None:
-        out.append((path, "mid-sagittal profile: pre-op vs predicted"))
-    for view, path in render.render_overlay([surfaces["pre"], surfaces["post"]], images / "overlay",
-                                            labels=["pre-op", "predicted"], views=("profile",),
-                                            title="profile: pre-op (grey) vs predicted").items():
-        out.append((path, f"overlay pre-op vs predicted, {view}"))
-    return out
+        out.append((path, "mid-sagittal profile: pre-op vs predicted, landmarks with the "
+                          "soft-to-hard tissue ratio of their antero-posterior movement"))
+    # the predicted face where the model moved it, over the pre-op face: elsewhere the two
+    # coincide and the pre-op one is shown
+    moved = (post_face.magnitude > 0.05)[np.asarray(post_face.faces)].any(axis=1)
+    overlay = [pre_face] + ([(post_face.vertices, np.asarray(post_face.faces)[moved])] if moved.any() else [])
+    for view, path in render.render_overlay(overlay, images / "overlay", labels=["pre-op", "predicted"][:len(overlay)],
+                                            views=("profile",), frame=frame, opacity=[1.0, 1.0],
+                                            title="profile: predicted (orange) where in front of pre-op (grey)").items():
+        out.append((path, f"overlay pre-op vs predicted, {render.VIEW_TITLES[view]}"))
+    gif = render.render_turntable((post_face.vertices, post_face.faces), images / "turntable.gif", frame=frame)
+    out.append((gif, "predicted face, turntable"))
+    return out, pairs
+
+
+def write_exports(pred: Prediction, post_face, out: Path) -> dict[str, str]:
+    """Files other tools open: the predicted whole face (GLB, OBJ), the predicted landmarks
+    (3D Slicer markups) and the model with the plan (FEBio 4 input)."""
+    from facemodel import materials as fm
+    from planner import export
+
+    export.write_mesh_glb(post_face.vertices, post_face.faces, out / "face_predicted.glb")
+    export.write_mesh_obj(post_face.vertices, post_face.faces, out / "face_predicted.obj")
+    export.write_markups(rep.predicted_landmarks(pred.model, pred.displacement),
+                         out / "landmarks_predicted.mrk.json")
+    model = pred.model
+    stiffness = float(pred.effects.get("stiffness", 1.0)) if pred.effects else 1.0
+    overrides = pred.plan.model.materials or {}
+    materials = {}
+    for label in model.label_names:
+        p = dict(fm.parameters(label, stiffness))
+        p.update(overrides.get(label, {}))
+        materials[label] = p
+    motions = {s: np.eye(4) for s in getattr(model, "segments", ())}
+    motions.update(pred.plan.motions(include_identity=True))
+    export.write_feb(model, motions, materials, out / "model.feb")
+    return {"face_glb": "face_predicted.glb", "face_obj": "face_predicted.obj",
+            "landmarks": "landmarks_predicted.mrk.json", "febio": "model.feb"}
 
 
 def build_report(pred: Prediction, progress: Progress, inputs: dict, registration: dict | None) -> dict:
@@ -662,37 +745,70 @@ def build_report(pred: Prediction, progress: Progress, inputs: dict, registratio
     }
 
 
+def check_solution(pred: Prediction) -> None:
+    """Refuse (SolveError) to treat as a prediction a state the solver did not finish: not
+    converged, short of the full load, NaN/infinite displacements or stresses, or an element
+    inverted at a Gauss point."""
+    s = pred.solver or {}
+    if s.get("converged") is False or float(s.get("load", 1.0)) < 1.0 - 1e-9:
+        raise SolveError(f"the solution is not converged (load fraction {s.get('load')}); nothing written")
+    if not np.all(np.isfinite(pred.displacement)) or (
+            pred.stress is not None and not np.all(np.isfinite(pred.stress))):
+        raise SolveError("the solution contains NaN or infinite values; nothing written")
+    bad = rep.inverted_elements(pred.predicted_nodes, pred.model.hexes)
+    if bad.size:
+        raise SolveError(_inverted_message(pred.model, bad) + "; nothing written")
+
+
 def write_outputs(pred: Prediction, out_dir: Path, progress: Progress, inputs: dict,
                   registration: dict | None = None, render: bool = True,
-                  extra: Callable[[Path], None] | None = None) -> Path:
+                  extra: Callable[[Path], None] | None = None, kind: str = "predict",
+                  patient_skin=None) -> Path:
     """Write every output into `out_dir` atomically (whole or not at all); `extra(tmp)` may add
-    files to the folder before it is moved into place."""
+    files to the folder before it is moved into place. kind: the command named in the output
+    marker (`planner.atomic`: only a previous output of that command is replaced).
+    `patient_skin` (a trimesh): the case's pre-op skin, the base of the predicted whole face
+    (the model's skin patch without it)."""
     from planner.atomic import atomic_output_dir
     from planner.html_report import write_html_report
 
     out_dir = Path(out_dir)
-    if not np.all(np.isfinite(pred.displacement)):
-        raise SolveError("the solution contains NaN or infinite displacements; nothing written")
+    check_solution(pred)
     t_start = time.perf_counter()
-    with atomic_output_dir(out_dir) as tmp:
+    with atomic_output_dir(out_dir, kind, inputs=[inputs.get("case")]) as tmp:
         with progress.stage("write meshes"):
             write_volume(pred, tmp / "prediction.vtu")
-            surfaces = write_skin(pred, tmp)
-        images = []
+            write_skin(pred, tmp)
+            pre_face, post_face = whole_face(pred, patient_skin)
+            files = write_exports(pred, post_face, tmp)
+        lm = rep.landmark_movements(pred.model, pred.displacement, pred.plan, pred.bone_vertices)
+        images, pairs = [], []
         if render:
             with progress.stage("render"):
-                images = write_images(surfaces, tmp / "images")
+                frame = head_frame_of(pred.model, inputs.get("resolution"))
+                images, pairs = write_images(
+                    pre_face, post_face, tmp / "images", frame=frame,
+                    landmarks_pre={n: e["preop"] for n, e in lm.items()},
+                    landmarks_post={n: e["predicted"] for n, e in lm.items()}, notes=_ratio_notes(lm))
         progress.timings["outputs"] = time.perf_counter() - t_start
         progress.timings["total"] = time.perf_counter() - progress._t0
         report = build_report(pred, progress, inputs, registration)
+        report["files"] = dict(files, html="report.html")
+        report["whole_face"] = {"base": "patient pre-op skin" if patient_skin is not None else "model skin patch",
+                                "vertices": int(len(post_face.vertices)),
+                                "vertices_moved_by_model": int((post_face.weight > 0).sum()),
+                                "max_displacement_mm": round(float(post_face.magnitude.max()), 4)}
         (tmp / "report.json").write_text(json.dumps(report, indent=2))
         tables = {"Landmarks (soft tissue, mm)": (
             ["landmark", "dx", "dy (AP)", "dz", "|d|", "soft/hard AP ratio"],
             [[n, *e["displacement_mm"], e["magnitude_mm"], e.get("soft_to_hard_ratio_ap", "")]
              for n, e in report["landmarks"].items()])}
+        from planner import render as _render
+
         write_html_report(tmp / "report.html", "faceplan prediction",
                           {k: v for k, v in report.items() if k != "log"},
-                          images=[(p, c) for p, c in images], tables=tables)
+                          images=[(p, c) for p, c in images], tables=tables,
+                          before_after=[(_render.VIEW_TITLES[v], a, b) for v, a, b in pairs])
         if extra is not None:
             extra(tmp)
     progress.say(f"prediction written to {out_dir}")
@@ -734,6 +850,11 @@ def register_case(case, resolution: str, progress: Progress, threshold: float | 
         raise SolveError(f"registration of the generic face onto the patient failed: {exc}") from exc
     summary = _jsonable(reg_report) if reg_report is not None else {}
     if isinstance(summary, dict):
+        from planner.registration_gate import registration_notes
+
+        summary["quality_gate"] = registration_notes(summary)
+        for note in summary["quality_gate"]:     # shown even with --quiet
+            print(f"faceplan: warning: registration: {note}", file=sys.stderr)
         cached = summary.get("cached", summary.get("cache_hit"))
         if cached is not None:
             progress.say(f"  registration {'reused from cache' if cached else 'computed'}")
@@ -744,10 +865,14 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
                  effects: dict[str, float] | None = None, max_translation_mm: float | None = None,
                  max_rotation_deg: float | None = None, render: bool = True,
                  echo: bool | Callable[[str], None] = True,
-                 extra: Callable[[Path], None] | None = None) -> Path:
-    """Run the whole prediction for a case folder; return the output folder."""
+                 extra: Callable[[Path], None] | None = None, kind: str = "predict") -> Path:
+    """Run the whole prediction for a case folder; return the output folder (checked before
+    any work by `planner.atomic.prepare_output`; kind: the command named in its marker)."""
+    from planner.atomic import prepare_output
     from planner.case import load_case
 
+    out_dir = prepare_output(out if out is not None else Path(case_dir) / "predict", kind,
+                             inputs=[case_dir])
     progress = Progress(echo)
     with progress.stage("load case"):
         case = load_case(case_dir)
@@ -781,8 +906,8 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
         "sha256": {"plan": _file_digest(plan_path),
                    **({"skin": _file_digest(case.skin_path)} if case.skin_path else {})},
     }
-    out_dir = Path(out) if out is not None else Path(case_dir) / "predict"
-    return write_outputs(pred, out_dir, progress, inputs, reg, render=render, extra=extra)
+    return write_outputs(pred, out_dir, progress, inputs, reg, render=render, extra=extra, kind=kind,
+                         patient_skin=case.skin)
 
 
 # --------------------------------------------------------------------------- demo
@@ -852,4 +977,5 @@ def run_demo(out_dir: str | Path, *, resolution: str = "coarse", render: bool = 
         def keep_case(folder: Path) -> None:
             shutil.copytree(case, folder / "case", ignore=shutil.ignore_patterns("predict", ".*"))
 
-        return predict_case(case, out_dir, resolution=resolution, render=render, echo=echo, extra=keep_case)
+        return predict_case(case, out_dir, resolution=resolution, render=render, echo=echo,
+                            extra=keep_case, kind="demo")

@@ -19,11 +19,14 @@ segment as the part of a bone surface (`from`, default the segment's own surface
 side the normals point to, to split one CT bone surface into segments. Everything is validated
 and every refusal is an `InputError` naming the file and the field; movements beyond anatomical
 sense (more than 25 mm of any bone point or 30 degrees) are refused unless `limits` in the plan
-(or the caller) raise them.
+(or the caller) raise them. YAML is read strictly (`read_yaml`, also for case.yaml): a key given
+twice and files over 1 MB are refused; numbers in exponent form without a
+decimal point (`-3e0`, which YAML 1.1 reads as text) are numbers, as in YAML 1.2.
 """
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -418,17 +421,68 @@ def parse_plan(data: Any, file: str = "plan.yaml", plan_dir: Path | None = None,
     return Plan(file, int(version), frame, plans, muscles, model, max_t, max_r)
 
 
+MAX_YAML_BYTES = 1_000_000   # a plan or case.yaml is a few hundred bytes; 1 MB is never one
+# YAML 1.2 floats that YAML 1.1 (PyYAML) leaves as text: an exponent without a decimal point
+_EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$")
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """SafeLoader that refuses duplicate keys and reads `-3e0` as a number."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                hash(key)
+            except TypeError:
+                continue            # reported by the SafeLoader as an unhashable key
+            if key in seen:
+                raise yaml.MarkedYAMLError(
+                    f"in the mapping starting on line {node.start_mark.line + 1}", None,
+                    f"the key {key!r} appears twice (line {seen[key] + 1} and line "
+                    f"{key_node.start_mark.line + 1}); which one is meant cannot be guessed",
+                    key_node.start_mark)
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep)
+
+
+_StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789"))
+
+
+def read_yaml(path: str | Path, file: str | None = None, max_bytes: int = MAX_YAML_BYTES) -> Any:
+    """The YAML tree of `path`, read strictly (see the module docstring); InputError naming
+    `file` (default the path) otherwise."""
+    path = Path(path)
+    file = file or str(path)
+    try:
+        size = path.stat().st_size
+        if size > max_bytes:
+            raise InputError(f"the file is {size / 1e6:.1f} MB; a faceplan YAML file is at most "
+                             f"{max_bytes / 1e6:g} MB (is it the right file?)", file=file, field="size")
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"unreadable file ({exc.strerror or exc})", file=file, field="file") from None
+    except UnicodeDecodeError:
+        raise InputError("not a text file (not UTF-8)", file=file, field="encoding") from None
+    try:
+        return yaml.load(text, Loader=_StrictLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}" if mark is not None else "yaml"
+        problem = getattr(exc, "problem", None) or (str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        raise InputError(f"unreadable YAML: {problem}", file=file, field=where) from None
+    except RecursionError:
+        raise InputError("unreadable YAML: nested too deeply", file=file, field="yaml") from None
+
+
 def load_plan(path: str | Path, **limits) -> Plan:
     """Read and validate a plan file (see module docstring); `InputError` on any problem."""
     path = Path(path)
     name = path.name
     if not path.is_file():
         raise InputError("plan file not found", file=str(path))
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        detail = str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__
-        raise InputError(f"not valid YAML: {detail}", file=name) from None
+    data = read_yaml(path, name)
     if data is None:
         raise InputError("empty plan file", file=name)
     return parse_plan(data, name, path.parent, **limits)

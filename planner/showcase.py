@@ -89,7 +89,7 @@ def run(out_dir) -> dict:
 
     out_dir = Path(out_dir)
     summary = {}
-    with atomic_output_dir(out_dir) as tmp:
+    with atomic_output_dir(out_dir, "showcase") as tmp:
         for name, case in (("cook_membrane", cook_membrane_case), ("yeoh_block", yeoh_block_case)):
             print(f"{name}:", flush=True)
             try:

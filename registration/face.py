@@ -9,14 +9,20 @@ carries the teeth: the patient's own arches when given (`teeth=`), else each gen
 moved with the similarity that best maps its bone segment's attachment nodes (Umeyama), with
 the lips cleared of them (`registration.teeth`) and kept apart from each other (`registration.lips`). Results are cached on disk under a key hashing every input (model arrays,
 patient surfaces, landmarks, options and the registration code itself), so that re-running a
-prediction on the same case reuses the registration.
+prediction on the same case reuses the registration. A cache entry is a folder holding
+`result.npz`, `report.json` and, written last, `digest.json` (the key and the SHA-256 of both
+files); an entry whose digest is missing or does not match, or whose arrays or report do not
+have the shapes of this model, is damaged: it is deleted with a `CacheWarning` and the
+registration is computed again, never used.
 """
 from __future__ import annotations
 
 import hashlib
 import json
 import os
+import shutil
 import time
+import warnings
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -28,7 +34,12 @@ from registration.quality import EDGE_OPERATOR
 from registration.surface import TargetSurface
 from registration.teeth import ARCH_SEGMENT, teeth_arrays
 
-CACHE_FORMAT = 2
+CACHE_FORMAT = 3
+CACHE_FILES = ("result.npz", "report.json")
+
+
+class CacheWarning(UserWarning):
+    """A damaged cache entry was found, deleted and is being rebuilt."""
 
 
 def as_target(surface, name: str) -> TargetSurface:
@@ -115,31 +126,104 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "faceplan" / "registration"
 
 
-def _cache_load(path: Path, model):
+def _file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _check_entry(path: Path, model) -> tuple:
+    """(nodes, fibres, teeth, report) of a cache entry; ValueError saying what is damaged."""
     try:
-        with np.load(path / "result.npz") as z:
-            nodes, fibres = z["nodes"], z["fibres"]
-            report = json.loads((path / "report.json").read_text())
-            teeth = {k: (z[f"teeth_{k}"], z[f"teeth_faces_{k}"], report["teeth"][k]["segment"])
+        digest = json.loads((path / "digest.json").read_text())
+    except FileNotFoundError:
+        raise ValueError("no digest.json (the entry was never completed)") from None
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"unreadable digest.json ({exc})") from None
+    if not isinstance(digest, dict) or digest.get("key") != path.name or not isinstance(digest.get("files"), dict):
+        raise ValueError("digest.json does not describe this entry")
+    for name in CACHE_FILES:
+        if not (path / name).is_file():
+            raise ValueError(f"{name} is missing")
+        if _file_sha256(path / name) != digest["files"].get(name):
+            raise ValueError(f"{name} does not match its recorded SHA-256 (truncated or altered)")
+    try:
+        report = json.loads((path / "report.json").read_text())
+        with np.load(path / "result.npz", allow_pickle=False) as z:
+            nodes, fibres = np.asarray(z["nodes"]), np.asarray(z["fibres"])
+            if not isinstance(report, dict) or not isinstance(report.get("teeth"), dict):
+                raise ValueError("report.json has the wrong shape")
+            teeth = {k: (np.asarray(z[f"teeth_{k}"]), np.asarray(z[f"teeth_faces_{k}"]), report["teeth"][k]["segment"])
                      for k in report["teeth"]}
-    except (OSError, KeyError, ValueError):
+    except (OSError, KeyError, TypeError, EOFError, ValueError) as exc:
+        raise ValueError(f"unreadable content ({type(exc).__name__}: {exc})") from None
+    if nodes.shape != np.shape(model.nodes) or fibres.shape != np.shape(model.fibres):
+        raise ValueError(f"arrays of shape {nodes.shape}/{fibres.shape}, the model has {np.shape(model.nodes)}")
+    if not (np.all(np.isfinite(nodes)) and np.all(np.isfinite(fibres))):
+        raise ValueError("non-finite coordinates")
+    for k, (v, f, _) in teeth.items():
+        if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or not np.all(np.isfinite(v)) \
+                or (f.size and (f.min() < 0 or f.max() >= len(v))):
+            raise ValueError(f"teeth arch {k!r} is not a valid triangle surface")
+    return nodes, fibres, teeth, report
+
+
+def _cache_load(path: Path, model):
+    """The cached (patient model, report) of entry `path`, or None when absent; a damaged entry
+    is deleted with a CacheWarning (the caller computes the registration again)."""
+    if not path.is_dir():
         return None
-    if nodes.shape != model.nodes.shape:
+    try:
+        nodes, fibres, teeth, report = _check_entry(path, model)
+    except ValueError as exc:
+        warnings.warn(f"registration cache entry {path} is damaged: {exc}; it is deleted and the "
+                      "registration computed again", CacheWarning, stacklevel=3)
+        shutil.rmtree(path, ignore_errors=True)
         return None
     return replace(model, nodes=nodes, fibres=fibres, teeth=teeth), report
 
 
-def _cache_store(path: Path, patient, report: dict) -> None:
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+def _pid_gone(pid: int) -> bool:
     try:
-        tmp.mkdir(parents=True, exist_ok=True)
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:
+        return False
+    return False
+
+
+def _clean_orphans(folder: Path) -> None:
+    """Remove `*.tmp-PID` entries of writers that no longer run (killed mid-write)."""
+    try:
+        entries = list(folder.glob("*.tmp-*"))
+    except OSError:
+        return
+    for p in entries:
+        pid = p.name.rsplit(".tmp-", 1)[-1]
+        if pid.isdigit() and int(pid) != os.getpid() and _pid_gone(int(pid)):
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def _cache_store(path: Path, patient, report: dict) -> None:
+    """Write the entry into a temporary sibling, `digest.json` last, then rename it into place;
+    a cache that cannot be written only costs time (nothing half-written stays behind)."""
+    tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _clean_orphans(path.parent)
+        tmp.mkdir(exist_ok=True)
         np.savez_compressed(tmp / "result.npz", nodes=patient.nodes, fibres=patient.fibres,
                             **{f"teeth_{k}": np.asarray(v[0]) for k, v in patient.teeth.items()},
                             **{f"teeth_faces_{k}": np.asarray(v[1]) for k, v in patient.teeth.items()})
         (tmp / "report.json").write_text(json.dumps(report))
+        digest = {"key": path.name, "files": {n: _file_sha256(tmp / n) for n in CACHE_FILES}}
+        (tmp / "digest.json").write_text(json.dumps(digest))
         os.replace(tmp, path)
     except OSError:
-        pass  # a cache that cannot be written only costs time
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dict | None = None, *,
@@ -172,7 +256,7 @@ def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dic
     key = cache_key(model, skin_t, bone_t, lms, opt, own_teeth)
     cdir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     if cache:
-        hit = _cache_load(cdir / key, model) if (cdir / key).is_dir() else None
+        hit = _cache_load(cdir / key, model)
         if hit is not None:
             patient, report = hit
             report.update(cached=True, cache_key=key)

@@ -73,21 +73,54 @@ def _postop_landmarks_file(case: Path, given: str | None) -> Path | None:
     return None
 
 
+def _check_same_patient(result, postop_path) -> None:
+    """Refuse a scan whose unoperated regions do not match the prediction's (another patient);
+    note a doubtful one in the report's warnings."""
+    import numpy as np
+
+    from planner.compare.alignment import (DOUBTFUL_MEDIAN_MM, OTHER_PATIENT_MEDIAN_MM,
+                                           unoperated_median_mm)
+    from planner.compare.distances import TriangleSurface
+
+    pred = result.prediction
+    unop = np.isin(pred.region, [pred.region_names.index(n) for n in pred.unoperated_regions])
+    median = unoperated_median_mm(result.scan_vertices, TriangleSurface(pred.vertices, pred.faces),
+                                  np.all(unop[pred.faces], axis=1))
+    where = ", ".join(pred.unoperated_regions)
+    if median > OTHER_PATIENT_MEDIAN_MM:
+        raise InputError(f"the post-op scan does not match the face where surgery changes nothing "
+                         f"({where}): median distance {median:.2f} mm after superimposition (the "
+                         f"same person's scans agree within ~0.3 mm): another patient's scan?",
+                         file=str(postop_path), field="post-op scan")
+    if median > DOUBTFUL_MEDIAN_MM:
+        result.warnings.append(f"the unoperated regions ({where}) differ by a median {median:.2f} mm: "
+                               "is this the same patient? (the same person's scans agree within ~0.3 mm)")
+    result.alignment.unoperated_median_mm = median
+
+
 def run(args) -> int:
-    from planner.atomic import atomic_output_dir
+    from planner.atomic import atomic_output_dir, prepare_output
     from planner.compare.cohort import write_cohort
     from planner.compare.comparison import compare_surfaces
-    from planner.compare.inputs import find_postop, load_surface, read_prediction
+    from planner.compare.inputs import check_not_preop, find_postop, load_surface, read_prediction
     from planner.compare.outputs import write_comparison
 
     _check_args(args)
     cases = [Path(c) for c in args.cases]
+    # every output folder is checked before any work: nothing the user has is replaced
+    outs = [prepare_output(Path(args.out) if (args.out and len(cases) == 1) else case / "compare",
+                           "compare", inputs=cases) for case in cases]
+    summary_dir = None
+    if len(cases) > 1:
+        summary_dir = prepare_output(Path(args.out) if args.out else cases[0].resolve().parent / "compare_summary",
+                                     "compare-summary", inputs=cases)
     results = []
     for case in cases:
         t0 = time.perf_counter()
         prediction = read_prediction(case, args.prediction)
         postop_path = find_postop(case, args.postop)
         scan = load_surface(postop_path, "post-op scan")
+        check_not_preop(case, scan, postop_path)
         lm_path = _postop_landmarks_file(case, args.postop_landmarks)
         manual = None
         if lm_path is not None:
@@ -111,12 +144,13 @@ def run(args) -> int:
             "n_scan_vertices": int(len(scan.vertices)),
             "timings_s": {"compare": round(time.perf_counter() - t0, 3)},
         }
+        if not args.no_align:
+            _check_same_patient(result, postop_path)
         results.append((case, result, header))
 
     reports = {}
-    for case, result, header in results:
-        out = Path(args.out) if (args.out and len(cases) == 1) else case / "compare"
-        with atomic_output_dir(out) as tmp:
+    for (case, result, header), out in zip(results, outs):
+        with atomic_output_dir(out, "compare", inputs=cases) as tmp:
             report = write_comparison(result, tmp, header, render_images=not args.no_images)
         reports[header["case"]] = report
         o = report["metrics"]["overall"]
@@ -128,8 +162,7 @@ def run(args) -> int:
     if len(cases) > 1:
         if len(set(reports)) < len(cases):
             reports = {str(c.resolve()): r for c, r in zip(cases, reports.values())}
-        summary_dir = Path(args.out) if args.out else cases[0].resolve().parent / "compare_summary"
-        with atomic_output_dir(summary_dir) as tmp:
+        with atomic_output_dir(summary_dir, "compare-summary", inputs=cases) as tmp:
             write_cohort(tmp, reports)
         print(f"cohort summary of {len(cases)} cases -> {summary_dir}")
     return 0

@@ -20,6 +20,9 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
+    from planner.atomic import prepare_output
+
+    prepare_output(args.out, "showcase" if args.showcase else "demo")
     if args.showcase:
         from planner.showcase import run as showcase
 

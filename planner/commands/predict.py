@@ -10,8 +10,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--resolution", choices=RESOLUTIONS,
                         help="face model resolution (default: the plan's model.resolution, else standard)")
     parser.add_argument("--effect", action="append", metavar="NAME=VALUE", default=[],
-                        help="add an effect to the prediction: sliding=1, muscle_tone=A (0..1), "
-                             "stiffness=F (factor); repeatable")
+                        help="add an effect to the prediction (docs/effects.md): sliding=1|SEGMENT, "
+                             "muscle_tone=A (0..1), swelling=THETA (peak growth ratio, 1 = none), "
+                             "gravity=M (posture factor, 1 = supine CT to upright scan), "
+                             "stiffness=F or stiffness.LAYER=F (dermis, hypodermis, muscle, mucosa, "
+                             "nose), bone_execution=1 (postop/plan_actual.yaml) or "
+                             "bone_execution.SEGMENT=[tx,ty,tz,rx,ry,rz] (mm, deg); repeatable")
     parser.add_argument("--allow-large-movements", action="store_true",
                         help="accept bone movements beyond 25 mm / 30 deg (refused by default)")
     parser.add_argument("--no-images", action="store_true", help="skip the renders")

@@ -127,16 +127,16 @@ def write_images(case, patient, out: Path) -> list[str]:
 
 
 def run(args) -> int:
-    from planner.atomic import atomic_output_dir
+    from planner.atomic import atomic_output_dir, prepare_output
 
     t0 = time.perf_counter()
     case_dir = Path(args.case)
     if not case_dir.is_dir():
         raise InputError("case folder not found", file=str(case_dir), field="case")
-    out = Path(args.out) if args.out else case_dir / "register"
+    out = prepare_output(args.out if args.out else case_dir / "register", "register", inputs=[case_dir])
     case, patient, report = register(case_dir, resolution=args.resolution, threshold=args.threshold,
                                      use_landmarks=not args.no_landmarks, cache=not args.no_cache)
-    with atomic_output_dir(out) as tmp:
+    with atomic_output_dir(out, "register", inputs=[case_dir]) as tmp:
         t1 = time.perf_counter()
         patient.save(tmp / "patient_mesh.vtu")
         images = [] if args.no_images else write_images(case, patient, tmp)

@@ -1,12 +1,25 @@
-"""`faceplan synth`: synthetic case folders from random plausible heads.
+"""`faceplan synth`: synthetic case folders from random plausible heads, with post-op scans.
 
 Each case (seed S + i) is a head of `facemodel.synthetic` written as the contract's case
 folder: preop/skin.stl (closed), preop/bone/<segment>.stl (skull, maxilla, mandible, chin),
 preop/teeth/<arch>.stl, preop/landmarks.json, a sample bimaxillary plan.yaml that corrects
 the head's jaw discrepancy (Le Fort I, BSSO, genioplasty when the chin is off), case.yaml,
-and with --ct a CT-like volume preop/ct.nii.gz of the same head. The shape parameters go
-only to the --key file (the case folder stays blind). Post-op scans and withheld effects
-come later: --withheld-effect accepts `none` for now.
+and with --ct a CT-like volume preop/ct.nii.gz of the same head.
+
+With `--withheld-effect NAME[=VALUE] | random | none` each case also gets postop/skin.stl: the
+plan's prediction WITH that effect (none: without any), made on a model that is not the one a
+diagnosis fits (the generic face at `--truth-resolution`, its dermis and deep layers 0.8-1.2
+times as thick, its moduli 0.85-1.15 times the generic ones per layer, its bulk modulus
+500-2000 times the shear modulus, registered onto the head), seen as a frontal surface scanner
+sees it (`facemodel.synthetic.scan_like_surface`: a range image on a 0.6 mm grid, median edge
+~0.8 mm, the front of the face only, holes at the mouth slit, nostrils and under the chin, 0.2 mm noise along the
+normals, a rigid offset up to 2 mm / 2 deg); case.yaml gets `follow_up_months` (3-12), and
+postop/plan_actual.yaml is written for a random half of the bone_execution cases. Effect
+values are drawn per case from published ranges (`draw_effect`). The effect, its value and the
+perturbations go only to the --key file (a JSON list, one record per case, contract fields).
+The cases with post-op scans run as tasks on dask.distributed: a LocalCluster of `--workers`
+processes, or the cluster at `--scheduler ADDRESS` (its workers must see the output folder);
+each case draws from its own seed, so a cohort is the same whatever the number of workers.
 """
 from __future__ import annotations
 
@@ -15,17 +28,50 @@ from pathlib import Path
 
 import numpy as np
 
-from planner.errors import InputError
+from planner.errors import InputError, SolveError
+
+# Ranges of the withheld effects (skin change at the scan, mm, or the parameter itself):
+# - posture: the upright face against the supine one differs by 0.8-1.4 mm over the lateral and
+#   lower face (cheeks, jowls; supine vs upright 3D photographs and CT/MRI, e.g. Ozsoy U. et
+#   al., 2015, and the soft-tissue sag reported between supine CT and upright surface scans);
+# - swelling: residual oedema changes the skin by 0.5-2 mm at 3-12 months (van der Vlis et al.
+#   2014, J Oral Maxillofac Surg 72:2241; Kau et al. 2006);
+# - bone execution: planned-to-achieved differences of 0.5-2 mm and 1-3 deg (e.g. Hsu S.S. et
+#   al., J Oral Maxillofac Surg 71:128, 2013; Stokbro K. et al., Int J Oral Maxillofac Surg
+#   43:957, 2014, systematic review of virtual-planning accuracy);
+# - lip posture (resting tone): 0.3-2 mm of lip position between relaxed and habitual lip
+#   postures (e.g. Ayoub A.F. et al., 2003, reproducibility of lip posture in 3D imaging);
+# - stiffness: one layer 0.5-0.7x or 1.5-2.5x the generic (the spread of published facial soft
+#   tissue moduli, Joodaki & Panzer 2018 review);
+# - sliding at the lips (maxilla) and chin: the tissue the operation degloves.
+SKIN_CHANGE_MM = {"swelling": (0.5, 2.0), "gravity": (0.8, 1.4), "muscle_tone": (0.3, 2.0)}
+SKIN_CHANGE_REGIONS = {
+    "swelling": None,                                                  # the whole skin
+    "gravity": ("cheek_left", "cheek_right", "submandibular_left", "submandibular_right",
+                "submental", "chin", "preauricular_left", "preauricular_right"),
+    "muscle_tone": ("upper_lip", "lower_lip", "chin"),
+}
+BONE_TRANSLATION_MM = (0.5, 2.0)
+BONE_ROTATION_DEG = (1.0, 3.0)
+STIFF_LAYERS = ("dermis", "hypodermis", "muscle")
+SOFTER, STIFFER = (0.5, 0.7), (1.5, 2.5)
+FOLLOW_UP_MONTHS = (3.0, 12.0)
+TRUTH_RESOLUTION = "standard"   # fine: beyond the 2-minute budget per case (docs/effects.md)
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("--out", required=True, help="folder that receives the case folders")
     parser.add_argument("--count", type=int, default=1, help="number of cases (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first case (default 0)")
-    parser.add_argument("--withheld-effect", default="none",
-                        help="effect withheld from the case and written to the key file only "
-                             "(this build: none)")
+    parser.add_argument("--withheld-effect", default=None, metavar="NAME[=VALUE]|random|none",
+                        help="write postop/skin.stl predicted WITH this effect (random: one drawn "
+                             "per case; none: no effect); without the option no post-op scan")
     parser.add_argument("--key", default=None, help="JSON file receiving the ground truth of every case")
+    parser.add_argument("--truth-resolution", choices=("coarse", "standard", "fine"), default=TRUTH_RESOLUTION,
+                        help=f"face model resolution of the post-op truth (default {TRUTH_RESOLUTION})")
+    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help="dask scheduler to run the cases on (default: a local cluster)")
+    parser.add_argument("--workers", type=int, default=2, help="local cluster worker processes (default 2)")
     parser.add_argument("--ct", action="store_true", help="also write a CT-like volume preop/ct.nii.gz")
     parser.add_argument("--ct-spacing", type=float, default=1.0, help="CT voxel size in mm (default 1)")
     parser.add_argument("--surface-size", type=float, default=1.0,
@@ -36,16 +82,40 @@ def add_arguments(parser) -> None:
                              "CGAL's Delaunay surface mesher via pygalmesh")
 
 
+def parse_withheld(text: str | None):
+    """None (no post-op scan), ("none", None), ("random", None) or (NAME, flat value dict or
+    None to draw one); InputError for anything else."""
+    from facemodel import effects as fe
+
+    if text is None:
+        return None
+    t = str(text).strip()
+    if t.lower() in ("none", "random"):
+        return t.lower(), None
+    name, sep, _ = t.partition("=")
+    head = name.split(".")[0].strip()
+    if head not in fe.EFFECT_NAMES:
+        raise InputError(f"unknown effect {name!r} (known: {', '.join(fe.EFFECT_NAMES)}, or random, none)",
+                         field="--withheld-effect")
+    if not sep:
+        if "." in name:
+            raise InputError("a dotted effect name needs a value (NAME.PART=VALUE)", field="--withheld-effect")
+        return head, None
+    try:
+        eff = fe.parse_effects([t])
+    except fe.EffectError as exc:
+        raise InputError(str(exc), field="--withheld-effect") from None
+    return head, eff.as_dict()
+
+
 def _check(args) -> None:
     if args.count < 1 or args.count > 1000:
         raise InputError(f"--count must be between 1 and 1000, got {args.count}", field="--count")
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}", field="--seed")
-    effect = str(args.withheld_effect).strip().lower()
-    if effect != "none":
-        raise InputError(f"withheld effect {args.withheld_effect!r} is not available in this build "
-                         "(only 'none'); post-operative scans come with the sim-to-real issue",
-                         field="--withheld-effect")
+    parse_withheld(args.withheld_effect)
+    if not 1 <= args.workers <= 64:
+        raise InputError(f"--workers must be between 1 and 64, got {args.workers}", field="--workers")
     if not (0.2 <= args.ct_spacing <= 5.0):
         raise InputError(f"--ct-spacing must be in [0.2, 5] mm, got {args.ct_spacing}", field="--ct-spacing")
     if not (1.0 <= args.surface_size <= 10.0):
@@ -77,7 +147,8 @@ def sample_plan(shape) -> dict:
             "model": {"resolution": "standard"}}
 
 
-def write_case(folder: Path, head, *, ct: bool = False, ct_spacing: float = 1.0) -> dict:
+def write_case(folder: Path, head, *, ct: bool = False, ct_spacing: float = 1.0,
+               follow_up_months: float | None = None) -> dict:
     """Write one synthetic head as a case folder (into an existing empty folder)."""
     import yaml
 
@@ -99,6 +170,8 @@ def write_case(folder: Path, head, *, ct: bool = False, ct_spacing: float = 1.0)
         + (", genioplasty" if abs(head.shape.chin_projection) > 1.5 else "") + ")\n"
         + yaml.safe_dump(plan, sort_keys=False))
     info = {"id": folder.name, "synthetic": True, "seed": int(head.seed)}
+    if follow_up_months is not None:
+        info["follow_up_months"] = round(float(follow_up_months), 2)
     (folder / "case.yaml").write_text(yaml.safe_dump(info, sort_keys=False))
     if ct:
         from facemodel.ct_phantom import ct_volume_from_surfaces, write_nifti
@@ -110,34 +183,243 @@ def write_case(folder: Path, head, *, ct: bool = False, ct_spacing: float = 1.0)
             "withheld_effect": None, "plan": plan}
 
 
-def run(args) -> int:
+# --------------------------------------------------------------------------- the post-op truth
+
+def _rng(seed: int):
+    """The case's own random stream (post-op draws), independent of the head's."""
+    return np.random.default_rng([int(seed), 19])
+
+
+def draw_effect(name: str, rng, moved: tuple) -> tuple:
+    """(effect name, flat value dict or None when it is set from a skin-change target,
+    plan_actual flag) drawn from the ranges above."""
+    if name == "random":
+        from facemodel.effects import EFFECT_NAMES
+
+        name = str(rng.choice(EFFECT_NAMES))
+    if name == "sliding":
+        # the lips ride on the maxilla (upper) and mandible (lower); the chin on its segment
+        options = [s for s in ("maxilla", "chin") if s in moved] + ["1"]
+        pick = str(rng.choice(options))
+        return name, {"sliding": 1.0 if pick == "1" else pick}, False
+    if name == "bone_execution":
+        seg = str(rng.choice([s for s in ("maxilla", "mandible") if s in moved] or list(moved)))
+        d = rng.normal(size=3)
+        t = d / np.linalg.norm(d) * rng.uniform(*BONE_TRANSLATION_MM)
+        a = rng.normal(size=3)
+        r = a / np.linalg.norm(a) * rng.uniform(*BONE_ROTATION_DEG)
+        value = {f"bone_execution.{seg}": [round(float(v), 4) for v in (*t, *r)]}
+        return name, value, bool(rng.uniform() < 0.5)
+    if name == "stiffness":
+        layer = str(rng.choice(STIFF_LAYERS))
+        f = rng.uniform(*SOFTER) if rng.uniform() < 0.5 else rng.uniform(*STIFFER)
+        return name, {f"stiffness.{layer}": round(float(f), 4)}, False
+    if name in SKIN_CHANGE_MM:
+        return name, None, False
+    return None, None, False
+
+
+def _region_ids(model, regions):
+    from planner.pipeline import skin_surface
+
+    _, _, ids = skin_surface(model)
+    if regions is None:
+        return ids, np.ones(len(ids), bool)
+    chosen = np.concatenate([np.asarray(model.regions[r], np.int64) for r in regions if r in model.regions])
+    return ids, np.isin(ids, chosen)
+
+
+def _skin_change(pred, base, regions=None) -> dict:
+    ids, mask = _region_ids(pred.model, regions)
+    d = np.linalg.norm(pred.displacement[ids] - base.displacement[ids], axis=1)[mask]
+    return {"rms_mm": round(float(np.sqrt(np.mean(d * d))), 4), "max_mm": round(float(d.max()), 4)}
+
+
+def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
+                contact: bool = True) -> dict:
+    """Predict and write `folder`/postop/skin.stl (and plan_actual.yaml) for an existing case
+    folder; return the key record's post-op fields. contact: lip contact in the truth model
+    (on for every case the command makes; off only to keep tests on coarse meshes short)."""
+    import dataclasses
+
+    import trimesh
+    import yaml
+
+    import generic_mesh
+    import registration
+    from registration import errors as reg_errors
+    from facemodel import effects as fe
+    from facemodel import synthetic as sy
+    from generic_mesh.builder import RESOLUTIONS
+    from planner.case import load_case
+    from planner.pipeline import skin_sensitivities, skin_surface, solve_plan
+    from planner.plan import load_plan, parse_plan
+
+    folder = Path(folder)
+    rng = _rng(seed)
+    case = load_case(folder, cache=False)
+    plan = load_plan(folder / "plan.yaml")
+    fu = case.info.follow_up_months
+    moved = tuple(plan.motions())
+    name, value, want_actual = draw_effect(withheld[0], rng, moved) if withheld[0] != "none" else (None, None, False)
+    if withheld[1] is not None:                 # the value given on the command line
+        value = withheld[1]
+    # the truth model: generic layers re-proportioned, moduli perturbed, registered
+    dermis, deep = (float(rng.uniform(1 - sy.PERTURB_LAYER, 1 + sy.PERTURB_LAYER)) for _ in range(2))
+    generic = sy.perturb_layers(generic_mesh.load(truth_resolution), RESOLUTIONS[truth_resolution][3],
+                                dermis=dermis, deep=deep)
+    overrides, mat_record = sy.perturbed_materials(rng)
+    truth_plan = dataclasses.replace(plan, model=dataclasses.replace(plan.model, materials=overrides,
+                                                                     contact=bool(contact)))
+    try:
+        patient, _ = registration.mesh_match_and_repair(
+            generic, case.skin, case.bones, landmarks=case.landmarks or None,
+            teeth=case.teeth or None, cache=False)
+    except (reg_errors.RegistrationInputError, reg_errors.RegistrationFailure) as exc:
+        raise SolveError(f"{folder.name}: registration of the truth model failed: {exc}") from exc
+    base = solve_plan(patient, truth_plan, case.bones, follow_up_months=fu)
+    if name is not None and value is None:
+        # the value that changes the skin by a target drawn from the published range, from
+        # the truth model's own sensitivity (linear estimate; the change reached is recorded)
+        target = float(rng.uniform(*SKIN_CHANGE_MM[name]))
+        ids, sens = skin_sensitivities(base, [name])
+        _, mask = _region_ids(base.model, SKIN_CHANGE_REGIONS[name])
+        per_unit = float(np.linalg.norm(sens[name], axis=1)[mask].max())
+        p = fe.parameters(name)[0]
+        v = float(np.clip(p.none + target / max(per_unit, 1e-9), p.lower, p.upper))
+        value = {name: round(v, 5)}
+    effects = fe.parse_effects(value or {})
+    plan_actual = None
+    if name == "bone_execution":
+        from planner.pipeline import effect_motions
+
+        motions = effect_motions(truth_plan, effects, base.setup["centroids"])
+        if want_actual:
+            actual = {"faceplan": 1, "frame": "RAS",
+                      "segments": {s: {"matrix": np.round(T, 9).tolist()} for s, T in motions.items()}}
+            (folder / "postop").mkdir(exist_ok=True)
+            (folder / "postop" / "plan_actual.yaml").write_text(
+                "# faceplan synth: the movements achieved in surgery\n" + yaml.safe_dump(actual, sort_keys=False))
+            plan_actual = parse_plan(actual, "plan_actual.yaml")
+            effects = fe.parse_effects({"bone_execution": 1})
+    pred = base
+    retries = 0
+    while effects.active:
+        try:
+            pred = solve_plan(patient, truth_plan, case.bones, effects=effects, plan_actual=plan_actual,
+                              follow_up_months=fu)
+            break
+        except SolveError:
+            # a value set from a skin-change target may ask more than the truth model can
+            # solve (large growth against lip contact): half its distance from "none", twice
+            # at most; the key records the value used and the change it made
+            if name not in SKIN_CHANGE_MM or retries == 2:
+                raise
+            retries += 1
+            p = fe.parameters(name)[0]
+            v = p.none + 0.5 * (effects.value(name) - p.none)
+            effects = effects.with_value(name, v)
+            value = {name: round(v, 5)}
+    region = SKIN_CHANGE_REGIONS.get(name) if name else None
+    change = _skin_change(pred, base, region)
+    # the post-op skin: the patient's skin moved with the truth model's skin, scanned
+    x_pre, tris, ids = skin_surface(pred.model)
+    moved_skin = sy.displaced_surface(case.skin.vertices, x_pre, tris, pred.displacement[ids])
+    V, F, scan = sy.scan_like_surface(moved_skin, case.skin.faces, case.landmarks, rng)
+    (folder / "postop").mkdir(exist_ok=True)
+    trimesh.Trimesh(V, F, process=False).export(folder / "postop" / "skin.stl")
+    return {"effect": name, "value": value if name else None,
+            "perturbation": {"truth_resolution": truth_resolution,
+                             "layer_thickness_factors": {"dermis": round(dermis, 4), "deep": round(deep, 4)},
+                             **mat_record, "scan": scan},
+            "plan_actual": plan_actual is not None, "value_halvings": retries,
+            "effect_skin_change_mm": {"regions": list(region) if region else "skin", **change}}
+
+
+def make_case(root: str, seed: int, options: dict) -> dict:
+    """One case folder `root`/synth_SEED (head, plan, case.yaml; the post-op scan when asked);
+    its key record. A task of the dask cohort: everything it draws comes from `seed`."""
+    import shutil
+
     from facemodel.synthetic import synthetic_head
+
+    name = f"synth_{seed:04d}"
+    target = Path(root) / name
+    if target.exists():
+        shutil.rmtree(target)
+    target.mkdir(parents=True)
+    withheld = options.get("withheld")
+    fu = None
+    if withheld is not None:
+        fu = float(_rng(seed + 10**6).uniform(*FOLLOW_UP_MONTHS))
+    head = synthetic_head(seed, size=options["surface_size"], distance=options["surface_size"] / 12.0,
+                          mesher=options["mesher"])
+    rec = write_case(target, head, ct=options["ct"], ct_spacing=options["ct_spacing"], follow_up_months=fu)
+    record = {"case": name, "seed": int(seed), "effect": None, "value": None, "perturbation": None,
+              "follow_up_months": None if fu is None else round(fu, 2), "plan_actual": False,
+              "shape": rec["shape"], "plan": rec["plan"]}
+    if withheld is not None:
+        record.update(make_postop(str(target), seed, tuple(withheld), options["truth_resolution"],
+                                  contact=options.get("contact", True)))
+    return record
+
+
+def run_cases(root: Path, seeds: list, options: dict, scheduler: str | None, workers: int,
+              echo=print) -> list:
+    """The cases as dask.distributed tasks (a LocalCluster of `workers` processes unless a
+    scheduler address is given); records in seed order."""
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    cluster = None
+    if scheduler:
+        client = Client(scheduler)
+    else:
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               dashboard_address=":0")
+        client = Client(cluster)
+    try:
+        futures = {client.submit(make_case, str(root), s, options, pure=False): s for s in seeds}
+        out = {}
+        for fut in as_completed(futures):
+            rec = fut.result()
+            out[futures[fut]] = rec
+            echo(f"faceplan synth: {rec['case']} done (effect {rec['effect']})")
+        return [out[s] for s in seeds]
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def run(args) -> int:
+    import sys
+
     from planner.atomic import atomic_output_dir, atomic_write_file
 
     _check(args)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError("--out exists and is not a folder", file=str(out), field="--out")
-    truth = []
+    options = {"withheld": parse_withheld(args.withheld_effect), "truth_resolution": args.truth_resolution,
+               "surface_size": args.surface_size, "mesher": args.mesher, "ct": args.ct,
+               "ct_spacing": args.ct_spacing}
+    seeds = [args.seed + i for i in range(args.count)]
     with atomic_output_dir(out) as tmp:
         if out.is_dir():          # keep what the folder already holds
             import shutil
 
             shutil.copytree(out, tmp, dirs_exist_ok=True)
-        for i in range(args.count):
-            seed = args.seed + i
-            head = synthetic_head(seed, size=args.surface_size, distance=args.surface_size / 12.0,
-                                  mesher=args.mesher)
-            name = f"synth_{seed:04d}"
-            target = tmp / name
-            if target.exists():
-                import shutil
-
-                shutil.rmtree(target)
-            target.mkdir()
-            truth.append(write_case(target, head, ct=args.ct, ct_spacing=args.ct_spacing))
-            print(f"faceplan synth: {out / name} (seed {seed})")
+        if options["withheld"] is None and not args.scheduler:
+            records = []          # pre-op folders only: quick, in this process
+            for s in seeds:
+                records.append(make_case(str(tmp), s, options))
+                print(f"faceplan synth: {out / records[-1]['case']} (seed {s})")
+        else:
+            records = run_cases(tmp, seeds, options, args.scheduler, args.workers,
+                                echo=lambda m: print(m, file=sys.stderr, flush=True))
+            for r in records:
+                print(f"faceplan synth: {out / r['case']} (seed {r['seed']})")
     if args.key:
         with atomic_write_file(args.key) as fh:
-            json.dump({"cases": truth}, fh, indent=1)
+            json.dump(records, fh, indent=1)
     return 0

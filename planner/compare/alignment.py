@@ -27,7 +27,15 @@ import numpy as np
 from planner.compare.distances import TriangleSurface
 
 __all__ = ["Alignment", "trimmed_icp", "align_to_reference", "global_initialisation", "superimpose",
-           "rotation_matrix", "apply"]
+           "rotation_matrix", "apply", "unoperated_median_mm", "OTHER_PATIENT_MEDIAN_MM",
+           "DOUBTFUL_MEDIAN_MM"]
+
+# The unoperated regions of one person's pre- and post-op faces agree within the scanner's
+# noise (~0.1-0.3 mm; 0.5 mm gives a median of ~0.35 mm): a median distance over them of more
+# than 1 mm after superimposition (half the forehead, nasal bridge and infra-orbital skin off
+# by over 3x the noise) is another face; above 0.6 mm the scan is doubtful.
+OTHER_PATIENT_MEDIAN_MM = 1.0
+DOUBTFUL_MEDIAN_MM = 0.6
 
 
 def rotation_matrix(omega: np.ndarray) -> np.ndarray:
@@ -57,6 +65,7 @@ class Alignment:
     history: list[float] = field(default_factory=list)   # trimmed RMS per iteration
     strategy: str = "local"            # "local": ICP from the given frame; "global": 24 starts
     face_coverage: float = float("nan")   # scan fraction within 2 mm of the face (pose check)
+    unoperated_median_mm: float = float("nan")   # untrimmed agreement on the unoperated regions
 
     @property
     def rotation_deg(self) -> float:
@@ -76,6 +85,7 @@ class Alignment:
             "converged": self.converged,
             "strategy": self.strategy,
             "face_coverage": self.face_coverage,
+            "unoperated_median_mm": self.unoperated_median_mm,
             "rotation_deg": self.rotation_deg,
             "translation_mm": self.translation_mm,
             "matrix": self.matrix.tolist(),
@@ -293,3 +303,14 @@ def superimpose(
                                         or wide.face_coverage > local.face_coverage):
         return wide
     return local
+
+
+def unoperated_median_mm(aligned: np.ndarray, reference: TriangleSurface, allowed_faces: np.ndarray,
+                         gate: float = 10.0) -> float:
+    """Median |distance| (mm) from the aligned scan points over the reference's unoperated
+    triangles (`allowed_faces`, boolean per triangle) to the reference, every such point
+    counted (untrimmed, unlike the ICP residual): how well the faces agree where surgery did
+    not change them. NaN when no scan point lies over them."""
+    c = reference.closest(np.asarray(aligned, float))
+    sel = np.asarray(allowed_faces)[c.face] & ~c.beyond_boundary & (c.distance <= gate)
+    return float(np.median(np.abs(c.signed[sel]))) if sel.any() else float("nan")

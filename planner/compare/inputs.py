@@ -336,3 +336,37 @@ def read_inputs(case: str | Path, prediction: str | None = None,
     pred = read_prediction(case, prediction)
     path = find_postop(case, postop)
     return pred, load_surface(path, "post-op scan")
+
+
+# A post-op scan whose points lie this close to the pre-op skin (median point-to-surface
+# distance, mm) is that skin: a surface scanner's noise alone is ~0.1-0.3 mm, and surgery
+# moves the lower face by millimetres.
+PREOP_COPY_MEDIAN_MM = 0.05
+
+
+def check_not_preop(case: Path, scan: Surface, scan_path: Path) -> None:
+    """Refuse (InputError naming the scan) a post-op scan that is the case's pre-op skin: the
+    same file, or a surface whose points lie on `preop/skin.*` (median distance below
+    PREOP_COPY_MEDIAN_MM) in the frame it was given in."""
+    import hashlib
+
+    from planner.compare.distances import TriangleSurface
+
+    preop = [case / "preop" / f"skin{s}" for s in SURFACE_SUFFIXES if (case / "preop" / f"skin{s}").is_file()]
+    if not preop:
+        return
+    pre = preop[0]
+
+    def digest(p):
+        return hashlib.sha256(Path(p).read_bytes()).hexdigest()
+
+    msg = (f"the post-op scan is the pre-op skin ({pre}): give the surface scanned after "
+           "surgery")
+    if Path(scan_path).resolve() == pre.resolve() or digest(scan_path) == digest(pre):
+        raise InputError(msg, file=str(scan_path), field="post-op scan")
+    surface = load_surface(pre, "pre-op skin")
+    pts = scan.vertices[:: max(1, len(scan.vertices) // 5000)]
+    d = TriangleSurface(surface.vertices, surface.faces).closest(pts).distance
+    if float(np.median(d)) < PREOP_COPY_MEDIAN_MM:
+        raise InputError(msg + f" (its points lie on it: median distance {np.median(d):.3f} mm)",
+                         file=str(scan_path), field="post-op scan")

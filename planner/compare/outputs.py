@@ -4,8 +4,11 @@
 `signed_distance_mm` -- NaN where the surfaces do not overlap -- `abs_distance_mm`, `region`
 and `valid`, field data `region_names` and `alignment_matrix`), `distances_reverse.vtp` (the
 prediction with the reverse distances), `images/*.png` (signed-distance colour maps on both
-surfaces in the frontal, profile and three-quarter views with a diverging +-3 mm scale, a
-histogram, a per-region bar chart, a profile overlay), `report.json` and `report.html`.
+surfaces in the frontal, profile and three-quarter views with a diverging +-3 mm scale and
+iso-lines at +-1 and +-2 mm, a histogram, a per-region bar chart, a profile overlay, and the
+predicted and post-op faces drawn with the same camera in the frontal and profile views),
+`report.json` and `report.html` (with a slider between the predicted and post-op pictures of
+each view, as the prediction's report has between pre-op and predicted).
 """
 from __future__ import annotations
 
@@ -19,6 +22,8 @@ from planner.compare.comparison import Comparison
 __all__ = ["write_comparison", "region_table", "CLIM_MM"]
 
 CLIM_MM = 3.0
+ISOLINES_MM = (-2.0, -1.0, 1.0, 2.0)
+SIDE_BY_SIDE_VIEWS = ("frontal", "profile")
 
 
 def _polydata(vertices, faces):
@@ -63,20 +68,28 @@ def write_comparison(result: Comparison, out: Path, header: dict, render_images:
     report["files"] = {"distances": "distances.vtp", "distances_reverse": "distances_reverse.vtp",
                        "html": "report.html"}
     images: list[tuple[Path, str]] = []
+    pairs: list = []
     if render_images:
         img = out / "images"
         img.mkdir()
         clim = (-CLIM_MM, CLIM_MM)
         for view, path in render.render_views(scan, img / "distance_postop", scalars=result.signed,
                                               cmap="RdBu_r", clim=clim, scalar_bar_title="mm",
+                                              isolines=ISOLINES_MM,
                                               title="post-op minus predicted (mm)").items():
             images.append((path, f"signed distance on the post-op scan, {view.replace('_', '-')}"))
         for view, path in render.render_views(pp, img / "distance_prediction",
                                               scalars=result.reverse_signed, cmap="RdBu_r",
-                                              clim=clim, scalar_bar_title="mm",
+                                              clim=clim, scalar_bar_title="mm", isolines=ISOLINES_MM,
                                               title="post-op minus predicted, on the prediction (mm)",
                                               views=("three_quarter",)).items():
             images.append((path, f"signed distance on the prediction, {view.replace('_', '-')}"))
+        box = render.union_bounds([pp, scan])
+        shots = [render.render_views(mesh, img / name, title=title, views=SIDE_BY_SIDE_VIEWS, bounds=box,
+                                     title_position=where)
+                 for mesh, name, title, where in ((pp, "predicted", "predicted face", "upper_left"),
+                                                  (scan, "postop", "post-op face", "upper_right"))]
+        pairs = [(render.VIEW_TITLES[v], shots[0][v], shots[1][v]) for v in SIDE_BY_SIDE_VIEWS]
         finite = result.signed[np.isfinite(result.signed)]
         lim = max(CLIM_MM, float(np.percentile(np.abs(finite), 99.5)) if finite.size else CLIM_MM)
         images.append((render.histogram_chart(finite, img / "histogram.png", bins=80,
@@ -94,7 +107,8 @@ def write_comparison(result: Comparison, out: Path, header: dict, render_images:
                                             labels=["predicted", "post-op"],
                                             title="mid-sagittal profile (x = 0)"),
                        "mid-sagittal profiles: predicted vs post-op"))
-        report["files"]["images"] = [str(p.relative_to(out)) for p, _ in images]
+        report["files"]["images"] = [str(p.relative_to(out)) for p, _ in images] + [
+            str(p.relative_to(out)) for _, a, b in pairs for p in (a, b)]
     report = _clean(json.loads(json.dumps(report, default=_jsonable)))
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
     cols, rows = region_table(result.metrics)
@@ -110,7 +124,8 @@ def write_comparison(result: Comparison, out: Path, header: dict, render_images:
          ["residual mean |d| (mm)", a.residual_mean_abs_mm], ["inlier points", a.n_points],
          ["rotation (deg)", a.rotation_deg], ["translation (mm)", a.translation_mm]])
     write_html_report(out / "report.html", f"faceplan compare: {header.get('case', '')}",
-                      report, images, tables=tables,
+                      report, images, tables=tables, before_after=pairs,
+                      before_after_labels=("predicted", "post-op"),
                       intro="Post-op scan superimposed on the pre-op frame by trimmed ICP on the "
                             "unoperated regions; " + result.report()["sign_convention"] + ".")
     return report

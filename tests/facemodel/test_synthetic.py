@@ -110,11 +110,13 @@ def test_synth_command_writes_case_folders(tmp_path):
     plan = load_plan(out / "synth_0004" / "plan.yaml")
     assert {"maxilla", "mandible", "chin"} <= set(plan.segments)
     truth = json.loads(key.read_text())
-    assert [c["seed"] for c in truth["cases"]] == [4, 5]
-    assert truth["cases"][0]["shape"] == sy.random_shape(4).as_dict()
+    assert [c["seed"] for c in truth] == [4, 5]
+    assert truth[0]["shape"] == sy.random_shape(4).as_dict()
+    assert truth[0]["effect"] is None and not (out / "synth_0004" / "postop").exists()
 
 
-@pytest.mark.parametrize("argv", [["--withheld-effect", "sliding"], ["--count", "0"], ["--seed", "-1"]])
+@pytest.mark.parametrize("argv", [["--withheld-effect", "wind"], ["--withheld-effect", "swelling=9"],
+                                  ["--count", "0"], ["--seed", "-1"]])
 def test_synth_refuses_bad_input(tmp_path, argv):
     from planner.cli import main
 

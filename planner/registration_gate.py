@@ -1,0 +1,51 @@
+"""Quality gate of a registration: fit and repair figures far outside their normal range.
+
+`registration_notes(report)` reads the report of `registration.mesh_match_and_repair` and
+returns one sentence per figure far outside what a consistent case gives, naming the likely
+cause. On consistent cases (the synthetic heads, the demo head) the skin fit has a p95 below
+1 mm and a maximum below 3 mm, the bone fit a mean below 0.5 mm and a maximum below ~10 mm
+(the chin's edge), and the repair touches 1-2 % of the elements; the limits below are two to
+three times those, so a note means that something in the inputs disagrees (an LPS/RAS mix-up of
+one file, swapped or foreign bone surfaces, a partial or noisy skin), not bad luck.
+"""
+from __future__ import annotations
+
+SKIN_P95_MM = 2.5
+SKIN_MAX_MM = 8.0
+BONE_MEAN_MM = 1.5
+BONE_MAX_MM = 20.0
+REPAIRED_FRACTION = 0.08
+
+
+def _get(d, *keys):
+    for k in keys:
+        if not isinstance(d, dict) or d.get(k) is None:
+            return None
+        d = d[k]
+    return d
+
+
+def registration_notes(report: dict) -> list[str]:
+    """Sentences naming each fit or repair figure far outside its normal range and its likely
+    cause; empty for a registration within range."""
+    notes = []
+    p95, mx = _get(report, "fit", "skin", "p95_mm"), _get(report, "fit", "skin", "max_mm")
+    if (p95 is not None and p95 > SKIN_P95_MM) or (mx is not None and mx > SKIN_MAX_MM):
+        notes.append(f"the registered skin is far from the patient skin (p95 {p95:.1f} mm, max {mx:.1f} mm; "
+                     f"normal < {SKIN_P95_MM} / {SKIN_MAX_MM} mm): the skin, bones or landmarks are in "
+                     "different frames (LPS vs RAS), or the skin is partial or noisy")
+    mean, bmax = _get(report, "fit", "bone", "mean_mm"), _get(report, "fit", "bone", "max_mm")
+    if (mean is not None and mean > BONE_MEAN_MM) or (bmax is not None and bmax > BONE_MAX_MM):
+        segs = _get(report, "fit", "bone_segments") or {}
+        worst = max(segs, key=lambda s: segs[s].get("max_mm") or 0.0) if segs else None
+        notes.append(f"the bone attachments are far from the bone surfaces (mean {mean:.1f} mm, max "
+                     f"{bmax:.1f} mm{f' at {worst}' if worst else ''}; normal < {BONE_MEAN_MM} / "
+                     f"{BONE_MAX_MM} mm): bone files swapped between segments, or bones from another "
+                     "scan or frame")
+    repaired = _get(report, "repair", "elements_needing_repair")
+    n = report.get("n_elements")
+    if repaired is not None and n and repaired > REPAIRED_FRACTION * n:
+        notes.append(f"{repaired} of {n} elements needed repair (normal < {REPAIRED_FRACTION:.0%}): the "
+                     "inputs pull the mesh in contradicting directions (skin, bones and landmarks "
+                     "disagree)")
+    return notes

@@ -1,0 +1,150 @@
+"""Faults lose nothing: SIGKILL, Ctrl-C, a full disk.
+
+A process killed (SIGKILL) while it fills an output folder leaves no visible partial output, and
+the next run on the same folder removes its hidden temporary; Ctrl-C at any moment (start-up
+included) exits 130 without a traceback or output; a disk that fills up while writing gives a
+one-line message, exit 4, and nothing half-written.
+"""
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import types
+from pathlib import Path
+
+import pytest
+
+from planner import cli
+from planner.atomic import MARKER, atomic_output_dir, clean_orphans
+
+REPO = Path(__file__).resolve().parents[2]
+ENV = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+
+WRITER = textwrap.dedent("""
+    import sys, time
+    from planner.atomic import atomic_output_dir
+    with atomic_output_dir(sys.argv[1], "predict") as tmp:
+        print("writing", flush=True)
+        for i in range(400):
+            (tmp / f"part{i}.txt").write_text("x" * 1000)
+            time.sleep(0.005)
+""")
+
+
+def _dead_pid() -> int:
+    return int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                              capture_output=True, text=True).stdout)
+
+
+@pytest.mark.parametrize("delay", [0.05, 0.6])
+def test_sigkill_leaves_no_partial_output(tmp_path, delay):
+    out = tmp_path / "out"
+    with atomic_output_dir(out, "predict") as tmp:          # a previous, complete output
+        (tmp / "report.json").write_text('{"previous": true}')
+    p = subprocess.Popen([sys.executable, "-c", WRITER, str(out)], env=ENV, stdout=subprocess.PIPE)
+    assert p.stdout.readline().strip() == b"writing"
+    time.sleep(delay)
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    visible = sorted(q.name for q in tmp_path.iterdir() if not q.name.startswith("."))
+    assert visible == ["out"]
+    assert json.loads((out / "report.json").read_text()) == {"previous": True}   # untouched
+    assert any(q.name.startswith(".out.tmp-") for q in tmp_path.iterdir())        # the orphan
+    with atomic_output_dir(out, "predict") as tmp:            # the next run cleans it
+        (tmp / "report.json").write_text('{"next": true}')
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["out"]
+    assert sorted(q.name for q in out.iterdir()) == [MARKER, "report.json"]
+
+
+def test_kill_between_the_two_renames_keeps_the_previous_output(tmp_path):
+    out = tmp_path / "out"
+    with atomic_output_dir(out, "predict") as tmp:
+        (tmp / "report.json").write_text('{"previous": true}')
+    pid = _dead_pid()
+    os.replace(out, tmp_path / f".out.old-{pid}-abc")       # moved aside, then killed
+    (tmp_path / f".out.tmp-{pid}-def").mkdir()              # the new one never moved in
+    clean_orphans(out)
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["out"]
+    assert json.loads((out / "report.json").read_text()) == {"previous": True}
+
+
+def test_a_live_writer_s_temporary_is_not_touched(tmp_path):
+    live = tmp_path / f".out.tmp-{os.getppid()}-abc"
+    live.mkdir()
+    clean_orphans(tmp_path / "out")
+    assert live.is_dir()
+
+
+@pytest.mark.parametrize("delay", [0.2, 1.5, 4.0])
+def test_ctrl_c_at_any_moment_exits_130(tmp_path, delay):
+    out = tmp_path / "demo"
+    p = subprocess.Popen([sys.executable, "-m", "planner.cli", "demo", "--out", str(out),
+                          "--no-images", "--quiet"], env={**ENV, "FACEPLAN_CACHE": str(tmp_path / "c")},
+                         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(delay)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err
+    assert "Traceback" not in err and "interrupted" in err
+    assert sorted(q.name for q in tmp_path.iterdir() if q.name != "c") == []
+
+
+def test_full_disk_exit_4_and_nothing_half_written(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "out"
+
+    def run(args):
+        with atomic_output_dir(out, "fake") as tmp:
+            (tmp / "prediction.vtu").write_text("half")
+            raise OSError(errno.ENOSPC, "No space left on device", str(tmp / "images" / "a.png"))
+
+    fake = types.SimpleNamespace(add_arguments=lambda p: None, run=run)
+    monkeypatch.setitem(cli.COMMANDS, "fake", ("fake", "a command that fills the disk"))
+    monkeypatch.setattr(cli, "_load", lambda name: fake)
+    assert cli.main(["fake"]) == 4
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "nothing was written" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_bug_s_oserror_is_not_dressed_as_environment(monkeypatch):
+    def run(args):
+        raise FileNotFoundError(errno.ENOENT, "No such file", "/nonexistent")
+
+    fake = types.SimpleNamespace(add_arguments=lambda p: None, run=run)
+    monkeypatch.setitem(cli.COMMANDS, "fake", ("fake", "x"))
+    monkeypatch.setattr(cli, "_load", lambda name: fake)
+    with pytest.raises(FileNotFoundError):
+        cli.main(["fake"])
+
+
+def _in_private_mount(tmp_path, options, argv):
+    """Run the CLI with a fresh tmpfs (mount `options`) at tmp_path/mnt, in a private user and
+    mount namespace (`unshare -rm`: no privilege needed where user namespaces are enabled)."""
+    import shutil as sh
+
+    if sh.which("unshare") is None:
+        pytest.skip("unshare not available")
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    probe = subprocess.run(["unshare", "-rm", "mount", "-t", "tmpfs", "-o", options, "tmpfs", str(mnt)],
+                           capture_output=True)
+    if probe.returncode != 0:
+        pytest.skip("no user/mount namespaces here")
+    script = (f"mount -t tmpfs -o {options} tmpfs {mnt} && "
+              f"exec {sys.executable} -m planner.cli " + " ".join(argv))
+    return subprocess.run(["unshare", "-rm", "sh", "-c", script], env=ENV, capture_output=True,
+                          text=True, timeout=120), mnt
+
+
+@pytest.mark.parametrize("options,words", [("size=1m", "MB free"), ("ro,size=1m", "not writable")])
+def test_real_full_or_read_only_disk_refused_before_work(tmp_path, options, words):
+    case = tmp_path / "case"
+    (case / "preop").mkdir(parents=True)
+    p, mnt = _in_private_mount(tmp_path, options, ["predict", str(case), "--out", str(tmp_path / "mnt" / "out"),
+                                                   "--quiet"])
+    assert p.returncode == 2, p.stderr
+    assert words in p.stderr and "Traceback" not in p.stderr and str(mnt / "out") in p.stderr

@@ -1,0 +1,26 @@
+"""The registration quality gate names figures far outside their normal range and the cause."""
+from planner.registration_gate import registration_notes
+
+
+def _report(skin_p95=0.7, skin_max=2.3, bone_mean=0.3, bone_max=9.2, repaired=22, n=1632):
+    return {"fit": {"skin": {"mean_mm": 0.2, "p95_mm": skin_p95, "max_mm": skin_max},
+                    "bone": {"mean_mm": bone_mean, "p95_mm": 0.1, "max_mm": bone_max},
+                    "bone_segments": {"maxilla": {"max_mm": 1.0}, "mandible": {"max_mm": bone_max}}},
+            "repair": {"elements_needing_repair": repaired}, "n_elements": n}
+
+
+def test_the_demo_registration_figures_pass():
+    # the embedded demo head registered at the coarse resolution (faceplan register)
+    assert registration_notes(_report()) == []
+
+
+def test_each_figure_out_of_range_is_named_with_its_cause():
+    # an LPS skin with RAS landmarks as probed: skin fit p95 3.7 mm, max 10.1 mm
+    (note,) = registration_notes(_report(skin_p95=3.7, skin_max=10.1))
+    assert "LPS" in note and "3.7" in note
+    # swapped maxilla/mandible files as probed: bone fit max 31.9 mm
+    (note,) = registration_notes(_report(bone_mean=3.0, bone_max=31.9))
+    assert "swapped" in note and "mandible" in note
+    (note,) = registration_notes(_report(repaired=274))
+    assert "274 of 1632" in note
+    assert registration_notes({}) == []          # a report without figures: nothing to say

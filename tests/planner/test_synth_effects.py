@@ -1,0 +1,141 @@
+"""`faceplan synth --withheld-effect`: the draws, the truth model's perturbations, the scan-like
+post-op skin and the dask cohort (a real 2-worker LocalCluster) giving the same cases as one
+process."""
+import json
+
+import numpy as np
+import pytest
+
+from facemodel import synthetic as sy
+from planner.commands import synth
+from planner.errors import InputError
+
+
+def test_withheld_effect_forms():
+    assert synth.parse_withheld(None) is None
+    assert synth.parse_withheld("random") == ("random", None)
+    assert synth.parse_withheld("None") == ("none", None)
+    assert synth.parse_withheld("gravity") == ("gravity", None)
+    assert synth.parse_withheld("stiffness.dermis=2") == ("stiffness", {"stiffness.dermis": 2.0})
+    for bad in ("wind", "swelling=9", "stiffness.dermis", "bone_execution.maxilla=[1]"):
+        with pytest.raises(InputError):
+            synth.parse_withheld(bad)
+
+
+def test_draws_stay_in_their_published_ranges():
+    moved = ("maxilla", "mandible", "chin")
+    actual = []
+    for seed in range(200):
+        rng = synth._rng(seed)
+        name, value, pa = synth.draw_effect("random", rng, moved)
+        if name == "bone_execution":
+            (key, p), = value.items()
+            assert key in ("bone_execution.maxilla", "bone_execution.mandible")
+            assert 0.5 - 1e-3 <= np.linalg.norm(p[:3]) <= 2.0 + 1e-3       # mm (4 decimals)
+            assert 1.0 - 1e-3 <= np.linalg.norm(p[3:]) <= 3.0 + 1e-3       # deg
+            actual.append(pa)
+        elif name == "stiffness":
+            (key, f), = value.items()
+            assert key.split(".")[1] in synth.STIFF_LAYERS
+            assert 0.5 <= f <= 0.7 or 1.5 <= f <= 2.5
+        elif name == "sliding":
+            assert value["sliding"] in (1.0, "maxilla", "chin")
+        else:
+            assert name in synth.SKIN_CHANGE_MM and value is None
+    # plan_actual.yaml for a random half of the bone_execution cases (binomial: 3 sigma)
+    n = len(actual)
+    assert n > 15 and abs(sum(actual) - n / 2) < 3 * np.sqrt(n) / 2
+
+
+def test_layer_perturbation_keeps_the_surfaces():
+    generic_mesh = pytest.importorskip("generic_mesh")
+    from generic_mesh.builder import RESOLUTIONS
+    from solver.mesh import scaled_jacobian
+
+    g = generic_mesh.load("coarse")
+    nk = RESOLUTIONS["coarse"][3]
+    p = sy.perturb_layers(g, nk, dermis=1.2, deep=0.8)
+    P0, P1 = g.nodes.reshape(-1, nk + 1, 3), p.nodes.reshape(-1, nk + 1, 3)
+    assert np.abs(P1[:, [0, nk]] - P0[:, [0, nk]]).max() == 0.0       # deep and skin nodes stay
+    t0 = np.linalg.norm(P0[:, nk] - P0[:, nk - 1], axis=1)
+    t1 = np.linalg.norm(P1[:, nk] - P1[:, nk - 1], axis=1)
+    ok = t0 < 0.3 * np.linalg.norm(P0[:, nk] - P0[:, 0], axis=1)      # not clipped at 45 %
+    # straight columns: the dermis thickness scales exactly; curved ones within 1 %
+    assert np.median(t1[ok] / t0[ok]) == pytest.approx(1.2, rel=0.01)
+    assert scaled_jacobian(p.nodes, p.hexes).min() > 0
+
+
+def test_scan_like_surface():
+    shape = sy.random_shape(3)
+    skin = sy.skin_surface(shape, size=3.0, distance=0.25, seed=3)
+    lm = sy.landmarks(shape, skin)
+    V, F, rec = sy.scan_like_surface(skin.vertices, skin.faces, lm, np.random.default_rng(1))
+    assert 0.6 < rec["median_edge_mm"] < 1.0
+    assert np.linalg.norm(rec["rigid_offset"]["translation_mm"]) <= 2.0
+    assert rec["rigid_offset"]["rotation_deg"] <= 2.0
+    # undo the rigid offset: the scan lies on the skin with the noise's spread (sigma 0.2 mm;
+    # the skin's own facets add < 0.05 mm) and covers the face front only
+    from scipy.spatial.transform import Rotation
+    import trimesh
+
+    ro = rec["rigid_offset"]
+    R = Rotation.from_rotvec(np.radians(ro["rotation_deg"]) * np.array(ro["rotation_axis"])).as_matrix()
+    c = np.array(ro["centre"])
+    back = (V - c - ro["translation_mm"]) @ R + c
+    _, dist, _ = trimesh.proximity.closest_point(skin, back)
+    assert 0.15 < np.sqrt(np.mean(dist ** 2)) < 0.25
+    assert back[:, 1].min() > np.asarray(lm["Prn"])[1] - 120.0
+    # holes: the mouth slit between the commissures and both nostrils see nothing
+    st = 0.5 * (np.asarray(lm["Stms"]) + np.asarray(lm["Stmi"]))
+    slit = (np.abs(back[:, 0] - st[0]) < 5.0) & (np.abs(back[:, 2] - st[2]) < 0.3)
+    assert not slit.any()
+    for side in (-1, 1):
+        n = np.asarray(lm["Sn"]) + [6.0 * side, 0, 2.0]
+        assert not ((np.abs(back[:, 0] - n[0]) < 1.0) & (np.abs(back[:, 2] - n[2]) < 0.8)).any()
+    # nothing under the chin (the submental skin faces down, the neck is not the face); the
+    # noise moves points by < 5 sigma = 1 mm
+    me = np.asarray(lm["Me"])
+    assert back[:, 2].min() > me[2] - 2.0
+
+
+def test_displaced_surface_follows_a_translation():
+    nodes = np.array([[0, 0, 0], [10, 0, 0], [0, 0, 10], [10, 0, 10.0]])
+    tris = np.array([[0, 1, 2], [1, 3, 2]])
+    pts = np.array([[2.0, 0.1, 3.0], [7.0, -0.2, 8.0]])
+    u = np.tile([0.5, -1.0, 2.0], (4, 1)) + np.array([[0, 0, 0], [1, 0, 0], [0, 0, 0], [1, 0, 0.0]])
+    out = sy.displaced_surface(pts, nodes, tris, u)
+    # linear field u = (0.5 + x/10, -1, 2): barycentric interpolation is exact
+    assert np.allclose(out - pts, np.stack([0.5 + pts[:, 0] / 10, -np.ones(2), 2 * np.ones(2)], 1))
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_cohort_on_a_two_worker_cluster_matches_one_process(tmp_path):
+    """Two cases on a real 2-worker LocalCluster (coarse truth, coarse skins for time) and one
+    of them again in this process: the same post-op scan (the draws come from the seed). Lip
+    contact off in the truth model: the coarse face with contact takes minutes per solve."""
+    pytest.importorskip("generic_mesh")
+    opts = {"withheld": ("none", None), "truth_resolution": "coarse",
+            "surface_size": 4.0, "mesher": "sphere", "ct": False, "ct_spacing": 1.0, "contact": False}
+    recs = synth.run_cases(tmp_path / "cluster", [21, 22], opts, None, 2, echo=lambda m: None)
+    assert [r["case"] for r in recs] == ["synth_0021", "synth_0022"]
+    one = synth.make_case(str(tmp_path / "single"), 22, opts)
+    import trimesh
+
+    a = trimesh.load(tmp_path / "cluster" / "synth_0022" / "postop" / "skin.stl")
+    b = trimesh.load(tmp_path / "single" / "synth_0022" / "postop" / "skin.stl")
+    # same draws, same solves (direct solver, deterministic): equal to solver round-off
+    assert a.vertices.shape == b.vertices.shape and np.abs(a.vertices - b.vertices).max() < 1e-6
+    for r in (recs[1], one):
+        r.pop("plan"), r.pop("shape")
+    assert json.dumps(recs[1], sort_keys=True) == json.dumps(one, sort_keys=True)
+    r = recs[0]
+    assert r["effect"] is None and r["value"] is None
+    assert 3.0 <= r["follow_up_months"] <= 12.0 and r["plan_actual"] is False
+    p = r["perturbation"]
+    assert 500 <= p["bulk_to_shear"] <= 2000
+    assert all(0.85 <= f <= 1.15 for f in p["modulus_factors"].values())
+    assert all(0.8 <= f <= 1.2 for f in p["layer_thickness_factors"].values())
+    import yaml
+
+    info = yaml.safe_load((tmp_path / "cluster" / "synth_0021" / "case.yaml").read_text())
+    assert info["follow_up_months"] == r["follow_up_months"]

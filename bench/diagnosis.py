@@ -86,7 +86,8 @@ def _fallback_scans(root: Path, folders: list[Path], kinds: list[str], seeds: li
     return key
 
 
-def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: str) -> list[dict]:
+def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: str,
+                truth_resolution: str, workers: int) -> list[dict]:
     """Case folders with post-op scans and their key (the synth command when it can)."""
     key = []
     folders, kinds, seeds = [], [], []
@@ -96,7 +97,8 @@ def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: s
         out = root / kind
         keyfile = root / f"key_{kind}.json"
         code = main(["synth", "--out", str(out), "--count", str(count), "--seed", str(s0),
-                     "--withheld-effect", kind, "--key", str(keyfile)])
+                     "--withheld-effect", kind, "--key", str(keyfile), "--truth-resolution", truth_resolution,
+                     "--workers", str(max(workers, 1))])
         if code == 0 and keyfile.exists() and all((d / "postop" / "skin.stl").exists()
                                                    for d in sorted(out.iterdir()) if d.is_dir()):
             recs = json.loads(keyfile.read_text())
@@ -131,6 +133,8 @@ def main_bench(argv=None) -> int:
     ap.add_argument("--none", type=int, default=1, help="cases without an effect (issue target: 4)")
     ap.add_argument("--seed", type=int, default=SEED_BASE, help="first seed (used nowhere else)")
     ap.add_argument("--resolution", default="coarse", choices=("coarse", "standard", "fine"))
+    ap.add_argument("--truth-resolution", choices=("coarse", "standard", "fine"),
+                    help="mesh of the synthetic truths (default: one finer than --resolution)")
     ap.add_argument("--workers", type=int, default=2, help="LocalCluster workers (0: in process)")
     ap.add_argument("--keep", metavar="DIR", help="keep the cohort and diagnoses in DIR")
     args = ap.parse_args(argv)
@@ -143,7 +147,9 @@ def main_bench(argv=None) -> int:
     root = Path(args.keep or tmp.name)
     root.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    key = make_cohort(root, args.random, args.none, args.seed, args.resolution)
+    finer = {"coarse": "standard", "standard": "fine", "fine": "fine"}
+    key = make_cohort(root, args.random, args.none, args.seed, args.resolution,
+                      args.truth_resolution or finer[args.resolution], args.workers)
     t_cohort = time.perf_counter() - t0
     client, closing = None, []
     if args.workers > 0:

@@ -1,0 +1,502 @@
+"""Which effect explains the gap, and how far it shrinks: fitting, cross-validation, verdict.
+
+For every available effect (`planner.diagnosis.effects`) and every case: the sensitivity of the
+gap to each continuous parameter at the baseline, J = dr/dtheta, from the model's tangent
+(`planner.pipeline.skin_sensitivities`: du/dp = -K^-1 dR/dp at the converged baseline, one
+factorisation for all parameters, mapped onto the scan points by `ScanGap.linearised`), or by
+finite differences of full forward solves where the tangent is not available (central, or
+one-sided second order at a bound), and each discrete choice (a switch such as `sliding=1`)
+solved outright. Parameters the data cannot pin down
+(Fisher information, `planner.diagnosis.fit`) stay at "none". The identifiable ones are fitted
+by bounded Gauss-Newton on the linearised gap, then refined by full nonlinear solves at the
+fitted values (Levenberg-Marquardt style: a step that does not lower the weighted residual is
+halved; the Jacobian follows by Broyden updates), at most `MAX_REFINEMENTS` solves per case.
+
+Effects are ranked by held-out shrinkage of the RMS gap: with one case, spatial
+cross-validation over the face regions (each region's gap predicted by the parameters fitted on
+all other regions); with several cases, parameters shared by every patient (stiffness, posture)
+are fitted leaving each case out in turn and case-specific ones per case with spatial
+cross-validation. The held-out prediction uses the local model about the refined fit,
+r(theta) = r* + J* (theta - theta*). An effect is `significant` when its BIC beats the
+baseline's by strong evidence (`fit.STRONG_EVIDENCE`) and it removes at least
+`MIN_HELDOUT_SHRINK_PCT` of the held-out gap. When the best effect (significant or not: two
+effects can act together where neither does alone) leaves a significant gap, pairs with it are
+tried greedily. The verdict is the best significant effect (or pair, when the pair is itself
+significant and, if a single effect is, strongly better than it and shrinks the held-out gap
+further), null when no region's gap exceeds the noise floor, or "unexplained"
+when a significant gap remains that no effect reduces significantly; its confidence is the
+BIC model probability among the baseline and every effect compared.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from planner.diagnosis import fit
+from planner.diagnosis.effects import Effect, Parameter, effect_strings
+
+__all__ = ["CaseData", "Candidate", "analyse", "MIN_HELDOUT_SHRINK_PCT", "MAX_REFINEMENTS"]
+
+# An effect must remove at least this share of the held-out gap to be named: a smaller gain is
+# within what a wrong effect recovers from a model-form error by accident.
+MIN_HELDOUT_SHRINK_PCT = 25.0
+# A pair is named only if it removes this many more percentage points than its best member.
+MIN_PAIR_GAIN_PCT = 10.0
+MAX_REFINEMENTS = 2
+PAIR_PARTNERS = 2              # pairs are tried with the best effect and the next best two
+N_BOOTSTRAP = 200
+
+
+@dataclass
+class CaseData:
+    case: object                  # forward.CaseModel
+    gap: object                   # gap.ScanGap
+    r0: np.ndarray                # baseline gap on the fixed scan points
+
+    @property
+    def folds(self) -> dict[str, np.ndarray]:
+        return self.gap.region_masks()
+
+
+@dataclass
+class Candidate:
+    """One effect, or a pair, fitted to every case."""
+
+    name: str
+    effects: tuple[Effect, ...]
+    shared: bool
+    n_cases: int
+    params: tuple[Parameter, ...] = ()
+    choices: list = field(default_factory=list)        # per case: (key, value) pairs fixed
+    theta: list = field(default_factory=list)          # per case fitted coordinates
+    anchor_r: list = field(default_factory=list)       # per case r at the anchor
+    J: list = field(default_factory=list)              # per case dr/dtheta
+    free: np.ndarray | None = None
+    se: np.ndarray | None = None
+    failed: str | None = None
+    sensitivity: str = "finite differences"
+    solves: int = 0
+
+    @property
+    def lower(self):
+        return np.array([p.bounds[0] for p in self.params])
+
+    @property
+    def upper(self):
+        return np.array([p.bounds[1] for p in self.params])
+
+    @property
+    def origin(self):
+        return np.array([p.origin for p in self.params])
+
+    def values(self, c: int, theta: np.ndarray | None = None) -> dict:
+        theta = self.theta[c] if theta is None else theta
+        out = dict(self.choices[c]) if self.choices else {}
+        for p, t in zip(self.params, theta):
+            v = p.value(t)
+            if not np.isclose(v, p.none, rtol=0, atol=1e-9):
+                out[p.key] = round(v, 6)
+        return out
+
+    def strings(self, c: int, theta: np.ndarray | None = None) -> tuple[str, ...]:
+        return effect_strings(self.values(c, theta))
+
+
+def _rss(d: CaseData, r: np.ndarray, mask=None) -> float:
+    w = d.gap.weights if mask is None else d.gap.weights[mask]
+    r = r if mask is None else r[mask]
+    return float(np.sum(w * r * r))
+
+
+def _ok(skin) -> bool:
+    return not isinstance(skin, str)
+
+
+# --------------------------------------------------------------------------- sensitivities
+
+def _fd_params(e: Effect, tangent_c) -> list[int]:
+    """Indices of the effect's parameters that need finite differences in one case."""
+    have = tangent_c if isinstance(tangent_c, dict) else {}
+    return [k for k, p in enumerate(e.parameters) if p.key not in have]
+
+
+def _fd_points(e: Effect, ks: list[int]):
+    theta0 = e.origin
+    pts = fit.finite_difference_points(theta0, np.array([p.step for p in e.parameters]),
+                                       np.array([p.bounds[0] for p in e.parameters]),
+                                       np.array([p.bounds[1] for p in e.parameters]))
+    return [pt for pt in pts if pt[0] in ks]
+
+
+def _sensitivity_requests(data: list[CaseData], effects: list[Effect], tangent: list) -> list:
+    reqs = []
+    for e in effects:
+        for c in range(len(data)):
+            for k, a, b in _fd_points(e, _fd_params(e, tangent[c])):
+                for off in (a, b):
+                    t = e.origin.copy()
+                    t[k] += off
+                    reqs.append((c, effect_strings(e.values(t))))
+            for choice in e.choices:
+                reqs.append((c, effect_strings(dict(choice))))
+    return reqs
+
+
+def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -> Candidate:
+    """The effect's anchors and Jacobians: the tangent sensitivities where given, else the
+    finite-difference solves of `_sensitivity_requests`."""
+    n = len(data)
+    cand = Candidate(e.name, (e,), e.shared and n > 1, n, e.parameters)
+    methods = set()
+    for c, d in enumerate(data):
+        anchor = d.r0
+        choice = ()
+        if e.choices:       # the best switch position for this case (the whole-face fit)
+            best = None
+            for ch in e.choices:
+                skin = forward.solve([(c, effect_strings(dict(ch)))])[0]
+                cand.solves += 1
+                if not _ok(skin):
+                    continue
+                r = d.gap.distances(skin)
+                if best is None or _rss(d, r) < best[0]:
+                    best = (_rss(d, r), ch, r)
+            if best is None:
+                cand.failed = f"case {d.case.name}: every choice failed to solve"
+                return cand
+            _, choice, anchor = best
+        cand.choices.append(tuple(choice))
+        cand.anchor_r.append(anchor)
+        J = np.zeros((len(d.r0), len(e.parameters)))
+        fd = _fd_params(e, tangent[c])
+        skin0 = forward.baseline(c)
+        for k, p in enumerate(e.parameters):
+            if k not in fd:
+                # d r / d theta = d r / d value * d value / d theta (value = exp(theta) for factors)
+                J[:, k] = d.gap.linearised(skin0, tangent[c][p.key]) * (p.none if p.log else 1.0)
+                methods.add("tangent")
+        for k, a, b in _fd_points(e, fd):
+            rs = []
+            for off in (a, b):
+                t = e.origin.copy()
+                t[k] += off
+                skin = forward.solve([(c, effect_strings(e.values(t)))])[0]
+                cand.solves += 1
+                if not _ok(skin):
+                    cand.failed = f"case {d.case.name}: {e.parameters[k].key} at {e.parameters[k].value(t[k]):.4g} failed: {skin}"
+                    return cand
+                rs.append(d.gap.distances(skin))
+            J[:, k] = fit.finite_difference_jacobian(d.r0, [(a, b, rs[0], rs[1])])[:, 0]
+            methods.add("finite differences")
+        cand.J.append(J)
+        cand.theta.append(cand.origin.copy())
+    cand.sensitivity = " and ".join(sorted(methods)) if methods else "none (discrete choices)"
+    return cand
+
+
+# --------------------------------------------------------------------------- fitting
+
+def _identify(cand: Candidate, data: list[CaseData]) -> None:
+    """Standard errors and the free (identifiable) parameters: the least determined parameter
+    (largest standard error relative to its range) is fixed at "none" until every remaining
+    one is pinned to `fit.IDENTIFIABLE_FRACTION` of its range. Under displacement-only loading
+    this leaves out one stiffness layer (the uniform direction) and fits the others relative
+    to it."""
+    k = len(cand.params)
+    if k == 0:
+        cand.free = np.zeros(0, bool)
+        cand.se = np.zeros(0)
+        return
+    rng = cand.upper - cand.lower
+
+    def errors(free):
+        sub = np.zeros(k)
+        sub[:] = np.inf
+        if not free.any():
+            return sub
+        if cand.shared:
+            J = np.concatenate([Jc[:, free] for Jc in cand.J])
+            w = np.concatenate([d.gap.weights for d in data])
+            sigma = max(d.gap.noise_floor_mm for d in data)
+            sub[free] = fit.standard_errors(J, w, sigma, sum(d.gap.n_eff() for d in data))
+        else:
+            sub[free] = np.max([fit.standard_errors(cand.J[c][:, free], d.gap.weights, d.gap.noise_floor_mm,
+                                                    d.gap.n_eff()) for c, d in enumerate(data)], axis=0)
+        return sub
+
+    free = np.ones(k, bool)
+    se = errors(free)
+    while free.any():
+        rel = np.where(free, se / rng, -np.inf)
+        worst = int(np.argmax(rel))
+        if rel[worst] <= fit.IDENTIFIABLE_FRACTION:
+            break
+        free[worst] = False
+        se_new = errors(free)
+        se = np.where(free, se_new, se)
+    cand.se = se
+    cand.free = free
+
+
+def _fit_theta(cand: Candidate, data: list[CaseData], cases: list[int], masks=None) -> np.ndarray:
+    """Linearised bounded fit about the anchors over `cases` (shared parameters) or of one case."""
+    theta_a = cand.theta[cases[0]]
+    if not cand.free.any():
+        return theta_a.copy()
+    if masks is None:
+        masks = [None] * len(cases)
+    r = np.concatenate([cand.anchor_r[c] if m is None else cand.anchor_r[c][m] for c, m in zip(cases, masks)])
+    J = np.concatenate([cand.J[c] if m is None else cand.J[c][m] for c, m in zip(cases, masks)])
+    w = np.concatenate([data[c].gap.weights if m is None else data[c].gap.weights[m] for c, m in zip(cases, masks)])
+    return fit.linear_fit(r, J, w, theta_a, cand.lower, cand.upper, cand.free, fixed_value=cand.origin)
+
+
+def _groups(cand: Candidate) -> list[list[int]]:
+    return [list(range(cand.n_cases))] if cand.shared else [[c] for c in range(cand.n_cases)]
+
+
+def refine(cands: list[Candidate], data: list[CaseData], forward) -> None:
+    """Bounded Gauss-Newton steps with full solves, all candidates' solves batched together."""
+    for c in cands:
+        if c.failed is None:
+            _identify(c, data)
+    active = [c for c in cands if c.failed is None and c.free is not None and c.free.any()]
+    for _ in range(MAX_REFINEMENTS):
+        proposals = []
+        for cand in active:
+            for g in _groups(cand):
+                new = _fit_theta(cand, data, g)
+                rng = cand.upper - cand.lower
+                if np.all(np.abs(new - cand.theta[g[0]]) <= 0.02 * rng):
+                    continue
+                proposals.append((cand, g, new))
+        if not proposals:
+            break
+        reqs = [(c, cand.strings(c, new)) for cand, g, new in proposals for c in g]
+        skins = iter(forward.solve(reqs))
+        for cand, g, new in proposals:
+            results = [next(skins) for _ in g]
+            cand.solves += len(g)
+            if not all(_ok(s) for s in results):
+                continue            # that value cannot be solved: keep the anchor
+            rs = [data[c].gap.distances(s) for c, s in zip(g, results)]
+            old = sum(_rss(data[c], cand.anchor_r[c]) for c in g)
+            newrss = sum(_rss(data[c], r) for c, r in zip(g, rs))
+            for c, r in zip(g, rs):
+                dtheta = new - cand.theta[c]
+                cand.J[c] = fit.broyden(cand.J[c], dtheta, r - cand.anchor_r[c])
+                if newrss < old:
+                    cand.theta[c] = new.copy()
+                    cand.anchor_r[c] = r
+
+
+# --------------------------------------------------------------------------- held-out
+
+def heldout_residuals(cand: Candidate, data: list[CaseData]) -> list[np.ndarray]:
+    """Per case the gap predicted for data not used in the fit (see the module text)."""
+    out = []
+    n = cand.n_cases
+    for c, d in enumerate(data):
+        r_ho = np.array(cand.anchor_r[c], float)
+        if cand.free is None or not cand.free.any():
+            out.append(r_ho)
+            continue
+        if cand.shared and n > 1:
+            others = [o for o in range(n) if o != c]
+            th = _fit_theta(cand, data, others)
+            r_ho = cand.anchor_r[c] + cand.J[c] @ (th - cand.theta[c])
+        else:
+            for name, m in d.folds.items():
+                th = _fit_theta(cand, data, [c], [~m])
+                r_ho[m] = cand.anchor_r[c][m] + cand.J[c][m] @ (th - cand.theta[c])
+        out.append(r_ho)
+    return out
+
+
+def _pooled_rms(data, rs, masks=None) -> float:
+    num = den = 0.0
+    for k, (d, r) in enumerate(zip(data, rs)):
+        m = None if masks is None else masks[k]
+        w = d.gap.weights if m is None else d.gap.weights[m]
+        rr = r if m is None else r[m]
+        num += float(np.sum(w * rr * rr))
+        den += float(np.sum(w))
+    return float(np.sqrt(num / max(den, 1e-300)))
+
+
+def _fold_units(data) -> list[tuple[int, np.ndarray]]:
+    units = []
+    for c, d in enumerate(data):
+        folds = d.folds or {"all": np.ones(len(d.r0), bool)}
+        units.extend((c, m) for m in folds.values())
+    return units
+
+
+def shrink_spread(data, r0s, rhos, seed: int = 0) -> float:
+    """Bootstrap standard deviation (percentage points) of the held-out shrinkage over the
+    cross-validation units (regions of every case)."""
+    units = _fold_units(data)
+    if len(units) < 2:
+        return 0.0
+    num0 = np.array([_rss(data[c], r0s[c], m) for c, m in units])
+    num1 = np.array([_rss(data[c], rhos[c], m) for c, m in units])
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(units), size=(N_BOOTSTRAP, len(units)))
+    s0, s1 = num0[idx].sum(axis=1), num1[idx].sum(axis=1)
+    shrink = 100.0 * (1.0 - np.sqrt(s1 / np.maximum(s0, 1e-300)))
+    return float(np.std(shrink))
+
+
+# --------------------------------------------------------------------------- summary
+
+@dataclass
+class Scored:
+    cand: Candidate
+    rms_after: float
+    heldout_rms: float
+    shrink_pct: float
+    heldout_shrink_pct: float
+    spread_pct: float
+    bic: float
+    identifiable: bool
+    heldout: list
+    fitted: list
+    significant: bool = False
+    probability: float = 0.0
+
+
+def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> Scored:
+    fitted = [np.asarray(r) for r in cand.anchor_r]
+    heldout = heldout_residuals(cand, data)
+    rms_after = _pooled_rms(data, fitted)
+    rms_ho = _pooled_rms(data, heldout)
+    W = sum(float(d.gap.weights.sum()) for d in data)
+    rss = sum(_rss(d, r) for d, r in zip(data, fitted))
+    n_free = int(cand.free.sum()) if cand.free is not None else 0
+    k = n_free * (1 if cand.shared else cand.n_cases)
+    k += sum(1 for e in cand.effects if e.choices) * cand.n_cases
+    identifiable = bool(n_free > 0 or any(e.choices for e in cand.effects))
+    if any(e.choices for e in cand.effects) and not n_free:
+        # a switch is identifiable when turning it on moves the gap above the noise
+        change = _pooled_rms(data, [a - d.r0 for a, d in zip(cand.anchor_r, data)])
+        sigma = max(d.gap.noise_floor_mm for d in data)
+        identifiable = bool(change * np.sqrt(n_eff) > 3.0 * sigma)
+    return Scored(cand, rms_after, rms_ho, 100.0 * (1 - rms_after / max(rms0, 1e-12)),
+                  100.0 * (1 - rms_ho / max(rms0, 1e-12)),
+                  shrink_spread(data, [d.r0 for d in data], heldout),
+                  fit.bic(rss, W, n_eff, k), identifiable, heldout, fitted)
+
+
+def _pair(a: Candidate, b: Candidate, data: list[CaseData]) -> Candidate:
+    """a+b: b's continuous parameters added to a's, the anchors at a's fit."""
+    n = len(data)
+    cand = Candidate(f"{a.name}+{b.name}", a.effects + b.effects, a.shared and b.shared and n > 1, n,
+                     a.params + b.params)
+    for c in range(n):
+        cand.choices.append(tuple(a.choices[c] if a.choices else ()) + tuple(b.choices[c] if b.choices else ()))
+        cand.theta.append(np.concatenate([a.theta[c], b.origin]))
+        cand.J.append(np.concatenate([a.J[c], b.J[c]], axis=1))
+        cand.anchor_r.append(a.anchor_r[c])
+    cand.sensitivity = a.sensitivity
+    return cand
+
+
+def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: None,
+            tangent: bool = True) -> dict:
+    """Fit, rank and judge every effect; returns the pieces of diagnosis.json. `tangent`:
+    use the model's tangent sensitivities where it gives them (else finite differences)."""
+    n_eff = sum(d.gap.n_eff() for d in data)
+    W = sum(float(d.gap.weights.sum()) for d in data)
+    rms0 = _pooled_rms(data, [d.r0 for d in data])
+    bic0 = fit.bic(sum(_rss(d, d.r0) for d in data), W, n_eff, 0)
+    names = tuple(p.key for e in effects for p in e.parameters)
+    sens = [None] * len(data)
+    notes = []
+    if tangent and names:
+        say(f"tangent sensitivities of {len(names)} parameter(s) at the baseline")
+        for c, (_, s) in enumerate(forward.sensitivities([names] * len(data))):
+            sens[c] = s
+            if not isinstance(s, dict):
+                notes.append(f"{data[c].case.name}: {s}; finite differences instead")
+                say(f"  {notes[-1]}")
+    reqs = _sensitivity_requests(data, effects, sens)
+    say(f"{len(set(reqs))} solve(s) for finite differences and discrete choices")
+    forward.solve(reqs)                                             # one parallel batch
+    cands = [_single_candidate(e, data, forward, sens) for e in effects]
+    say("fitting and refining with full nonlinear solves")
+    refine(cands, data, forward)
+    scored = [score(c, data, rms0, n_eff) for c in cands if c.failed is None]
+    failed = [c for c in cands if c.failed is not None]
+    _judge(scored, bic0)
+    ranked = sorted([s for s in scored if s.identifiable], key=lambda s: -s.heldout_shrink_pct)
+    # the gap left by the best effect: pairs when it is still significant somewhere
+    sig_before = any(_significant_regions(data, [d.r0 for d in data]))
+    pairs = []
+    best = next((s for s in ranked if s.significant), None)
+    # the greedy step starts from the best effect even when it is not significant alone: two
+    # effects can interact (tone with sliding tissue moves the chin as neither does alone)
+    lead = best or (ranked[0] if ranked else None)
+    if sig_before and lead is not None and _significant_regions(data, lead.heldout):
+        partners = [s for s in ranked if s is not lead and not set(e.name for e in s.cand.effects)
+                    & set(e.name for e in lead.cand.effects)][:PAIR_PARTNERS]
+        if partners:
+            say(f"{lead.cand.name} leaves a significant gap: trying pairs with "
+                + ", ".join(p.cand.name for p in partners))
+            pair_cands = [_pair(lead.cand, p.cand, data) for p in partners]
+            refine(pair_cands, data, forward)
+            pairs = [score(c, data, rms0, n_eff) for c in pair_cands]
+            _judge(pairs, bic0)
+    models = {"baseline": bic0, **{s.cand.name: s.bic for s in scored + pairs}}
+    prob = fit.model_probabilities(models)
+    for s in scored + pairs:
+        s.probability = prob[s.cand.name]
+    verdict = _verdict(data, best, pairs, prob)
+    return {"rms0": rms0, "bic0": bic0, "n_eff": n_eff, "scored": scored, "pairs": pairs, "notes": notes,
+            "failed": failed, "verdict": verdict, "probabilities": prob, "best": best,
+            "winner": verdict.get("_scored")}
+
+
+def _judge(scored: list[Scored], bic0: float) -> None:
+    for s in scored:
+        s.significant = bool(s.identifiable and bic0 - s.bic >= fit.STRONG_EVIDENCE
+                             and s.heldout_shrink_pct >= MIN_HELDOUT_SHRINK_PCT)
+
+
+def _significant_regions(data: list[CaseData], rs: list[np.ndarray]) -> list[str]:
+    out = []
+    for d, r in zip(data, rs):
+        for name, m in d.folds.items():
+            if d.gap.significant(d.gap.rms(r, m), m) and name not in out:
+                out.append(name)
+    return out
+
+
+def _explained_regions(data, before, after) -> list[str]:
+    """Significant regions whose held-out gap the effect shrinks by the named share."""
+    out = []
+    for d, r0, r1 in zip(data, before, after):
+        for name, m in d.folds.items():
+            a, b = d.gap.rms(r0, m), d.gap.rms(r1, m)
+            if d.gap.significant(a, m) and b <= a * (1 - MIN_HELDOUT_SHRINK_PCT / 100) and name not in out:
+                out.append(name)
+    return out
+
+
+def _verdict(data, best, pairs, prob) -> dict:
+    r0s = [d.r0 for d in data]
+    sig = _significant_regions(data, r0s)
+    if not sig:
+        return {"effect": None, "confidence": round(prob["baseline"], 4), "regions": []}
+    winner = best
+    for p in sorted(pairs, key=lambda s: -s.heldout_shrink_pct):
+        if p.significant and (best is None or (best.bic - p.bic >= fit.STRONG_EVIDENCE and p.heldout_shrink_pct
+                                               >= best.heldout_shrink_pct + MIN_PAIR_GAIN_PCT)):
+            winner = p
+            break
+    if winner is None:
+        return {"effect": "unexplained", "confidence": round(prob["baseline"], 4), "regions": sig}
+    return {"effect": winner.cand.name, "confidence": round(prob[winner.cand.name], 4),
+            "regions": _explained_regions(data, r0s, winner.heldout) or sig,
+            "remaining_significant_regions": _significant_regions(data, winner.heldout),
+            "_scored": winner}

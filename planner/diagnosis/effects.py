@@ -1,0 +1,206 @@
+"""The effects a diagnosis can test, as named parameters with bounds and a "none" value.
+
+Each effect of the contract (`sliding`, `muscle_tone`, `swelling`, `gravity`, `stiffness`,
+`bone_execution`) is described once: its continuous parameters (the `--effect` name, the value
+that gives exactly the baseline, plausible bounds, whether the fit works on the logarithm, the
+finite-difference step) or its discrete choices (a switch such as `sliding=1`), and whether its
+value is shared by every patient (a material property, the posture) or belongs to one case (a
+surgical execution). The forward model of the diagnosis turns parameter values into the
+`NAME=VALUE` strings of `faceplan predict --effect` and parses them with the pipeline's own
+parser, so an effect plugs in as soon as the pipeline accepts it: `available_effects()` offers
+only those that `planner.pipeline.parse_effects` takes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from planner.errors import InputError
+
+__all__ = ["Parameter", "Effect", "EFFECT_LIBRARY", "available_effects", "effect_strings"]
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One continuous parameter: `key` is the `--effect` name (`stiffness.dermis`)."""
+
+    key: str
+    none: float
+    lower: float
+    upper: float
+    step: float                 # finite-difference step in the fit coordinate
+    log: bool = False           # the fit coordinate is log(value) (factors)
+    unit: str = ""
+
+    def coordinate(self, value: float) -> float:
+        return float(np.log(value)) if self.log else float(value)
+
+    def value(self, coordinate: float) -> float:
+        return float(np.exp(coordinate)) if self.log else float(coordinate)
+
+    @property
+    def bounds(self) -> tuple[float, float]:
+        return self.coordinate(self.lower), self.coordinate(self.upper)
+
+    @property
+    def origin(self) -> float:
+        return self.coordinate(self.none)
+
+
+@dataclass(frozen=True)
+class Effect:
+    """An effect: continuous `parameters` fitted to the gap, or discrete `choices` (each a
+    mapping `--effect` name -> value) of which the best is taken."""
+
+    name: str
+    parameters: tuple[Parameter, ...] = ()
+    choices: tuple[tuple[tuple[str, object], ...], ...] = ()
+    shared: bool = False        # one value for every patient (left-one-case-out in a cohort)
+    description: str = ""
+
+    @property
+    def n_parameters(self) -> int:
+        return len(self.parameters) if self.parameters else (1 if self.choices else 0)
+
+    def values(self, theta: np.ndarray) -> dict[str, float]:
+        """Fit coordinates -> {key: value} (parameters at their "none" value are left out)."""
+        out = {}
+        for p, t in zip(self.parameters, np.asarray(theta, float)):
+            v = p.value(t)
+            if not np.isclose(v, p.none, rtol=0, atol=1e-12):
+                out[p.key] = round(v, 10)
+        return out
+
+    @property
+    def origin(self) -> np.ndarray:
+        return np.array([p.origin for p in self.parameters], float)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(f"{float(x):.10g}" for x in v) + "]"
+    if isinstance(v, (float, np.floating)):
+        return f"{float(v):.10g}"
+    return str(v)
+
+
+def effect_strings(values: dict) -> tuple[str, ...]:
+    """{key: value} -> sorted `NAME=VALUE` strings as `faceplan predict --effect` takes them."""
+    return tuple(sorted(f"{k}={_fmt(v)}" for k, v in collect_effects(values).items()))
+
+
+STIFFNESS_LAYERS = ("dermis", "hypodermis", "muscle", "mucosa", "nose")
+BONE_DOF = ("tx", "ty", "tz", "rx", "ry", "rz")
+MOVED_SEGMENTS = ("maxilla", "mandible", "chin")
+
+# Bounds are the plausible ranges of the effects' published values (see docs/diagnosis.md):
+# resting perioral tone up to a third of maximal activation; tissue stiffness within a factor
+# three of the generic values; residual swelling up to 30 % volumetric growth at the operated
+# bone; the posture change from supine to upright up to 1.5 times gravity's full effect.
+EFFECT_LIBRARY: tuple[Effect, ...] = (
+    Effect("sliding", choices=(), shared=False,
+           description="soft tissue slides on the moved bone instead of being tied to it"),
+    Effect("muscle_tone", (Parameter("muscle_tone", 0.0, 0.0, 0.35, 0.05, unit="activation"),),
+           shared=False, description="resting activation of the perioral muscles"),
+    Effect("swelling", (Parameter("swelling", 1.0, 1.0, 1.3, 0.03, unit="volume ratio"),),
+           shared=False, description="residual post-operative oedema (volumetric growth)"),
+    Effect("gravity", (Parameter("gravity", 0.0, 0.0, 1.5, 0.25, unit="posture factor"),),
+           shared=True, description="supine CT versus upright scan"),
+    Effect("stiffness", (), shared=True,
+           description="tissue stiffer or softer than the generic values"),
+    Effect("bone_execution", (), shared=False, description="bones moved other than planned"),
+)
+
+
+def _accepted(strings: list[str]) -> bool:
+    from planner.pipeline import parse_effects
+
+    try:
+        parse_effects(strings)
+    except InputError:
+        return False
+    return True
+
+
+def _stiffness(layers: bool = True) -> Effect | None:
+    """Per-layer factors where the pipeline takes them (`layers`), else the uniform factor.
+    The uniform factor is the direction along which every layer changes together: under
+    displacement-only loading the data cannot see it, so one layer is left at "none" by the
+    identifiability selection and the others are fitted relative to it."""
+    base = next(e for e in EFFECT_LIBRARY if e.name == "stiffness")
+    found = tuple(Parameter(f"stiffness.{layer}", 1.0, 1 / 3, 3.0, 0.2, log=True, unit="factor")
+                  for layer in STIFFNESS_LAYERS if layers and _accepted([f"stiffness.{layer}=1.5"]))
+    if found:
+        return Effect("stiffness", found, shared=True, description=base.description)
+    if _accepted(["stiffness=1.5"]):
+        return Effect("stiffness", (Parameter("stiffness", 1.0, 1 / 3, 3.0, 0.2, log=True, unit="factor"),),
+                      shared=True, description=base.description)
+    return None
+
+
+def _sliding(moved: tuple[str, ...]) -> Effect | None:
+    base = next(e for e in EFFECT_LIBRARY if e.name == "sliding")
+    choices = []
+    if _accepted(["sliding=1"]):
+        choices.append((("sliding", 1),))
+    for seg in moved if len(moved) > 1 else ():       # one moved segment: the same as sliding=1
+        if _accepted([f"sliding={seg}"]):
+            choices.append((("sliding", seg),))
+    return Effect("sliding", choices=tuple(choices), shared=False, description=base.description) if choices else None
+
+
+def _bone_execution(moved: tuple[str, ...], plan_actual: bool = False) -> Effect | None:
+    """Rigid corrections per moved segment: the three translations (mm) and three rotations
+    (degrees, about the segment's centroid) of `bone_execution.SEGMENT=[tx, ty, tz, rx, ry,
+    rz]`; with a `postop/plan_actual.yaml`, the achieved movements are a choice too."""
+    params = []
+    for seg in moved:
+        if not _accepted([f"bone_execution.{seg}=[0.5, 0, 0, 0, 0, 0]"]):
+            continue
+        for i, dof in enumerate(BONE_DOF):
+            params.append(Parameter(f"bone_execution.{seg}.{dof}", 0.0, -3.0 if i < 3 else -4.0,
+                                    3.0 if i < 3 else 4.0, 0.5, unit="mm" if i < 3 else "deg"))
+    choices = ((), (("bone_execution", 1),)) if plan_actual and _accepted(["bone_execution=1"]) else ()
+    if not params and not choices:
+        return None
+    return Effect("bone_execution", tuple(params), choices=choices, shared=False,
+                  description="bones moved other than planned")
+
+
+def available_effects(moved_segments: tuple[str, ...] = MOVED_SEGMENTS,
+                      names: tuple[str, ...] | None = None, *, plan_actual: bool = False,
+                      stiffness_layers: bool = True) -> list[Effect]:
+    """The effects the pipeline can add to a prediction today (in the contract's order)."""
+    out = []
+    for e in EFFECT_LIBRARY:
+        if names is not None and e.name not in names:
+            continue
+        if e.name == "sliding":
+            spec = _sliding(moved_segments)
+        elif e.name == "stiffness":
+            spec = _stiffness(stiffness_layers)
+        elif e.name == "bone_execution":
+            spec = _bone_execution(moved_segments, plan_actual)
+        else:
+            p = e.parameters[0]
+            spec = e if _accepted([f"{p.key}={_fmt(p.value(p.origin + p.step))}"]) else None
+        if spec is not None:
+            out.append(spec)
+    return out
+
+
+def collect_effects(values: dict) -> dict:
+    """{key: value} with the flat bone-correction keys (`bone_execution.maxilla.tz`) gathered
+    into the vectors `--effect bone_execution.maxilla=[tx, ty, tz, rx, ry, rz]` takes."""
+    out: dict = {}
+    vectors: dict[str, list] = {}
+    for k, v in values.items():
+        parts = k.split(".")
+        if parts[0] == "bone_execution" and len(parts) == 3:
+            vectors.setdefault(f"bone_execution.{parts[1]}", [0.0] * 6)[BONE_DOF.index(parts[2])] = float(v)
+        else:
+            out[k] = v
+    for k, vec in vectors.items():
+        out[k] = [round(x, 10) for x in vec]
+    return out

@@ -1,0 +1,222 @@
+"""The forward model of the diagnosis: a case and effect values -> the predicted skin.
+
+One forward solve is `planner.pipeline.solve_plan` on the case's registered patient model with
+the effects given as the `NAME=VALUE` strings of `faceplan predict --effect`, reduced to the
+skin surface's vertex positions. Solves are independent tasks: a `Runner` sends them to a
+dask.distributed cluster (the patient models are scattered to the workers once) or runs them
+in this process, and a `Forward` keeps every result by (case, effects) so that no solve is ever
+repeated (the baseline of a case, its finite-difference points and the fitted values are each
+solved once, whatever asks for them). A solve that fails (`SolveError`) is reported as such
+and the caller treats that parameter value as unreachable.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from planner.errors import InputError, SolveError
+
+__all__ = ["CaseModel", "Runner", "Forward", "solve_skin", "prepare_case"]
+
+
+@dataclass
+class CaseModel:
+    """What a forward solve needs (picklable: sent to the workers)."""
+
+    name: str
+    model: object                   # registered FaceModel with the patient's segment sets
+    plan: object                    # planner.plan.Plan
+    bones: dict                     # segment -> (vertices, faces) of its bone surface
+    skin_ids: np.ndarray            # model node ids of the skin vertices
+    skin_faces: np.ndarray          # (t, 3) triangles over the skin vertices
+    region: np.ndarray              # (n_skin,) region index, -1 for none
+    region_names: tuple[str, ...]
+    unoperated: tuple[str, ...]
+    landmark_ids: dict = field(default_factory=dict)   # name -> node id
+    plan_actual: object = None      # the achieved movements (postop/plan_actual.yaml)
+    follow_up_months: float | None = None
+
+    @property
+    def moved_segments(self) -> tuple[str, ...]:
+        return tuple(self.plan.motions())
+
+
+def prepare_case(name: str, model, plan, bones: dict | None, plan_actual=None,
+                 follow_up_months: float | None = None) -> CaseModel:
+    """The patient model with its attachment sets assigned to the case's bones (kept as they
+    are without bones), and the skin."""
+    from planner.pipeline import region_of_nodes, skin_surface
+    from planner.segments import assign_segments, with_segments
+
+    if bones:
+        model = with_segments(model, assign_segments(model, bones, plan))
+    _, faces, ids = skin_surface(model)
+    region, names = region_of_nodes(model, ids)
+    # plain arrays travel to the workers (an unpickled trimesh keeps stale caches)
+    arrays = {k: (np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)) for k, m in (bones or {}).items()}
+    return CaseModel(name, model, plan, arrays, ids, faces, region, tuple(names),
+                     tuple(getattr(model, "unoperated_regions", ())),
+                     {k: int(v) for k, v in getattr(model, "landmarks", {}).items()},
+                     plan_actual, follow_up_months)
+
+
+def _solve(case: CaseModel, strings: tuple[str, ...]):
+    from planner.pipeline import Progress, parse_effects, solve_plan
+
+    import trimesh
+
+    # the bones give the segment centroids that bone corrections turn about (the attachment
+    # sets are re-assigned to the same result)
+    bones = {k: trimesh.Trimesh(v, f, process=False) for k, (v, f) in case.bones.items()}
+    return solve_plan(case.model, case.plan, bones or None, effects=parse_effects(list(strings)),
+                      plan_actual=case.plan_actual, follow_up_months=case.follow_up_months,
+                      progress=Progress(echo=False))
+
+
+def solve_skin(case: CaseModel, strings: tuple[str, ...]):
+    """Skin vertex positions (n_skin, 3) of the prediction with the effects `strings`, or the
+    error message (str) when the model cannot be solved there."""
+    try:
+        pred = _solve(case, strings)
+    except SolveError as exc:
+        return f"{exc}"
+    return np.asarray(pred.predicted_nodes, float)[case.skin_ids]
+
+
+def solve_with_sensitivities(case: CaseModel, names: tuple[str, ...]):
+    """(baseline skin, {parameter: d(skin vertex positions)/dp (n_skin, 3)} or the reason
+    they are not available): the direct differentiation at the converged baseline
+    (`planner.pipeline.skin_sensitivities`, one factorisation for every parameter)."""
+    try:
+        pred = _solve(case, ())
+    except SolveError as exc:
+        return f"{exc}", None
+    skin = np.asarray(pred.predicted_nodes, float)[case.skin_ids]
+    try:
+        from planner.pipeline import skin_sensitivities
+    except ImportError:
+        return skin, "the pipeline gives no sensitivities"
+    try:
+        ids, sens = skin_sensitivities(pred, list(names))
+    except (ValueError, KeyError, ArithmeticError, RuntimeError) as exc:
+        return skin, f"sensitivities not available: {exc}"
+    if not np.array_equal(np.asarray(ids), np.asarray(case.skin_ids)):
+        return skin, "sensitivities on another skin vertex set"
+    return skin, {k: np.asarray(v, float) for k, v in sens.items()}
+
+
+def _solve_task(case: CaseModel, request):
+    """A request is effect strings (a solve) or ("sensitivities", names)."""
+    import os
+
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    if request and request[0] == SENSITIVITIES:
+        return solve_with_sensitivities(case, tuple(request[1]))
+    return solve_skin(case, request)
+
+
+SENSITIVITIES = "sensitivities"
+
+
+class Runner:
+    """Runs independent solves: on a dask.distributed `client`, or here when it is None."""
+
+    def __init__(self, client=None):
+        self.client = client
+        self._scattered: dict[int, object] = {}
+
+    @property
+    def n_workers(self) -> int:
+        if self.client is None:
+            return 1
+        return max(1, len(self.client.scheduler_info().get("workers", {})))
+
+    def map(self, cases: list[CaseModel], requests: list[tuple[int, tuple[str, ...]]],
+            on_done: Callable[[int], None] | None = None) -> list:
+        if self.client is None:
+            out = []
+            for k, (i, s) in enumerate(requests):
+                out.append(_solve_task(cases[i], s))
+                if on_done:
+                    on_done(k)
+            return out
+        from distributed import as_completed
+
+        futures = []
+        for i, s in requests:
+            if id(cases[i]) not in self._scattered:
+                self._scattered[id(cases[i])] = self.client.scatter(cases[i], broadcast=True)
+            futures.append(self.client.submit(_solve_task, self._scattered[id(cases[i])], s, pure=False))
+        index = {f.key: k for k, f in enumerate(futures)}
+        for f in as_completed(futures):
+            if on_done:
+                on_done(index[f.key])
+        return self.client.gather(futures)
+
+
+class Forward:
+    """Predicted skins by (case, effects), each solved once."""
+
+    def __init__(self, cases: list[CaseModel], runner: Runner | None = None,
+                 say: Callable[[str], None] | None = None):
+        self.cases = cases
+        self.runner = runner or Runner()
+        self.say = say or (lambda s: None)
+        self._store: dict[tuple[int, tuple[str, ...]], object] = {}
+        self.n_solves = 0
+        self.solve_time_s = 0.0
+
+    def _key(self, r):
+        # by the case object: the same patient listed twice is solved once
+        return (id(self.cases[r[0]]), r[1])
+
+    def solve(self, requests: list[tuple[int, tuple[str, ...]]]) -> list:
+        """Skins (or error messages) for (case index, effect strings) requests."""
+        todo, seen = [], set()
+        for r in requests:
+            if self._key(r) not in self._store and self._key(r) not in seen:
+                seen.add(self._key(r))
+                todo.append(r)
+        if todo:
+            t0 = time.perf_counter()
+            self.say(f"  {len(todo)} forward solve(s) on {self.runner.n_workers} worker(s) ...")
+
+            def done(k):
+                i, s = todo[k]
+                what = ("baseline and sensitivities" if s and s[0] == SENSITIVITIES
+                        else ", ".join(s) or "baseline")
+                self.say(f"    solved {self.cases[i].name} [{what}]")
+
+            for r, skin in zip(todo, self.runner.map(self.cases, todo, done)):
+                self._store[self._key(r)] = skin
+            self.n_solves += len(todo)
+            self.solve_time_s += time.perf_counter() - t0
+        return [self._store[self._key(r)] for r in requests]
+
+    def sensitivities(self, names_per_case: list[tuple[str, ...]]) -> list:
+        """Per case (baseline skin, {name: d skin/dp} or reason) in one parallel batch; the
+        baseline skins are stored as the baseline solves."""
+        reqs = [(i, (SENSITIVITIES, tuple(n))) for i, n in enumerate(names_per_case)]
+        out = self.solve(reqs)
+        for i, (skin, _) in enumerate(out):
+            self._store.setdefault(self._key((i, ())), skin)
+        return out
+
+    def baseline(self, i: int) -> np.ndarray:
+        skin = self.solve([(i, ())])[0]
+        if isinstance(skin, str):
+            raise SolveError(f"case {self.cases[i].name}: the baseline prediction failed: {skin}")
+        return skin
+
+
+def check_strings(strings: tuple[str, ...]) -> None:
+    from planner.pipeline import parse_effects
+
+    try:
+        parse_effects(list(strings))
+    except InputError as exc:     # the library built a value the pipeline refuses: a bug
+        raise RuntimeError(f"effect values refused by the pipeline: {exc}") from exc

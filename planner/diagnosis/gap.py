@@ -1,0 +1,255 @@
+"""Where the prediction misses: the gap between a predicted skin and the post-op scan.
+
+The scan is superimposed on the baseline prediction's unoperated regions and measured against
+it by `faceplan compare` (`planner.compare.compare_surfaces`: trimmed point-to-plane ICP,
+exact signed point-to-surface distances, positive where the real face is fuller than
+predicted, area weights). A scan is refused as another patient's when the superimposition
+residual exceeds 3 mm (compare's rule) or when less than half of it lies within 2 mm of the
+predicted face once superimposed. The scan points that overlap the baseline prediction are then kept
+fixed, so that every candidate prediction (an effect added) is measured on the same points with
+the same weights and the same superimposition: `ScanGap.distances(skin)`.
+
+The noise floor comes from the data: the larger of the superimposition residual on the
+unoperated regions (scanner noise plus what registration leaves there) and the scan's own
+roughness (the residual of a local quadric fitted to each vertex's neighbourhood, corrected for
+the fit's six degrees of freedom). A region's gap is `significant` when its systematic part
+exceeds the floor, rms^2 - sigma^2 >= sigma^2 (a miss as large as the noise itself), and its
+area-weighted mean square exceeds sigma^2 by more than three standard deviations of a mean
+square of independent Gaussian noise, sigma^2 (1 + 3 sqrt(2 / n_eff)), n_eff the region's
+independent samples (below). Spatially correlated residuals carry fewer independent samples than points:
+n_eff = area / (pi l^2) with l the distance at which the gap's empirical correlogram first falls
+below 1/e (Cressie, *Statistics for spatial data*, 1993, ch. 2), at least the scan's spacing.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from planner.compare.comparison import compare_surfaces
+from planner.compare.distances import TriangleSurface, vertex_areas
+from planner.compare.inputs import Prediction as ComparePrediction
+from planner.compare.inputs import Surface
+from planner.compare.metrics import distance_metrics
+from planner.errors import InputError
+
+__all__ = ["ScanGap", "measure_gap", "scan_roughness", "correlation_length", "MIN_COVERAGE"]
+
+MIN_FACE_MATCH = 0.5         # share of the scan within 2 mm of the face once superimposed
+MIN_COVERAGE = 0.20          # a scan covering less of the modelled face gets a warning
+REGION_COVERED = 0.25        # a region with less of its area covered is reported uncovered
+
+
+@dataclass
+class ScanGap:
+    """The post-op scan of one case, superimposed and restricted to where it meets the face."""
+
+    points: np.ndarray            # (n, 3) scan vertices in the pre-op frame
+    weights: np.ndarray           # (n,) scan area per point (mm^2)
+    region: np.ndarray            # (n,) region index
+    region_names: tuple[str, ...]
+    faces: np.ndarray             # the predicted skin's triangles (vertex order of CaseModel)
+    alignment: dict
+    roughness_mm: float
+    noise_floor_mm: float
+    correlation_mm: float
+    coverage: float               # covered fraction of the modelled face's area
+    region_coverage: dict
+    baseline_metrics: dict        # the contract's `metrics` block of the baseline
+    scan_vertices: np.ndarray     # the whole aligned scan (pictures)
+    scan_faces: np.ndarray
+    scan_valid: np.ndarray | None = None   # which scan vertices are the points
+    scan_path: str = ""
+    warnings: list[str] = field(default_factory=list)
+
+    def on_scan(self, r: np.ndarray) -> np.ndarray:
+        """Values on the fixed points spread to every scan vertex (NaN elsewhere)."""
+        out = np.full(len(self.scan_vertices), np.nan)
+        out[self.scan_valid] = r
+        return out
+
+    def linearised(self, skin: np.ndarray, dskin: np.ndarray) -> np.ndarray:
+        """d(distances)/dp for skin vertex velocities `dskin` (n_skin, 3) about `skin`: the
+        closest point moves with its triangle's barycentric combination of the vertices'."""
+        key = id(skin)
+        if getattr(self, "_lin_key", None) != key:
+            self._lin = TriangleSurface(np.asarray(skin, float), self.faces).closest(self.points)
+            self._lin_key = key
+            cp = self._lin
+            # the signed distance is s = u . (p - c) with u the unit direction from the closest
+            # point to p (outward-signed): ds = -u . dc; u is the face normal where p lies over
+            # a triangle's interior, the direction to an edge or corner otherwise
+            off = self.points - cp.point
+            far = np.abs(cp.signed) > 1e-9
+            u = np.where(far[:, None], off / np.where(far, cp.signed, 1.0)[:, None], cp.normal)
+            self._lin_u = u
+        cp = self._lin
+        tri = self.faces[cp.face]                                  # (n, 3) vertex ids
+        dc = np.einsum("nj,njk->nk", cp.bary, np.asarray(dskin, float)[tri])
+        return -np.einsum("nk,nk->n", self._lin_u, dc)
+
+    def distances(self, skin: np.ndarray) -> np.ndarray:
+        """Signed distances (post-op minus prediction) of the fixed scan points to `skin`."""
+        return TriangleSurface(np.asarray(skin, float), self.faces).closest(self.points).signed
+
+    @property
+    def uncovered_regions(self) -> list[str]:
+        return [n for n, c in self.region_coverage.items() if c < REGION_COVERED]
+
+    def n_eff(self, mask: np.ndarray | None = None) -> float:
+        """Independent samples in the points `mask` (all by default)."""
+        w = self.weights if mask is None else self.weights[mask]
+        n = len(w)
+        return float(np.clip(w.sum() / (np.pi * self.correlation_mm ** 2), min(n, 1.0), n))
+
+    def rms(self, r: np.ndarray, mask: np.ndarray | None = None) -> float:
+        w = self.weights if mask is None else self.weights[mask]
+        r = r if mask is None else r[mask]
+        return float(np.sqrt(np.sum(w * r * r) / max(w.sum(), 1e-300)))
+
+    def significant(self, rms: float, mask: np.ndarray | None = None) -> bool:
+        """The gap's systematic part, sqrt(rms^2 - floor^2), is at least the floor, and the
+        mean square exceeds the floor's beyond three standard deviations of noise."""
+        n = self.n_eff(mask)
+        s2 = self.noise_floor_mm ** 2
+        return bool(rms ** 2 >= 2.0 * s2 and rms ** 2 > s2 * (1.0 + 3.0 * np.sqrt(2.0 / max(n, 1.0))))
+
+    def region_masks(self, min_points: int = 8) -> dict[str, np.ndarray]:
+        out = {}
+        for k, name in enumerate(self.region_names):
+            m = self.region == k
+            if m.sum() >= min_points and name not in self.uncovered_regions:
+                out[name] = m
+        return out
+
+
+def scan_roughness(vertices: np.ndarray, k: int = 16, max_points: int = 3000, seed: int = 0) -> float:
+    """The scan's noise: RMS residual of local quadrics z = f(x, y) in each sampled vertex's
+    tangent frame over its k nearest neighbours, times sqrt(k / (k - 6)) for the six fitted
+    coefficients; the median over the sampled vertices (robust to edges and creases)."""
+    from scipy.spatial import cKDTree
+
+    v = np.asarray(vertices, float)
+    if len(v) < k + 1:
+        return float("nan")
+    rng = np.random.default_rng(seed)
+    sample = rng.choice(len(v), min(max_points, len(v)), replace=False)
+    _, nb = cKDTree(v).query(v[sample], k=k)
+    p = v[nb] - v[nb].mean(axis=1, keepdims=True)                 # (s, k, 3)
+    _, _, vt = np.linalg.svd(p, full_matrices=False)               # frames: vt[:, 2] normal
+    local = np.einsum("skj,sij->ski", p, vt)                       # (s, k, 3) in the frame
+    x, y, z = local[..., 0], local[..., 1], local[..., 2]
+    A = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=-1)
+    AtA = np.einsum("ski,skj->sij", A, A) + 1e-9 * np.eye(6)
+    Atz = np.einsum("ski,sk->si", A, z)
+    coef = np.linalg.solve(AtA, Atz[..., None])[..., 0]
+    res = z - np.einsum("ski,si->sk", A, coef)
+    rms = np.sqrt(np.mean(res ** 2, axis=1) * k / (k - 6))
+    return float(np.median(rms))
+
+
+def correlation_length(points: np.ndarray, r: np.ndarray, weights: np.ndarray,
+                       max_points: int = 1500, seed: int = 0) -> float:
+    """Distance (mm) at which the correlogram of `r` first drops below 1/e (2 mm bins)."""
+    rng = np.random.default_rng(seed)
+    idx = rng.choice(len(points), min(max_points, len(points)), replace=False)
+    p, x = points[idx], r[idx] - np.average(r, weights=weights)
+    var = float(np.mean(x * x))
+    spacing = float(np.sqrt(np.median(weights)))
+    if var <= 0:
+        return spacing
+    d = np.linalg.norm(p[:, None] - p[None], axis=2)
+    prod = x[:, None] * x[None]
+    edges = np.arange(0.0, 60.0 + 2.0, 2.0)
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (d > lo) & (d <= hi)
+        if sel.sum() < 20:
+            continue
+        if np.mean(prod[sel]) / var < np.exp(-1.0):
+            return float(max(0.5 * (lo + hi), spacing))
+    return float(edges[-1])
+
+
+def baseline_prediction(case, skin: np.ndarray) -> ComparePrediction:
+    """The baseline skin as `faceplan compare` reads a prediction."""
+    from pathlib import Path
+
+    landmarks = {}
+    for name, node in case.landmark_ids.items():
+        hit = np.nonzero(case.skin_ids == node)[0]
+        if hit.size:
+            landmarks[name] = np.asarray(skin[hit[0]], float)
+    return ComparePrediction(np.asarray(skin, float), np.asarray(case.skin_faces), np.asarray(case.region),
+                             tuple(case.region_names), tuple(case.unoperated), landmarks,
+                             Path(f"<baseline prediction of {case.name}>"))
+
+
+def measure_gap(case, skin: np.ndarray, scan: Surface, max_residual_mm: float = 3.0) -> ScanGap:
+    """Superimpose the scan on the baseline prediction and keep the points that meet it.
+
+    InputError (from compare) when the scan cannot be superimposed: another patient
+    (residual > `max_residual_mm`), no overlap, flipped normals."""
+    pred = baseline_prediction(case, skin)
+    comp = compare_surfaces(pred, scan, max_residual_mm=max_residual_mm, landmarks=bool(pred.landmarks))
+    match = float(comp.alignment.face_coverage)
+    if np.isfinite(match) and match < MIN_FACE_MATCH:
+        # the same patient's face lies within 2 mm of its prediction almost everywhere (the
+        # effects move the operated lower face by a few mm at most); another face does not
+        raise InputError(
+            f"the post-op scan does not match this patient's face: once superimposed only "
+            f"{100 * match:.0f}% of it lies within 2 mm of the predicted face (at least "
+            f"{100 * MIN_FACE_MATCH:.0f}% expected; residual {comp.alignment.residual_rms_mm:.2f} mm "
+            "on the unoperated regions): a scan of another patient?", file=str(scan.path))
+    valid = np.isfinite(comp.signed)
+    weights_all = vertex_areas(comp.scan_vertices, comp.scan_faces)
+    points, weights = comp.scan_vertices[valid], weights_all[valid]
+    region = comp.region[valid]
+    signed = comp.signed[valid]
+    # coverage of the modelled face: predicted skin area whose distance to the scan exists
+    rvalid = np.isfinite(comp.reverse_signed)
+    rweights = vertex_areas(pred.vertices, pred.faces)
+    face = pred.region >= 0
+    coverage = float(rweights[face & rvalid].sum() / max(rweights[face].sum(), 1e-300))
+    region_coverage = {}
+    for k, name in enumerate(pred.region_names):
+        m = pred.region == k
+        if m.any():
+            region_coverage[name] = float(rweights[m & rvalid].sum() / max(rweights[m].sum(), 1e-300))
+    warnings = list(comp.warnings)
+    if coverage < MIN_COVERAGE:
+        warnings.append(f"the post-op scan covers only {100 * coverage:.0f}% of the modelled face "
+                        f"(< {100 * MIN_COVERAGE:.0f}%): the diagnosis rests on the covered part")
+    rough = scan_roughness(comp.scan_vertices)
+    residual = float(comp.alignment.residual_rms_mm)
+    floor = float(np.nanmax([residual, rough]))
+    ell = correlation_length(points, signed, weights)
+    metrics = dict(comp.metrics)
+    gap = ScanGap(points, weights, region, tuple(pred.region_names), np.asarray(case.skin_faces),
+                  comp.alignment.to_dict(), rough, floor, ell, coverage, region_coverage,
+                  metrics, comp.scan_vertices, comp.scan_faces, valid, str(scan.path), warnings)
+    uncovered = gap.uncovered_regions
+    if uncovered:
+        gap.warnings.append("regions without scan coverage (not diagnosed): " + ", ".join(uncovered))
+    return gap
+
+
+def region_table(gap: ScanGap, r: np.ndarray) -> list[dict]:
+    """`localization`: per region the gap's RMS and whether it is above the noise floor."""
+    out = []
+    for k, name in enumerate(gap.region_names):
+        m = gap.region == k
+        if name in gap.uncovered_regions or m.sum() == 0:
+            out.append({"region": name, "rms_mm": None, "significant": False, "covered": False})
+            continue
+        rms = gap.rms(r, m)
+        out.append({"region": name, "rms_mm": round(rms, 4), "significant": gap.significant(rms, m),
+                    "covered": True, "mean_signed_mm": round(float(np.average(r[m], weights=gap.weights[m])), 4),
+                    "n_points": int(m.sum())})
+    return out
+
+
+def metrics_block(gap: ScanGap, r: np.ndarray) -> dict:
+    """The contract's metric block (overall and per region) for gap values on the fixed points."""
+    return {"overall": distance_metrics(r, gap.weights),
+            "regions": {name: distance_metrics(r[gap.region == k], gap.weights[gap.region == k])
+                        for k, name in enumerate(gap.region_names)}}

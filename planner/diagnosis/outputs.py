@@ -1,0 +1,107 @@
+"""Writing a diagnosis: `diagnosis.json`, pictures and a self-contained `report.html`.
+
+The pictures are the gap on the superimposed post-op scan before and after the winning effect
+(post-op minus prediction, mm, the same diverging scale), and a bar chart of every effect's
+held-out shrinkage of the RMS gap with its bootstrap spread over the cross-validation regions
+(dashed: the share an effect must remove to be named). Everything goes into a temporary folder
+moved into place only when complete (`planner.atomic`).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from planner.diagnosis.analysis import MIN_HELDOUT_SHRINK_PCT
+
+__all__ = ["write_diagnosis"]
+
+CLIM_MM = 3.0
+
+
+def _clean(o):
+    if isinstance(o, dict):
+        return {str(k): _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _clean(o.tolist())
+    if isinstance(o, (np.floating, float)):
+        return float(o) if np.isfinite(o) else None
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    return o
+
+
+def _images(result: dict, img: Path) -> list[tuple[Path, str]]:
+    from planner import render
+
+    img.mkdir(parents=True, exist_ok=True)
+    record, data, winner = result["record"], result["data"], result["analysis"]["winner"]
+    out = []
+    views = ("frontal", "profile") if len(data) == 1 else ("frontal",)
+    for c, d in enumerate(data):
+        g = d.gap
+        prefix = "" if len(data) == 1 else f"{c:02d}_"
+        mesh = (g.scan_vertices, g.scan_faces)
+        for view, path in render.render_views(mesh, img / f"{prefix}gap_before", scalars=g.on_scan(d.r0),
+                                              cmap="RdBu_r", clim=(-CLIM_MM, CLIM_MM), views=views,
+                                              title=f"{d.case.name}: gap, baseline (mm)").items():
+            out.append((path, f"{d.case.name}: post-op minus baseline prediction (mm), {view}"))
+        if winner is not None:
+            for view, path in render.render_views(mesh, img / f"{prefix}gap_after", scalars=g.on_scan(winner.fitted[c]),
+                                                  cmap="RdBu_r", clim=(-CLIM_MM, CLIM_MM), views=views,
+                                                  title=f"{d.case.name}: gap with {winner.cand.name} (mm)").items():
+                out.append((path, f"{d.case.name}: post-op minus prediction with {winner.cand.name} (mm), {view}"))
+    effects = [e for e in record["effects"] if e["heldout_shrink_pct"] is not None]
+    if effects:
+        path = render.bar_chart([e["name"] + ("" if e["identifiable"] else " (n.i.)") for e in effects],
+                                [max(e["heldout_shrink_pct"], -100.0) for e in effects], img / "heldout_shrinkage.png",
+                                errors=[e["heldout_shrink_spread_pct"] or 0.0 for e in effects],
+                                ylabel="held-out shrinkage of the RMS gap (%)", threshold=MIN_HELDOUT_SHRINK_PCT,
+                                title="held-out shrinkage per effect")
+        out.append((path, "held-out shrinkage of the RMS gap per effect, bootstrap spread over regions "
+                          f"(dashed: {MIN_HELDOUT_SHRINK_PCT:.0f}%, the share an effect must remove to be named; "
+                          "n.i.: not identifiable)"))
+    return out
+
+
+def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say=lambda s: None) -> dict:
+    """Write diagnosis.json, images/*.png and report.html into `out_dir` (whole or not at all)."""
+    from planner.atomic import atomic_output_dir
+    from planner.html_report import write_html_report
+
+    record = _clean(json.loads(json.dumps(result["record"], default=_clean)))
+    with atomic_output_dir(out_dir) as tmp:
+        images = _images(result, tmp / "images") if render_images else []
+        record["files"] = {"html": "report.html",
+                           "images": [str(p.relative_to(tmp)) for p, _ in images]}
+        (tmp / "diagnosis.json").write_text(json.dumps(record, indent=2, allow_nan=False))
+        tables = {"Effects, best first (held-out shrinkage of the RMS gap)": (
+            ["effect", "params", "identifiable", "RMS after (mm)", "shrink %", "held-out shrink %",
+             "spread %", "probability", "significant"],
+            [[e["name"], json.dumps(e["params"]), e["identifiable"], e["rms_after_mm"], e["shrink_pct"],
+              e["heldout_shrink_pct"], e["heldout_shrink_spread_pct"], e["probability"], e["significant"]]
+             for e in record["effects"]]),
+            "Where the prediction misses (RMS gap per region)": (
+            ["region", "RMS (mm)", "significant", "covered"],
+            [[r["region"], r["rms_mm"], r["significant"], r.get("covered", True)] for r in record["localization"]])}
+        shrink = record.get("shrinkage")
+        if shrink and "regions" in shrink:
+            tables["How far the gap shrinks with the verdict's effect"] = (
+                ["region", "before (mm)", "after (mm)", "held-out after (mm)", "held-out shrink %"],
+                [["overall", *[shrink["overall"][k] for k in ("before_mm", "after_mm", "heldout_after_mm", "heldout_shrink_pct")]]]
+                + [[n, r["before_mm"], r["after_mm"], r["heldout_after_mm"], r["heldout_shrink_pct"]]
+                   for n, r in shrink["regions"].items()])
+        v = record["verdict"]
+        intro = (f"Verdict: {v['effect'] if v['effect'] is not None else 'no effect (the gap is within the noise)'}"
+                 f" (confidence {v['confidence']:.2f})"
+                 + (f", regions: {', '.join(v['regions'])}" if v["regions"] else "")
+                 + f". Noise floor {record['noise_floor_mm']:.2f} mm. Gap = post-op minus prediction "
+                   "along the predicted outward normal (> 0: the real face is fuller).")
+        write_html_report(tmp / "report.html", "faceplan diagnose", record, images, tables=tables, intro=intro)
+    say(f"diagnosis written to {out_dir}")
+    return record

@@ -1,0 +1,261 @@
+"""`faceplan diagnose` from case folders to the diagnosis record.
+
+Per case: the case and its plan are read, the post-op scan is required (`postop/skin.*`), the
+generic model is registered onto the patient (`planner.pipeline.register_case`, cached), the
+baseline prediction is solved (`planner.diagnosis.forward`) and the scan is measured against it
+(`planner.diagnosis.gap`); then every available effect is fitted, ranked and judged over all
+cases together (`planner.diagnosis.analysis`). Everything is computed before anything is
+written. `diagnose_data` runs the same on cases already prepared (tests, benchmarks).
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from planner.diagnosis import analysis
+from planner.diagnosis.effects import available_effects
+from planner.diagnosis.forward import Forward, Runner, prepare_case
+from planner.diagnosis.gap import measure_gap, region_table
+
+__all__ = ["load_diagnosis_case", "diagnose_cases", "diagnose_data", "build_record"]
+
+
+def load_diagnosis_case(case_dir: Path, resolution: str | None, say):
+    """(CaseModel, post-op Surface, resolution) of one case folder; InputError when unusable."""
+    from planner.case import load_case
+    from planner.compare.inputs import find_postop, load_surface
+    from planner.pipeline import Progress, register_case
+    from planner.plan import check_against_bones, load_plan
+
+    case_dir = Path(case_dir)
+    case = load_case(case_dir)
+    scan = load_surface(find_postop(case_dir), "post-op scan")
+    plan = load_plan(case.require_plan())
+    check_against_bones(plan, {k: np.asarray(v.vertices, float) for k, v in case.bones.items()})
+    res = resolution or plan.model.resolution
+    progress = Progress(echo=lambda s: None)
+    say(f"{case_dir.name}: registering the {res} model onto the patient")
+    model, _ = register_case(case, res, progress)
+    plan_actual = None
+    if case.postop_plan_path is not None:
+        plan_actual = load_plan(case.postop_plan_path)
+        check_against_bones(plan_actual, {k: np.asarray(v.vertices, float) for k, v in case.bones.items()})
+    return (prepare_case(case_dir.resolve().name, model, plan, case.bones, plan_actual,
+                         case.info.follow_up_months), scan, res)
+
+
+def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runner: Runner | None = None,
+                   say=lambda s: None, effect_names: tuple[str, ...] | None = None,
+                   tangent: bool = True) -> dict:
+    t0 = time.perf_counter()
+    loaded = [load_diagnosis_case(Path(c), resolution, say) for c in case_dirs]
+    out = diagnose_data([m for m, _, _ in loaded], [s for _, s, _ in loaded], runner=runner, say=say,
+                        effect_names=effect_names, tangent=tangent)
+    out["record"]["resolution"] = sorted({r for _, _, r in loaded})
+    out["record"]["timings_s"]["total"] = round(time.perf_counter() - t0, 2)
+    return out
+
+
+def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say=lambda s: None,
+                  effect_names: tuple[str, ...] | None = None, forward: Forward | None = None,
+                  effects: list | None = None, tangent: bool = True) -> dict:
+    """The diagnosis of prepared cases (`forward.CaseModel`) against their scans; returns
+    {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}."""
+    t0 = time.perf_counter()
+    forward = forward or Forward(cases, runner, say)
+    say(f"baseline prediction of {len(cases)} case(s)")
+    for i in range(len(cases)):
+        forward.solve([(i, ())])
+    data = []
+    for i, (case, scan) in enumerate(zip(cases, scans)):
+        skin = forward.baseline(i)
+        gap = measure_gap(case, skin, scan)
+        r0 = gap.distances(skin)
+        data.append(analysis.CaseData(case, gap, r0))
+        say(f"{case.name}: baseline RMS gap {gap.rms(r0):.2f} mm on {len(r0)} scan points; noise floor "
+            f"{gap.noise_floor_mm:.2f} mm (superimposition residual {gap.alignment['residual_rms_mm']:.2f} mm, "
+            f"scan roughness {gap.roughness_mm:.2f} mm); correlation length {gap.correlation_mm:.1f} mm")
+        for w in gap.warnings:
+            say(f"  warning: {w}")
+    moved = tuple(dict.fromkeys(s for c in cases for s in c.moved_segments))
+    if effects is None:
+        effects = available_effects(moved, effect_names,
+                                    plan_actual=all(c.plan_actual is not None for c in cases))
+    t_fit = time.perf_counter()
+    result = analysis.analyse(data, effects, forward, say, tangent=tangent)
+    record = build_record(data, result, effects)
+    record["timings_s"] = {"baseline_and_gap": round(t_fit - t0, 2),
+                           "effects": round(time.perf_counter() - t_fit, 2)}
+    record["solves"] = {"count": forward.n_solves, "time_s": round(forward.solve_time_s, 2),
+                        "workers": forward.runner.n_workers}
+    v = record["verdict"]
+    say(f"verdict: {v['effect']} (confidence {v['confidence']:.2f})"
+        + (f" in {', '.join(v['regions'])}" if v["regions"] else ""))
+    return {"record": record, "data": data, "analysis": result}
+
+
+def _r(x, n=4):
+    return None if x is None or not np.isfinite(x) else round(float(x), n)
+
+
+def _params(cand) -> dict:
+    """Fitted values in the form `--effect` takes them (per case when case-specific)."""
+    from planner.diagnosis.effects import collect_effects
+
+    per_case = [collect_effects(cand.values(c)) for c in range(cand.n_cases)]
+    if cand.shared or cand.n_cases == 1:
+        return per_case[0]
+    return {"per_case": per_case}
+
+
+def _effect_entry(s: analysis.Scored) -> dict:
+    c = s.cand
+    entry = {
+        "name": c.name,
+        "params": _params(c),
+        "identifiable": s.identifiable,
+        "rms_after_mm": _r(s.rms_after),
+        "shrink_pct": _r(s.shrink_pct, 2),
+        "heldout_shrink_pct": _r(s.heldout_shrink_pct, 2),
+        "significant": s.significant,
+        "heldout_rms_mm": _r(s.heldout_rms),
+        "heldout_shrink_spread_pct": _r(s.spread_pct, 2),
+        "bic": _r(s.bic, 3),
+        "probability": _r(s.probability, 4),
+        "shared": c.shared,
+        "sensitivity": c.sensitivity,
+        "solves": c.solves,
+    }
+    if c.params:
+        # the standard error is in the fit's coordinate: the value, or its logarithm for factors
+        entry["parameters"] = {p.key: {"identifiable": bool(f), "standard_error": _r(se, 4),
+                                       "coordinate": "log" if p.log else "value", "unit": p.unit,
+                                       "bounds": [p.lower, p.upper], "none": p.none}
+                               for p, f, se in zip(c.params, c.free, c.se)}
+    return entry
+
+
+def build_record(data: list, result: dict, effects) -> dict:
+    r0s = [d.r0 for d in data]
+    single = len(data) == 1
+    scored = result["scored"] + result["pairs"]
+    # best first: identifiable effects and pairs by held-out shrinkage, the others after
+    ranked = sorted([s for s in scored if s.identifiable], key=lambda s: -s.heldout_shrink_pct)
+    ranked += [s for s in scored if not s.identifiable]
+    winner = result["winner"]
+    verdict = {k: v for k, v in result["verdict"].items() if not k.startswith("_")}
+    case_records = []
+    for c, d in enumerate(data):
+        rec = {"case": d.case.name, "baseline": d.gap.baseline_metrics,
+               "localization": region_table(d.gap, d.r0), "noise_floor_mm": _r(d.gap.noise_floor_mm),
+               "roughness_mm": _r(d.gap.roughness_mm), "alignment": d.gap.alignment,
+               "coverage_pct": _r(100 * d.gap.coverage, 2), "uncovered_regions": d.gap.uncovered_regions,
+               "correlation_length_mm": _r(d.gap.correlation_mm, 2), "n_eff": _r(d.gap.n_eff(), 1),
+               "scan": d.gap.scan_path, "warnings": d.gap.warnings,
+               "fitted": {s.cand.name: s.cand.values(c) for s in scored if s.identifiable}}
+        if winner is not None:
+            rec["shrinkage"] = _shrinkage(d, d.r0, winner.fitted[c], winner.heldout[c])
+        case_records.append(rec)
+    floor = float(np.sqrt(np.mean([d.gap.noise_floor_mm ** 2 for d in data])))
+    if single:
+        baseline = data[0].gap.baseline_metrics
+        localization = case_records[0]["localization"]
+    else:
+        baseline = _pooled_metrics(data, r0s)
+        localization = _pooled_localization(data, r0s)
+    record = {
+        "faceplan": 1,
+        "command": "diagnose",
+        "baseline": baseline,
+        "localization": localization,
+        "noise_floor_mm": _r(floor),
+        "effects": [_effect_entry(s) for s in ranked],
+        "verdict": verdict,
+        "shrinkage": (_pooled_shrinkage(data, r0s, winner) if winner is not None else None),
+        "effects_failed": [{"name": c.name, "reason": c.failed} for c in result["failed"]],
+        "effects_tested": [e.name for e in effects],
+        "method": {
+            "sensitivity": sorted({s.cand.sensitivity for s in result["scored"]}),
+            "sensitivity_notes": result["notes"],
+            "refinement": f"bounded Gauss-Newton with up to {analysis.MAX_REFINEMENTS} full solves per fit",
+            "heldout": "spatial cross-validation over regions" if single else
+                       "leave one case out (shared parameters); spatial cross-validation per case (case-specific)",
+            "significance": {"bic_strong_evidence": 6.0,
+                             "min_heldout_shrink_pct": analysis.MIN_HELDOUT_SHRINK_PCT},
+            "n_eff": _r(result["n_eff"], 1),
+            "baseline_rms_mm": _r(result["rms0"]),
+            "baseline_probability": _r(result["probabilities"]["baseline"], 4),
+        },
+        "warnings": [f"{d.case.name}: {w}" for d in data for w in d.gap.warnings],
+    }
+    record["cases"] = case_records if not single else [{"case": case_records[0]["case"],
+                                                        "fitted": case_records[0]["fitted"]}]
+    if single:
+        for k in ("roughness_mm", "alignment", "coverage_pct", "uncovered_regions", "correlation_length_mm", "scan"):
+            record[k] = case_records[0][k]
+    return record
+
+
+def _shrinkage(d, r0, fitted, heldout) -> dict:
+    g = d.gap
+    out = {"overall": {"before_mm": _r(g.rms(r0)), "after_mm": _r(g.rms(fitted)),
+                       "heldout_after_mm": _r(g.rms(heldout)),
+                       "heldout_shrink_pct": _r(100 * (1 - g.rms(heldout) / max(g.rms(r0), 1e-12)), 2)},
+           "regions": {}}
+    for name, m in d.folds.items():
+        b, h = g.rms(r0, m), g.rms(heldout, m)
+        out["regions"][name] = {"before_mm": _r(b), "after_mm": _r(g.rms(fitted, m)),
+                                "heldout_after_mm": _r(h), "heldout_shrink_pct": _r(100 * (1 - h / max(b, 1e-12)), 2)}
+    return out
+
+
+def _pooled_shrinkage(data, r0s, winner) -> dict:
+    if len(data) == 1:
+        return _shrinkage(data[0], r0s[0], winner.fitted[0], winner.heldout[0])
+    b = analysis._pooled_rms(data, r0s)
+    h = analysis._pooled_rms(data, winner.heldout)
+    return {"overall": {"before_mm": _r(b), "after_mm": _r(analysis._pooled_rms(data, winner.fitted)),
+                        "heldout_after_mm": _r(h), "heldout_shrink_pct": _r(100 * (1 - h / max(b, 1e-12)), 2)},
+            "per_case": {d.case.name: _shrinkage(d, r0, f, ho)["overall"]
+                         for d, r0, f, ho in zip(data, r0s, winner.fitted, winner.heldout)}}
+
+
+def _pooled_metrics(data, rs) -> dict:
+    from planner.compare.metrics import distance_metrics
+
+    names = []
+    for d in data:
+        names += [n for n in d.gap.region_names if n not in names]
+    w = np.concatenate([d.gap.weights for d in data])
+    r = np.concatenate(rs)
+    out = {"overall": distance_metrics(r, w), "regions": {}}
+    for name in names:
+        sel = np.concatenate([d.gap.region == (d.gap.region_names.index(name) if name in d.gap.region_names else -2)
+                              for d in data])
+        out["regions"][name] = distance_metrics(r[sel], w[sel])
+    return out
+
+
+def _pooled_localization(data, rs) -> list[dict]:
+    names = []
+    for d in data:
+        names += [n for n in d.gap.region_names if n not in names]
+    out = []
+    for name in names:
+        num = den = 0.0
+        sig = False
+        covered = False
+        for d, r in zip(data, rs):
+            m = d.folds.get(name)
+            if m is None:
+                continue
+            covered = True
+            num += float(np.sum(d.gap.weights[m] * r[m] ** 2))
+            den += float(np.sum(d.gap.weights[m]))
+            sig = sig or d.gap.significant(d.gap.rms(r, m), m)
+        out.append({"region": name, "rms_mm": _r(np.sqrt(num / den)) if den > 0 else None,
+                    "significant": sig, "covered": covered})
+    return out
+

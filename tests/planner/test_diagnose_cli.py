@@ -1,0 +1,108 @@
+"""`faceplan diagnose` end to end: a case folder (the embedded demo head, coarse, lip contact
+off to stay in the test budget) whose post-op scan was made with tissue sliding on a perturbed
+model; the forward solves on a real 2-worker dask LocalCluster give the same diagnosis as in
+this process; bad input exits with status 2 and writes nothing."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+import trimesh
+
+from planner.cli import main
+from planner.pipeline import write_demo_case
+
+PLAN = {"faceplan": 1, "segments": {"maxilla": {"translation": [0.0, 4.0, 0.0]}},
+        "model": {"resolution": "coarse", "contact": False}}
+
+
+@pytest.fixture(scope="module")
+def monkeypatch_module():
+    mp = pytest.MonkeyPatch()
+    yield mp
+    mp.undo()
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory, monkeypatch_module):
+    from planner.case import load_case
+    from planner.diagnosis.forward import prepare_case, solve_skin
+    from planner.diagnosis.synthetic import perturbed_case, scan_like
+    from planner.pipeline import Progress, register_case
+    from planner.plan import load_plan
+
+    root = tmp_path_factory.mktemp("diagnose")
+    monkeypatch_module.setenv("FACEPLAN_CACHE", str(root / "cache"))
+    folder = write_demo_case(root / "case", PLAN)
+    c = load_case(folder)
+    plan = load_plan(c.require_plan())
+    model, _ = register_case(c, "coarse", Progress(echo=False))
+    patient = prepare_case("case", model, plan, c.bones)
+    skin = solve_skin(perturbed_case(patient, 21, modulus_pct=5.0, thickness_pct=5.0), ("sliding=1",))
+    assert not isinstance(skin, str), skin
+    v, f = scan_like(skin, patient.skin_faces, seed=21)
+    (folder / "postop").mkdir()
+    trimesh.Trimesh(v, f, process=False).export(folder / "postop" / "skin.stl")
+    return folder
+
+
+def test_cluster_and_in_process_agree(case, tmp_path):
+    from planner.diagnosis.forward import Runner
+    from planner.diagnosis.run import diagnose_cases
+
+    out = tmp_path / "diag"
+    code = main(["diagnose", str(case), "--out", str(out), "--workers", "2", "--effects", "sliding",
+                 "--quiet"])
+    assert code == 0
+    rec = json.loads((out / "diagnosis.json").read_text())
+    winner = rec["verdict"]["effect"] not in (None, "unexplained")
+    for name in ("diagnosis.json", "report.html", "images/gap_before_frontal.png",
+                 "images/heldout_shrinkage.png") + (("images/gap_after_frontal.png",) if winner else ()):
+        assert (out / name).is_file(), name
+    # the contract's fields
+    for key in ("baseline", "localization", "noise_floor_mm", "effects", "verdict", "cases"):
+        assert key in rec
+    assert {"overall", "regions"} <= set(rec["baseline"])
+    assert {"region", "rms_mm", "significant"} <= set(rec["localization"][0])
+    e = rec["effects"][0]
+    assert {"name", "params", "identifiable", "rms_after_mm", "shrink_pct", "heldout_shrink_pct",
+            "significant"} <= set(e)
+    assert {"effect", "confidence", "regions"} <= set(rec["verdict"])
+    assert rec["effects"][0]["name"] == "sliding"
+    assert rec["solves"]["workers"] == 2
+    html = (out / "report.html").read_text()
+    assert "data:image/png;base64," in html and "sliding" in html
+    assert set(rec["files"]["images"]) == {str(p.relative_to(out)) for p in (out / "images").iterdir()}
+    # the same diagnosis in this process: the result does not depend on the workers
+    local = diagnose_cases([case], resolution="coarse", runner=Runner(None), effect_names=("sliding",))["record"]
+    assert local["verdict"]["effect"] == rec["verdict"]["effect"]
+    assert local["verdict"]["confidence"] == pytest.approx(rec["verdict"]["confidence"], abs=1e-9)
+    for a, b in zip(local["effects"], rec["effects"]):
+        assert a["name"] == b["name"]
+        for k in ("rms_after_mm", "shrink_pct", "heldout_shrink_pct"):
+            # identical solves on either side; the JSON rounds to 1e-4 mm / 0.01 %
+            assert a[k] == pytest.approx(b[k], abs=1e-3), k
+
+
+def test_no_postop_scan_exits_2(case, tmp_path, capsys):
+    bare = tmp_path / "bare"
+    shutil.copytree(case, bare, ignore=shutil.ignore_patterns("postop", "diagnose"))
+    assert main(["diagnose", str(bare), "--workers", "0", "--quiet"]) == 2
+    assert "postop/skin.stl" in capsys.readouterr().err
+    assert not (bare / "diagnose").exists()
+
+
+def test_scan_of_another_patient_exits_2(case, tmp_path, capsys):
+    from facemodel.synthetic import synthetic_head
+
+    other = tmp_path / "other"
+    shutil.copytree(case, other, ignore=shutil.ignore_patterns("postop", "diagnose"))
+    head = synthetic_head(3, size=2.0)
+    v, f = np.asarray(head.skin.vertices), np.asarray(head.skin.faces)
+    front = trimesh.Trimesh(v, f, process=False).face_normals[:, 1] > 0.05
+    (other / "postop").mkdir()
+    trimesh.Trimesh(v, f[front], process=False).export(other / "postop" / "skin.stl")
+    assert main(["diagnose", str(other), "--workers", "0", "--effects", "sliding", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "postop/skin.stl" in err and "another patient" in err
+    assert not (other / "diagnose").exists()

@@ -1,0 +1,269 @@
+"""`planner.diagnosis` on withheld-effect scans of the generic coarse face.
+
+The truths are made on a model that is not the diagnosed one (`planner.diagnosis.synthetic`:
+moduli +-15 %, bulk modulus 500-2000 x the shear modulus, layer thicknesses +-20 %), then made
+scan-like (subdivided, front only, 0.2 mm normal noise, a rigid offset of up to 2 mm / 2 deg).
+All scenarios diagnose the same patient and plan, so they share one `Forward` (its baseline and
+finite-difference solves are made once): Le Fort I advancement, lip contact off to stay in the
+test budget.
+"""
+import numpy as np
+import pytest
+
+from planner.compare.inputs import Surface
+from planner.diagnosis import fit
+from planner.diagnosis.effects import available_effects, effect_strings
+from planner.diagnosis.forward import Forward, prepare_case, solve_skin
+from planner.diagnosis.run import diagnose_data
+from planner.diagnosis.synthetic import perturbed_case, scan_like
+from planner.errors import InputError
+
+EFFECTS = ("sliding", "muscle_tone", "stiffness")
+PLAN = {"faceplan": 1, "segments": {"maxilla": {"translation": [0.0, 4.0, 0.0]},
+                                    "mandible": {"translation": [0.0, 2.0, 0.0]},
+                                    "chin": {"translation": [0.0, 2.0, 0.0]}},
+        "model": {"resolution": "coarse", "contact": False}}
+
+
+@pytest.fixture(scope="module")
+def patient():
+    import generic_mesh
+    from planner.plan import parse_plan
+
+    plan = parse_plan(PLAN)
+    return prepare_case("generic", generic_mesh.load("coarse"), plan, None)
+
+
+@pytest.fixture(scope="module")
+def forward(patient):
+    # the patient twice: single-case diagnoses use index 0, the two-case one both; solves are
+    # stored by case object, so both indices share them
+    return Forward([patient, patient])
+
+
+def _scan(case, strings, seed, perturb=True, forward=None, **kw):
+    if perturb or forward is None:
+        skin = solve_skin(perturbed_case(case, seed, **kw) if perturb else case, tuple(strings))
+    else:
+        skin = forward.solve([(0, effect_strings(dict(s.split("=") for s in strings)))])[0]
+    assert not isinstance(skin, str), skin
+    v, f = scan_like(skin, case.skin_faces, seed=seed)
+    return Surface(v, f, __import__("pathlib").Path(f"synthetic-{seed}.stl"))
+
+
+_RESULTS = {}
+
+
+def _diagnose(patient, forward, name, strings, seed, **kw):
+    if name not in _RESULTS:
+        scan = _scan(patient, strings, seed, forward=forward, **kw)
+        _RESULTS[name + "_scan"] = scan
+        _RESULTS[name] = diagnose_data([patient], [scan], forward=forward, effect_names=EFFECTS)
+    return _RESULTS[name]
+
+
+def test_withheld_muscle_tone_is_named(patient, forward):
+    out = _diagnose(patient, forward, "tone", ["muscle_tone=0.15"], seed=1)
+    rec = out["record"]
+    assert rec["verdict"]["effect"] == "muscle_tone"
+    assert rec["verdict"]["confidence"] > 0.9
+    best = rec["effects"][0]
+    assert best["name"] == "muscle_tone" and best["significant"]
+    # the issue's target for identifiable values: within 25 % of the truth (perturbed model)
+    assert best["params"]["muscle_tone"] == pytest.approx(0.15, rel=0.25)
+    assert best["heldout_shrink_pct"] >= 25.0
+    assert {"upper_lip", "lower_lip"} & set(rec["verdict"]["regions"])
+    # the winning effect's fitted gap is smaller than the baseline's in every explained region
+    for region in rec["verdict"]["regions"]:
+        r = rec["shrinkage"]["regions"][region]
+        assert r["after_mm"] < r["before_mm"]
+
+
+def test_uniform_stiffness_is_not_identifiable(patient, forward):
+    """Displacement-only loading: the solution does not depend on a uniform stiffness factor,
+    so its Fisher information is nil and it is not ranked."""
+    rec = _diagnose(patient, forward, "tone", ["muscle_tone=0.15"], seed=1)["record"]
+    stiff = next(e for e in rec["effects"] if e["name"] == "stiffness")
+    # per-layer factors: one layer (the uniform direction) is left out, the others fitted
+    # relative to it
+    assert not all(p["identifiable"] for p in stiff["parameters"].values())
+    uniform = available_effects(("maxilla",), ("stiffness",), stiffness_layers=False)
+    rec = diagnose_data([patient], [_RESULTS["tone_scan"]], forward=forward, effects=uniform)["record"]
+    e = rec["effects"][0]
+    assert list(e["parameters"]) == ["stiffness"]
+    assert e["identifiable"] is False and not e["significant"] and e["params"] == {}
+
+
+def test_withheld_sliding_is_named(patient, forward):
+    rec = _diagnose(patient, forward, "sliding", ["sliding=1"], seed=2)["record"]
+    assert rec["verdict"]["effect"] == "sliding"
+    assert rec["effects"][0]["name"] == "sliding"
+    assert rec["effects"][0]["heldout_shrink_pct"] >= 25.0
+
+
+def test_two_withheld_effects_are_named_as_a_pair(patient, forward):
+    """Tone and sliding together: the best single effect leaves a significant gap, the greedy
+    pair removes it."""
+    rec = _diagnose(patient, forward, "pair", ["muscle_tone=0.15", "sliding=1"], seed=9)["record"]
+    assert set(rec["verdict"]["effect"].split("+")) == {"muscle_tone", "sliding"}
+    pair = next(e for e in rec["effects"] if "+" in e["name"])
+    singles = [e for e in rec["effects"] if e["name"] in ("muscle_tone", "sliding")]
+    assert pair["heldout_shrink_pct"] >= max(e["heldout_shrink_pct"] for e in singles) + 10.0
+
+
+def test_none_gives_null(patient, forward):
+    """The diagnosed model itself with scan noise and offset only: nothing beats the noise."""
+    rec = _diagnose(patient, forward, "none", [], seed=3, perturb=False)["record"]
+    assert rec["verdict"]["effect"] is None
+    assert not any(r["significant"] for r in rec["localization"])
+    assert not any(e["significant"] for e in rec["effects"])
+    # the floor is the scan's noise (0.2 mm along the normals), as the superimposition sees it:
+    # the roughness estimate of a noisy subdivided surface within 30 %
+    assert 0.14 <= rec["noise_floor_mm"] <= 0.3
+    assert rec["alignment"]["residual_rms_mm"] < 0.4
+
+
+def test_perturbation_only_is_not_forced_onto_an_effect(patient, forward):
+    """A generic-model perturbation without any effect: null or unexplained, never an effect
+    with confidence > 0.5."""
+    rec = _diagnose(patient, forward, "perturbed", [], seed=4, modulus_pct=15.0, thickness_pct=20.0)["record"]
+    v = rec["verdict"]
+    assert v["effect"] in (None, "unexplained") or v["confidence"] <= 0.5
+
+
+def test_two_cases(patient, forward):
+    """Two scans of the patient with different resting tones: the case-specific tone is fitted
+    per case (spatial cross-validation in each), the shared stiffness leaving one case out; the
+    verdict names the tone and the record lists both cases."""
+    first = _diagnose(patient, forward, "tone", ["muscle_tone=0.15"], seed=1)
+    scan2 = _scan(patient, ["muscle_tone=0.1"], seed=8)
+    scan1 = _RESULTS["tone_scan"]
+    rec = diagnose_data([patient, patient], [scan1, scan2], forward=forward, effect_names=EFFECTS)["record"]
+    assert rec["verdict"]["effect"] == "muscle_tone"
+    assert len(rec["cases"]) == 2 and all("localization" in c and "baseline" in c for c in rec["cases"])
+    tone = next(e for e in rec["effects"] if e["name"] == "muscle_tone")
+    fitted = [c["muscle_tone"] for c in tone["params"]["per_case"]]
+    assert fitted[0] == pytest.approx(first["record"]["effects"][0]["params"]["muscle_tone"], rel=1e-6)
+    assert fitted[1] == pytest.approx(0.1, rel=0.25)
+    stiff = next(e for e in rec["effects"] if e["name"] == "stiffness")
+    assert stiff["shared"] is True
+
+
+def test_another_patient_is_refused(patient, forward):
+    """Scans of other faces: another synthetic patient's front (it superimposes within 3 mm
+    but most of it lies more than 2 mm off), and this one 30 % larger."""
+    import trimesh
+
+    from facemodel.synthetic import synthetic_head
+    from planner.diagnosis.gap import measure_gap
+
+    head = synthetic_head(3, size=2.0)
+    v, f = np.asarray(head.skin.vertices), np.asarray(head.skin.faces)
+    front = trimesh.Trimesh(v, f, process=False).face_normals[:, 1] > 0.05
+    with pytest.raises(InputError, match="another-3.stl.*another patient"):
+        measure_gap(patient, forward.baseline(0), Surface(v, f[front], __import__("pathlib").Path("another-3.stl")))
+    scan = _scan(patient, [], seed=5, perturb=False, forward=forward)
+    c = scan.vertices.mean(axis=0)
+    with pytest.raises(InputError, match="synthetic-5.stl"):
+        measure_gap(patient, forward.baseline(0), Surface((scan.vertices - c) * 1.3 + c, scan.faces, scan.path))
+
+
+def test_partial_scan_warns_and_reports_uncovered_regions(patient, forward):
+    from planner.diagnosis.gap import measure_gap
+
+    scan = _scan(patient, [], seed=6, perturb=False, forward=forward)
+    v = scan.vertices
+    keep_v = v[:, 2] > np.percentile(v[:, 2], 80)          # the upper band of the face only
+    keep_f = keep_v[scan.faces].all(axis=1)
+    gap = measure_gap(patient, forward.baseline(0), Surface(v, scan.faces[keep_f], scan.path))
+    assert gap.coverage < 0.2
+    assert any("covers only" in w for w in gap.warnings)
+    assert {"chin", "lower_lip"} <= set(gap.uncovered_regions)
+
+
+# --------------------------------------------------------------------------- parts
+
+def test_effect_strings_parse_and_none_is_the_baseline(patient):
+    from planner.pipeline import parse_effects
+
+    for e in available_effects(("maxilla",)):
+        if e.parameters:
+            assert e.values(e.origin) == {}                # "none" adds nothing: the baseline
+            parse_effects(list(effect_strings(e.values(e.origin + np.array([p.step for p in e.parameters])))))
+        for choice in e.choices:
+            parse_effects(list(effect_strings(dict(choice))))
+
+
+def test_linearised_gap_matches_finite_differences(patient, forward):
+    """ScanGap.linearised against central differences of the exact distances for a smooth
+    skin motion (0.01 mm steps: where the closest point stays on its triangle the quotient
+    agrees to second order, ~1e-8; points whose closest point crosses an edge within the step,
+    ~1 %, differ by the kink of the distance function there)."""
+    from planner.diagnosis.gap import measure_gap
+
+    scan = _scan(patient, [], seed=7, perturb=False, forward=forward)
+    skin = forward.baseline(0)
+    gap = measure_gap(patient, skin, scan)
+    v = np.sin(skin / 20.0) * np.array([0.3, 1.0, 0.5])
+    lin = gap.linearised(skin, v)
+    h = 0.01
+    fd = (gap.distances(skin + h * v) - gap.distances(skin - h * v)) / (2 * h)
+    assert np.median(np.abs(lin - fd)) < 1e-5
+    assert np.mean(np.abs(lin - fd) < 2e-2) > 0.98
+
+
+def test_linear_fit_recovers_parameters_within_bounds():
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(200, 2))
+    w = rng.uniform(0.5, 2.0, 200)
+    theta = np.array([0.3, -0.2])
+    r_a = -J @ theta                        # r(theta) = r_a + J theta vanishes at theta
+    got = fit.linear_fit(r_a, J, w, np.zeros(2), np.array([-1, -1]), np.array([1, 1]))
+    assert np.allclose(got, theta, atol=1e-10)
+    # a bound: the constrained optimum of a convex quadratic lies on it
+    got = fit.linear_fit(r_a, J, w, np.zeros(2), np.array([-1, 0.0]), np.array([1, 1]))
+    assert got[1] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_finite_difference_jacobian_is_second_order():
+    """Central and one-sided second-order differences of r(t) = exp(t) at t = 0: errors fall
+    as h^2 (ratio ~4 when h halves)."""
+    def err(h, one_sided):
+        r0 = np.array([1.0])
+        a, b = (h, 2 * h) if one_sided else (-h, h)
+        J = fit.finite_difference_jacobian(r0, [(a, b, np.exp([a]), np.exp([b]))])
+        return abs(J[0, 0] - 1.0)
+    for one_sided in (False, True):
+        assert err(0.1, one_sided) / err(0.05, one_sided) == pytest.approx(4.0, rel=0.1)
+
+
+def test_standard_errors_match_least_squares_covariance():
+    """With independent points (n_eff = n, unit weights) the Cramer-Rao error is the textbook
+    sigma sqrt((J^T J)^-1)_kk; a zero column is undetermined."""
+    rng = np.random.default_rng(1)
+    J = rng.normal(size=(50, 2))
+    se = fit.standard_errors(J, np.ones(50), 0.3, 50)
+    assert np.allclose(se, 0.3 * np.sqrt(np.diag(np.linalg.inv(J.T @ J))), rtol=1e-10)
+    se = fit.standard_errors(np.column_stack([J[:, 0], np.zeros(50)]), np.ones(50), 0.3, 50)
+    assert np.isfinite(se[0]) and np.isinf(se[1])
+
+
+def test_broyden_update_satisfies_the_secant_condition():
+    rng = np.random.default_rng(2)
+    J = rng.normal(size=(30, 2))
+    d, dr = rng.normal(size=2), rng.normal(size=30)
+    assert np.allclose(fit.broyden(J, d, dr) @ d, dr)
+
+
+def test_bic_prefers_the_true_model_and_penalises_noise_fits():
+    rng = np.random.default_rng(3)
+    n = 400
+    noise = rng.normal(0, 0.2, n)
+    w = np.ones(n)
+    # a parameter that only fits noise lowers the RSS by about sigma^2 per parameter: BIC worse
+    x = rng.normal(size=n)
+    beta = (x @ noise) / (x @ x)
+    rss0, rss1 = np.sum(noise ** 2), np.sum((noise - beta * x) ** 2)
+    assert fit.bic(rss1, n, n, 1) > fit.bic(rss0, n, n, 0)
+    p = fit.model_probabilities({"a": 0.0, "b": 2 * np.log(3.0)})
+    assert p["a"] == pytest.approx(0.75) and p["b"] == pytest.approx(0.25)

@@ -217,10 +217,13 @@ def test_bone_corrections(face):
     assert np.abs(actual.displacement - direct.displacement).max() < 1e-9
     with pytest.raises(InputError, match="plan_actual"):
         solve_plan(face, plan, effects=["bone_execution=1"])
-    # the none values give exactly the baseline
+    # the none values give the baseline: the same model and the same solve, so equal to the
+    # round-off of a repeated solve (a threaded direct solver may sum in another order; the
+    # bound 1e-9 mm is far below any effect's 1e-2 mm scale and above double round-off)
     none = solve_plan(face, plan, effects=["swelling=1", "gravity=0", "stiffness.nose=1",
                                            "bone_execution.maxilla=[0,0,0,0,0,0]"])
-    assert np.abs(none.displacement - base.displacement).max() == 0.0
+    assert none.effects == {}
+    assert np.abs(none.displacement - base.displacement).max() < 1e-9
     # skin sensitivity to the maxilla's forward correction: the lip follows the bone forward
     ids, sens = skin_sensitivities(base, ["bone_execution.maxilla.ty"])
     lip = np.isin(ids, np.asarray(face.regions["upper_lip"]))

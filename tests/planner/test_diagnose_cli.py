@@ -79,9 +79,12 @@ def test_cluster_and_in_process_agree(case, tmp_path):
     assert local["verdict"]["confidence"] == pytest.approx(rec["verdict"]["confidence"], abs=1e-9)
     for a, b in zip(local["effects"], rec["effects"]):
         assert a["name"] == b["name"]
-        for k in ("rms_after_mm", "shrink_pct", "heldout_shrink_pct"):
-            # identical solves on either side; the JSON rounds to 1e-4 mm / 0.01 %
-            assert a[k] == pytest.approx(b[k], abs=1e-3), k
+        # the same solves on either side, each converged to the Newton tolerance (states within
+        # ~1e-3 mm of each other, whichever process runs them): an RMS within 2e-3 mm, and a
+        # shrinkage of a ~0.5 mm gap within 100 * 2e-3 / 0.5 = 0.4 percentage points
+        assert a["rms_after_mm"] == pytest.approx(b["rms_after_mm"], abs=2e-3)
+        for k in ("shrink_pct", "heldout_shrink_pct"):
+            assert a[k] == pytest.approx(b[k], abs=0.5), k
 
 
 def test_no_postop_scan_exits_2(case, tmp_path, capsys):

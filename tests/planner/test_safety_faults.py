@@ -81,7 +81,10 @@ def test_a_live_writer_s_temporary_is_not_touched(tmp_path):
 
 # the command starts right after the interpreter has imported planner.cli ("ready"); an
 # interrupt before that hits Python's own start-up, which no program can catch
-STARTER = ("import sys, planner.cli; sys.stderr.write('ready\\n'); sys.stderr.flush(); "
+# A job started in the background of a shell inherits SIGINT ignored, and Python then keeps
+# ignoring it; a user's Ctrl-C comes from a terminal where it is not: restore Python's handler.
+STARTER = ("import signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+           "import sys, planner.cli; sys.stderr.write('ready\\n'); sys.stderr.flush(); "
            "sys.exit(planner.cli.main(sys.argv[1:]))")
 
 

@@ -123,8 +123,10 @@ def test_cohort_on_a_two_worker_cluster_matches_one_process(tmp_path):
 
     a = trimesh.load(tmp_path / "cluster" / "synth_0022" / "postop" / "skin.stl")
     b = trimesh.load(tmp_path / "single" / "synth_0022" / "postop" / "skin.stl")
-    # same draws, same solves (direct solver, deterministic): equal to solver round-off
-    assert a.vertices.shape == b.vertices.shape and np.abs(a.vertices - b.vertices).max() < 1e-6
+    # same draws, same solves: equal to what an STL stores, single precision (one float32 ulp
+    # at 128 mm is 7.6e-6 mm; 1e-4 mm allows a few ulps plus the solver's round-off, and is
+    # far below the 0.2 mm scan noise the cases carry)
+    assert a.vertices.shape == b.vertices.shape and np.abs(a.vertices - b.vertices).max() < 1e-4
     for r in (recs[1], one):
         r.pop("plan"), r.pop("shape")
     assert json.dumps(recs[1], sort_keys=True) == json.dumps(one, sort_keys=True)

@@ -294,7 +294,7 @@ def test_mean_head_is_the_generic_geometry(coarse):
     # rays (head_geometry.LANDMARK_ANGLES). They coincide where the definition is the ray point
     # (cheilia) and otherwise agree to within half a coarse skin facet edge (measured up to
     # 3.4 mm, Ls, against a median edge of 9 mm; menton, the chin's extreme along
-    # head_geometry.MENTON_TILT since session 4, lies 0.54 mm from its ray).
+    # head_geometry.MENTON_TILT, lies 0.54 mm from its ray).
     quads = coarse.facet_sets["skin"]
     edge = np.median(np.linalg.norm(coarse.nodes[quads] - coarse.nodes[np.roll(quads, 1, axis=1)], axis=2))
     for k, v in head.landmarks.items():

@@ -301,25 +301,9 @@ def _cache_store(path: Path, surfaces: dict) -> None:
     except OSError:
         tmp.unlink(missing_ok=True)
         tmp_digest.unlink(missing_ok=True)
-    _clean_orphans(path.parent)
+    from registration.face import clean_orphan_temporaries
 
-
-def _clean_orphans(folder: Path) -> None:
-    """Remove `*.tmp-PID.*` files of writers that no longer run (killed mid-write)."""
-    try:
-        entries = list(folder.glob("*.tmp-*"))
-    except OSError:
-        return
-    for p in entries:
-        pid = p.name.rsplit(".tmp-", 1)[-1].split(".", 1)[0]
-        if not pid.isdigit() or int(pid) == os.getpid():
-            continue
-        try:
-            os.kill(int(pid), 0)
-        except ProcessLookupError:
-            p.unlink(missing_ok=True)
-        except OSError:
-            pass
+    clean_orphan_temporaries(path.parent)
 
 
 def _surfaces_from_ct(ct_path: Path, thresholds: dict, cache_dir: Path | None) -> dict:

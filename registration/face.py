@@ -195,16 +195,21 @@ def _pid_gone(pid: int) -> bool:
     return False
 
 
-def _clean_orphans(folder: Path) -> None:
-    """Remove `*.tmp-PID` entries of writers that no longer run (killed mid-write)."""
+def clean_orphan_temporaries(folder: Path) -> None:
+    """Remove `NAME.tmp-PID[.EXT]` files and folders of cache writers that no longer run
+    (killed mid-write): the registration cache's and the CT cache's (`planner.case`)."""
     try:
         entries = list(folder.glob("*.tmp-*"))
     except OSError:
         return
     for p in entries:
-        pid = p.name.rsplit(".tmp-", 1)[-1]
-        if pid.isdigit() and int(pid) != os.getpid() and _pid_gone(int(pid)):
+        pid = p.name.rsplit(".tmp-", 1)[-1].split(".", 1)[0]
+        if not (pid.isdigit() and int(pid) != os.getpid() and _pid_gone(int(pid))):
+            continue
+        if p.is_dir() and not p.is_symlink():
             shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
 
 
 def _cache_store(path: Path, patient, report: dict) -> None:
@@ -213,7 +218,7 @@ def _cache_store(path: Path, patient, report: dict) -> None:
     tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        _clean_orphans(path.parent)
+        clean_orphan_temporaries(path.parent)
         tmp.mkdir(exist_ok=True)
         np.savez_compressed(tmp / "result.npz", nodes=patient.nodes, fibres=patient.fibres,
                             **{f"teeth_{k}": np.asarray(v[0]) for k, v in patient.teeth.items()},

@@ -10,6 +10,8 @@ with `as_term`.
 """
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 import numpy as np
 
 __all__ = ["Term", "as_term"]
@@ -17,9 +19,10 @@ __all__ = ["Term", "as_term"]
 _NO_PAIRS = np.zeros((0, 2), dtype=np.int64)
 
 
-class Term:
+class Term(ABC):
     """A residual term with the solver's hooks, all optional but `assemble`."""
 
+    @abstractmethod
     def assemble(self, x, load):
         """x: (n, 3) current nodal coordinates; load: load fraction in [0, 1].
 
@@ -27,7 +30,6 @@ class Term:
         possible; any format, COO the cheapest: the solver sums its entries into its pattern
         by position).
         """
-        raise NotImplementedError(f"{type(self).__name__} must define assemble(x, load)")
 
     def energy(self, x, load) -> float:
         """Potential of the term at x (mJ), read by the line search; a non-conservative term
@@ -60,11 +62,14 @@ class _Adapted(Term):
 
     def __init__(self, term):
         self.term = term
-        for name in ("assemble", "energy", "end_step", "coupling_pairs", "restart_step",
+        for name in ("energy", "end_step", "coupling_pairs", "restart_step",
                      "augmentation_due"):
             method = getattr(term, name, None)
             if callable(method):
                 setattr(self, name, method)
+
+    def assemble(self, x, load):
+        return self.term.assemble(x, load)
 
     def __getattr__(self, name):
         return getattr(self.__dict__["term"], name)

@@ -18,6 +18,7 @@ terms' common base.
 from __future__ import annotations
 
 import dataclasses
+from abc import abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -210,14 +211,14 @@ class ContactTerm(StatusFreezing, Term):
         self.last_error = 0.0
         self._unfreeze()
 
+    @abstractmethod
     def penetration(self, x, load: float = 1.0) -> float:
         """Deepest penetration (mm, >= 0) at coordinates x."""
-        raise NotImplementedError
 
+    @abstractmethod
     def contact_forces(self, x, load: float = 1.0) -> np.ndarray:
         """Contact forces on the body's nodes (mN) at x."""
-        raise NotImplementedError
 
+    @abstractmethod
     def contact_pressure(self, x, load: float = 1.0):
         """Contact pressure (kPa) at the slave nodes at x."""
-        raise NotImplementedError

@@ -53,6 +53,14 @@ BONE_MAX_SKIN_DISTANCE_MM = 30.0
 # A skin facing the other way than RAS anterior is looked for along the antero-posterior line
 # through the jaws, within this radius (mm) of it in the x-z plane.
 FACING_LINE_RADIUS_MM = 15.0
+# The most anterior part of a head is the nose tip: the skin within this depth of the head's
+# extreme along +y is the tip of the nose (~25 mm across, ~1000 mm2), while the skin within the
+# same depth of the extreme along -y is a cap of the rounded back of the head (a spherical cap
+# of radius R ~ 80-100 mm has the area 2 pi R h ~ 5000-6000 mm2). A closed skin whose cap along
+# -y is this many times smaller than its cap along +y has its nose at the back: it looks along
+# -y. Between the two ratios nothing is concluded (a forehead or a truncated CT may be extreme).
+FACE_CAP_DEPTH_MM = 10.0
+FACE_CAP_RATIO = 2.0
 # Landmark spellings accepted besides the model's names (matched case-insensitively).
 LANDMARK_ALIASES = {
     "pronasale": "Prn", "subnasale": "Sn", "labrale_superius": "Ls", "labialesuperius": "Ls",
@@ -577,13 +585,81 @@ def _jaw_centre(bones: dict) -> np.ndarray | None:
     return np.concatenate(jaws).mean(axis=0) if jaws else None
 
 
-def check_anatomy(skin, bones: dict, files: dict, landmarks: dict | None = None) -> None:
+def face_direction(skin, jaw_centre=None) -> tuple[int, str]:
+    """Which way the face looks along y: +1 (anterior, RAS), -1 (posterior: an LPS frame read
+    as RAS, or a volume flipped front to back) or 0 (the surface cannot tell), with the evidence.
+
+    Two anatomical rules, each on its own sufficient to say -1:
+    - along the antero-posterior line through the jaws (`jaw_centre`, from the bone surfaces),
+      the skin nearest the jaws lies behind them instead of in front;
+    - on a closed skin, the nose (the narrow cap of skin within `FACE_CAP_DEPTH_MM` of the
+      extreme) lies at the -y extreme, the broad cap of the back of the head at +y.
+    """
+    sv = np.asarray(skin.vertices, float)
+    if jaw_centre is not None:
+        c = np.asarray(jaw_centre, float)
+        near = np.hypot(sv[:, 0] - c[0], sv[:, 2] - c[2]) < FACING_LINE_RADIUS_MM
+        front = sv[near & (sv[:, 1] > c[1]), 1] - c[1]
+        back = c[1] - sv[near & (sv[:, 1] < c[1]), 1]
+        if len(back) and (not len(front) or back.min() < front.min()):
+            return -1, "the skin in front of the jaws is behind them"
+    if not skin.is_watertight:
+        return 0, "an open surface has no back of the head to compare the nose with"
+    y = np.asarray(skin.triangles_center, float)[:, 1]
+    area = np.asarray(skin.area_faces, float)
+    cap_front = float(area[y > sv[:, 1].max() - FACE_CAP_DEPTH_MM].sum())
+    cap_back = float(area[y < sv[:, 1].min() + FACE_CAP_DEPTH_MM].sum())
+    if cap_back * FACE_CAP_RATIO < cap_front:
+        return -1, (f"the nose is at the back: the skin's -y extreme is a narrow tip ({cap_back:.0f} mm2 "
+                    f"within {FACE_CAP_DEPTH_MM:g} mm) and its +y extreme a broad cap ({cap_front:.0f} mm2)")
+    if cap_front * FACE_CAP_RATIO < cap_back:
+        return 1, "the nose tip is the skin's +y extreme"
+    return 0, "the skin's two antero-posterior extremes are alike"
+
+
+def _ct_orientation_field(ct_path: Path) -> tuple[str, str]:
+    """The field of a CT that sets its orientation, and how to correct it."""
+    if ct_path.is_dir() or not ct_path.name.lower().endswith((".nii", ".nii.gz")):
+        return ("ImageOrientationPatient",
+                "the DICOM slices' ImageOrientationPatient / ImagePositionPatient put the head "
+                "front to back; check the export")
+    codes = ""
+    try:
+        import nibabel as nib
+
+        header = nib.load(str(ct_path)).header
+        codes = f" (sform_code {int(header['sform_code'])}, qform_code {int(header['qform_code'])})"
+    except Exception:  # the volume was read before: only the detail of the message is lost
+        pass
+    return ("affine", f"the NIfTI affine{codes} maps the voxels to LPS (DICOM) coordinates or "
+                      "flips them front to back; NIfTI world coordinates are RAS: negate the first "
+                      "two rows of the affine (sform and qform)")
+
+
+def check_face_direction(skin, file, *, jaw_centre=None, from_ct: bool = False) -> None:
+    """Refuse (InputError naming `file`) a skin whose face looks along -y (`face_direction`):
+    surfaces in LPS read as RAS, or a CT (`from_ct`) whose affine or slice orientation is LPS."""
+    sign, evidence = face_direction(skin, jaw_centre)
+    if sign >= 0:
+        return
+    if from_ct:
+        field, fix = _ct_orientation_field(Path(file))
+        raise InputError(f"the face in this CT looks along -y ({evidence}): {fix}",
+                         file=str(file), field=field)
+    raise InputError(f"the face looks along -y ({evidence}): the surfaces are in LPS (DICOM) "
+                     "coordinates or rotated; faceplan reads RAS (negate x and y)",
+                     file=str(file), field="skin")
+
+
+def check_anatomy(skin, bones: dict, files: dict, landmarks: dict | None = None, *,
+                  from_ct: bool = False) -> None:
     """Refuse (InputError naming the file) what cannot be a head in patient RAS mm:
     maxilla below the mandible or chin above the maxilla (bone files swapped); a jaw segment
     (maxilla, mandible, chin) whose nearest point is > 30 mm from the skin (another frame or patient); a face looking
     along -y (LPS surfaces read as RAS); an open skin whose normals point into the tissue
     (inside-out); landmarks behind the jaws or with left and right swapped (an LPS or mirrored
-    landmarks file). files: 'skin', 'bone.<segment>', 'landmarks' -> path, for the messages."""
+    landmarks file). files: 'skin', 'bone.<segment>', 'landmarks' -> path, for the messages;
+    from_ct: the skin was extracted from the CT `files['skin']`."""
     from scipy.spatial import cKDTree
 
     def where(key):
@@ -609,14 +685,9 @@ def check_anatomy(skin, bones: dict, files: dict, landmarks: dict | None = None)
                              f"is at most ~25 mm thick): skin and bones are not in the same frame, "
                              "units or patient", file=where("bone." + s), field=f"bone.{s}")
     c = _jaw_centre(bones)
+    check_face_direction(skin, where("skin"), jaw_centre=c, from_ct=from_ct)
     if c is None:
         return
-    near = np.hypot(sv[:, 0] - c[0], sv[:, 2] - c[2]) < FACING_LINE_RADIUS_MM
-    front, back = sv[near & (sv[:, 1] > c[1]), 1] - c[1], c[1] - sv[near & (sv[:, 1] < c[1]), 1]
-    if len(back) and (not len(front) or back.min() < front.min()):
-        raise InputError("the face looks along -y (the skin in front of the jaws is behind them): the "
-                         "surfaces are in LPS (DICOM) coordinates or rotated; faceplan reads RAS (negate "
-                         "x and y)", file=where("skin"), field="skin")
     if not skin.is_watertight:
         # the skin nearest the jaws must face away from them
         jv = np.concatenate([np.asarray(bones[s].vertices, float) for s in ("maxilla", "mandible", "chin")
@@ -731,6 +802,10 @@ def load_case(path, *, cache: bool = True, cache_dir: str | Path | None = None) 
     else:
         skin, skin_path = ct["skin"], ct_path
     bones = _load_bones(bone_dir) if has_bone_dir else {"bone": ct["bone"]}
+    skin_from_ct = skin_file is None
+    # before the landmarks are compared with it: a skin facing backwards is the skin's (or the
+    # CT's) fault, not the landmarks'
+    check_face_direction(skin, skin_path, from_ct=skin_from_ct)
 
     landmarks: dict = {}
     landmark_file = None
@@ -746,7 +821,7 @@ def load_case(path, *, cache: bool = True, cache_dir: str | Path | None = None) 
     if has_bone_dir:
         files = {"skin": skin_path, "landmarks": landmark_file,
                  **{f"bone.{p.name[: -len(p.suffix)]}": p for p in bone_dir.iterdir() if p.is_file()}}
-        check_anatomy(skin, bones, files, landmarks)
+        check_anatomy(skin, bones, files, landmarks, from_ct=skin_from_ct)
 
     plan_path = _optional(root / "plan.yaml") or _optional(root / "plan.yml")
     postop = root / "postop"

@@ -207,7 +207,8 @@ def test_another_patients_scan_is_refused(tmp_path, phantoms, capsys):
 
 
 def test_skin_alone_in_lps(case):
-    # bones and landmarks in RAS, the skin in LPS: the landmarks no longer lie on the skin
+    # bones and landmarks in RAS, the skin in LPS: the skin's nose is at its back, and the skin
+    # (not the landmarks, which no longer lie on it) is named
     _transform(case / "preop" / "skin.stl", lambda v: v * [-1.0, -1.0, 1.0])
-    err = _refused(case, "do not lie on the skin", "LPS")
-    assert err.file.endswith("landmarks.json")
+    err = _refused(case, "looks along -y", "LPS")
+    assert err.file.endswith("skin.stl")

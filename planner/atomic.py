@@ -7,7 +7,8 @@ command that made it). An existing file, a non-empty folder without the marker (
 another command's marker), an input folder (the case) or any folder that contains one, the
 working directory or one of its parents, the home folder and the file-system root are refused
 with `InputError` (exit 2) naming the path. The nearest existing folder on the way to `path`
-must be writable (a real probe file, not permission bits) and hold at least `min_free_mb` MB.
+must be writable (a real probe file, not permission bits) and hold at least `min_free_mb` MB
+(`check_free_space`, which a command calls again with an estimate once it knows its outputs' size).
 
 `atomic_output_dir(final, kind)` yields a fresh hidden temporary folder next to `final` (same
 file system, so the final move is a `rename`). When the `with` block ends without an exception
@@ -33,12 +34,14 @@ from typing import Iterable, Iterator
 
 from planner.errors import InputError
 
-__all__ = ["MARKER", "MIN_FREE_MB", "atomic_output_dir", "atomic_write_file", "check_output",
+__all__ = ["MARKER", "MIN_FREE_MB", "check_free_space", "atomic_output_dir", "atomic_write_file", "check_output",
            "clean_orphans", "prepare_output"]
 
 MARKER = ".faceplan-output.json"
-# A prediction with its renders is ~20-40 MB at the standard resolution; 100 MB leaves room
-# for the fine one and for the temporary copy that exists while the old output is replaced.
+# The free space required before a command has read anything: a floor, not an estimate, for
+# the commands whose outputs (reports, a few meshes, pictures: ~10-40 MB) are not estimated.
+# `faceplan predict` asks for its own floor here and checks an estimate of its outputs'
+# size (`planner.output_size`) once the mesh is known, before the solve.
 MIN_FREE_MB = 100.0
 # Files that together identify an output written before the marker existed, by command: such a
 # folder is accepted as a previous output of that command.
@@ -164,12 +167,22 @@ def prepare_output(path: str | os.PathLike, kind: str, *, inputs: Iterable = (),
     except OSError as exc:
         raise InputError(f"--out is not writable ({base}: {exc.strerror or exc}); nothing was written",
                          file=os.fspath(path), field="--out") from exc
-    free_mb = shutil.disk_usage(base).free / 2**20
-    if free_mb < min_free_mb:
-        raise InputError(f"--out: only {free_mb:.0f} MB free on the disk of {base}, at least "
-                         f"{min_free_mb:.0f} MB needed; nothing was written",
-                         file=os.fspath(path), field="--out")
+    check_free_space(out, min_free_mb, shown=path)
     return out
+
+
+def check_free_space(path: str | os.PathLike, need_mb: float, *, what: str = "",
+                     shown: str | os.PathLike | None = None) -> None:
+    """Refuse (InputError, field --out) an output location whose disk has less than `need_mb`
+    MB free; `what` says what needs the space (e.g. an estimate of the outputs' size), `shown`
+    is the path named in the message (default `path`)."""
+    out = Path(path)
+    base = _nearest_existing(out.parent if not out.exists() else out)
+    free_mb = shutil.disk_usage(base).free / 2**20
+    if free_mb < need_mb:
+        raise InputError(f"--out: only {free_mb:.0f} MB free on the disk of {base}, at least "
+                         f"{need_mb:.0f} MB needed{f' ({what})' if what else ''}; nothing was written",
+                         file=os.fspath(shown if shown is not None else path), field="--out")
 
 
 def _pid_alive(pid: int) -> bool:

@@ -864,9 +864,10 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
     plan's model.materials."""
     from planner.atomic import prepare_output
     from planner.case import load_case
+    from planner.output_size import PREDICT_FLOOR_MB
 
     out_dir = prepare_output(out if out is not None else Path(case_dir) / "predict", kind,
-                             inputs=[case_dir])
+                             inputs=[case_dir], min_free_mb=PREDICT_FLOOR_MB)
     progress = Progress(echo)
     with progress.stage("load case"):
         case = load_case(case_dir)
@@ -891,6 +892,8 @@ def predict_case(case_dir, out: str | Path | None = None, *, resolution: str | N
         res = resolution or plan.model.resolution
         progress.say(f"  case {case.info.id}: {len(case.bones)} bone surface(s), plan moves "
                      f"{', '.join(plan.motions()) or 'nothing'}; resolution {res}")
+        from planner.output_size import check_prediction_space
+        check_prediction_space(out_dir, res, case.skin, render=render)
     with progress.stage("registration"):
         patient, reg = register_case(case, res, progress)
     pred = solve_plan(patient, plan, case.bones, effects=merged, plan_actual=plan_actual,

@@ -230,3 +230,55 @@ def test_check_without_kind_still_refuses_files_and_inputs(tmp_path, monkeypatch
         with atomic_output_dir("."):
             pass
     assert f.read_text() == "x"
+
+
+# ------------------------------------------------------------ free space: an estimate of the outputs
+def test_prediction_size_estimate_bounds_the_real_outputs(tmp_path):
+    """The estimate (`planner.output_size`) is an upper bound of what `write_outputs` writes
+    for the coarse mesh and the demo head's skin, and not a wild one: within 4x of it (the
+    bounds per item are 1.2-2x the writers' sizes, times the 1.5 margin)."""
+    import numpy as np
+    import trimesh
+
+    import generic_mesh
+    from planner.output_size import prediction_output_bytes
+    from planner.pipeline import DEMO_HEAD, Prediction, Progress, write_outputs
+    from planner.plan import load_plan
+
+    model = generic_mesh.load("coarse")
+    d = np.load(DEMO_HEAD)
+    skin = trimesh.Trimesh(d["skin_vertices"].astype(float), d["skin_faces"], process=False)
+    (tmp_path / "plan.yaml").write_text("faceplan: 1\nsegments:\n  maxilla: {translation: [0, 3, 0]}\n")
+    n, m = len(model.nodes), len(model.hexes)
+    rng = np.random.default_rng(0)   # non-zero fields: compressed output would be optimistic
+    pred = Prediction(model, load_plan(tmp_path / "plan.yaml"), rng.normal(0.0, 0.01, (n, 3)),
+                      rng.normal(0.0, 1.0, (m, 3, 3)), {"converged": True, "load": 1.0})
+    out = write_outputs(pred, tmp_path / "out", Progress(echo=False), {"case": None}, render=False,
+                        patient_skin=skin)
+    written = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+    estimate = prediction_output_bytes(n, m, len(skin.vertices), render=False)
+    assert written < estimate < 4 * written, (written, estimate)
+
+
+def test_predict_refuses_a_disk_smaller_than_its_outputs(tmp_path, capsys, monkeypatch):
+    """40 MB free passes the floor checked before reading, but not the estimate of a coarse
+    prediction with its pictures (~50 MB); the refusal comes before the registration."""
+    import planner.pipeline
+    from planner.pipeline import write_demo_case
+
+    case = write_demo_case(tmp_path / "case")
+    real = shutil.disk_usage
+
+    def small(path):
+        u = real(path)
+        return type(u)(u.total, u.total - 40 * 2**20, 40 * 2**20)
+
+    def boom(*a, **k):
+        raise AssertionError("registration started although the outputs cannot be written")
+
+    monkeypatch.setattr(atomic.shutil, "disk_usage", small)
+    monkeypatch.setattr(planner.pipeline, "register_case", boom)
+    assert main(["predict", str(case), "--resolution", "coarse", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "40 MB free" in err and "estimated size" in err and "nothing was written" in err
+    assert not (case / "predict").exists()

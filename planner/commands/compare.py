@@ -73,35 +73,10 @@ def _postop_landmarks_file(case: Path, given: str | None) -> Path | None:
     return None
 
 
-def _check_same_patient(result, postop_path) -> None:
-    """Refuse a scan whose unoperated regions do not match the prediction's (another patient);
-    note a doubtful one in the report's warnings."""
-    import numpy as np
-
-    from planner.compare.alignment import (DOUBTFUL_MEDIAN_MM, OTHER_PATIENT_MEDIAN_MM,
-                                           unoperated_median_mm)
-    from planner.compare.distances import TriangleSurface
-
-    pred = result.prediction
-    unop = np.isin(pred.region, [pred.region_names.index(n) for n in pred.unoperated_regions])
-    median = unoperated_median_mm(result.scan_vertices, TriangleSurface(pred.vertices, pred.faces),
-                                  np.all(unop[pred.faces], axis=1))
-    where = ", ".join(pred.unoperated_regions)
-    if median > OTHER_PATIENT_MEDIAN_MM:
-        raise InputError(f"the post-op scan does not match the face where surgery changes nothing "
-                         f"({where}): median distance {median:.2f} mm after superimposition (the "
-                         f"same person's scans agree within ~0.3 mm): another patient's scan?",
-                         file=str(postop_path), field="post-op scan")
-    if median > DOUBTFUL_MEDIAN_MM:
-        result.warnings.append(f"the unoperated regions ({where}) differ by a median {median:.2f} mm: "
-                               "is this the same patient? (the same person's scans agree within ~0.3 mm)")
-    result.alignment.unoperated_median_mm = median
-
-
 def run(args) -> int:
     from planner.atomic import atomic_output_dir, prepare_output
     from planner.compare.cohort import write_cohort
-    from planner.compare.comparison import compare_surfaces
+    from planner.compare.comparison import check_same_patient, compare_surfaces
     from planner.compare.inputs import check_not_preop, find_postop, load_surface, read_prediction
     from planner.compare.outputs import write_comparison
 
@@ -145,7 +120,7 @@ def run(args) -> int:
             "timings_s": {"compare": round(time.perf_counter() - t0, 3)},
         }
         if not args.no_align:
-            _check_same_patient(result, postop_path)
+            check_same_patient(result, postop_path)
         results.append((case, result, header))
 
     reports = {}

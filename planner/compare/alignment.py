@@ -27,7 +27,9 @@ import numpy as np
 from planner.compare.distances import TriangleSurface
 
 __all__ = ["Alignment", "trimmed_icp", "align_to_reference", "global_initialisation", "superimpose",
-           "rotation_matrix", "apply", "unoperated_median_mm", "OTHER_PATIENT_MEDIAN_MM",
+           "rotation_matrix", "apply", "unoperated_median_mm", "unoperated_scale_pct",
+           "OTHER_PATIENT_MEDIAN_MM", "OTHER_PATIENT_SCALE_PCT", "SCALE_MAX_STDERR_PCT",
+           "SCALE_IGNORED_REGIONS",
            "DOUBTFUL_MEDIAN_MM"]
 
 # The unoperated regions of one person's pre- and post-op faces agree within the scanner's
@@ -36,6 +38,20 @@ __all__ = ["Alignment", "trimmed_icp", "align_to_reference", "global_initialisat
 # by over 3x the noise) is another face; above 0.6 mm the scan is doubtful.
 OTHER_PATIENT_MEDIAN_MM = 1.0
 DOUBTFUL_MEDIAN_MM = 0.6
+# The same person's face has the same size in both scans: surface scanners are calibrated to
+# ~0.1-0.3 % (0.2 mm over a 200 mm face), and the registered model skin that a prediction stands
+# on fits the pre-op skin within ~0.3 mm. A head of nearly the same size can still match the
+# unoperated regions within 1 mm once rigidly superimposed (the ICP hides a few % of scale in a
+# shift), but not once the scale is fitted too: the width (x) scale that maps the scan onto the
+# prediction over the unoperated regions lying over bone, beyond this many percent, is another
+# face (the same patient's post-op scans, swollen ones included, stay within ~1 %). Height and
+# depth are not judged: those regions (nasal root, infra-orbital) span little of either, so
+# their scales are poorly determined; the preauricular regions are left out because the lateral
+# face swells and sags with posture after surgery (the `swelling` and `gravity` effects).
+OTHER_PATIENT_SCALE_PCT = 2.5
+SCALE_IGNORED_REGIONS = ("preauricular_left", "preauricular_right")
+# The scale is judged only when the points determine it to this standard error (percent).
+SCALE_MAX_STDERR_PCT = 0.5
 
 
 def rotation_matrix(omega: np.ndarray) -> np.ndarray:
@@ -66,6 +82,7 @@ class Alignment:
     strategy: str = "local"            # "local": ICP from the given frame; "global": 24 starts
     face_coverage: float = float("nan")   # scan fraction within 2 mm of the face (pose check)
     unoperated_median_mm: float = float("nan")   # untrimmed agreement on the unoperated regions
+    unoperated_scale_pct: tuple = ()   # (x, y, z) scale of the scan's face against the prediction's
 
     @property
     def rotation_deg(self) -> float:
@@ -86,6 +103,7 @@ class Alignment:
             "strategy": self.strategy,
             "face_coverage": self.face_coverage,
             "unoperated_median_mm": self.unoperated_median_mm,
+            "unoperated_scale_pct": list(self.unoperated_scale_pct),
             "rotation_deg": self.rotation_deg,
             "translation_mm": self.translation_mm,
             "matrix": self.matrix.tolist(),
@@ -314,3 +332,52 @@ def unoperated_median_mm(aligned: np.ndarray, reference: TriangleSurface, allowe
     c = reference.closest(np.asarray(aligned, float))
     sel = np.asarray(allowed_faces)[c.face] & ~c.beyond_boundary & (c.distance <= gate)
     return float(np.median(np.abs(c.signed[sel]))) if sel.any() else float("nan")
+
+
+def unoperated_scale_pct(aligned: np.ndarray, reference: TriangleSurface, allowed_faces: np.ndarray,
+                         weights: np.ndarray | None = None, gate: float = 5.0,
+                         iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """How much larger the scan's face is than the reference's along x, y and z (percent),
+    over the reference's unoperated triangles, with its standard error (percent).
+
+    The aligned scan points over those triangles are moved by a small rigid motion and a scale
+    per axis about their centroid, x' = x + omega x x + t + diag(s) (x - c), chosen to minimise
+    the point-to-plane residuals n . (x' - closest point) (linearised least squares, iterated
+    with fresh closest points; Chen & Medioni 1992 with three scale unknowns added). The scan is
+    larger by -s. The standard error is that of linear least squares, sigma^2 (A^T A)^-1, with
+    sigma the residual RMS; it is optimistic for dense, correlated scan points but large when
+    the regions are barely covered. `weights` (e.g. the scan's vertex areas) make the fit
+    independent of how densely the scan samples each part of the face. NaN when fewer than 50
+    scan points lie over the regions.
+    """
+    x = np.asarray(aligned, float).copy()
+    allowed = np.asarray(allowed_faces, bool)
+    w_all = np.ones(len(x)) if weights is None else np.asarray(weights, float)
+    total = np.zeros(3)
+    stderr = np.full(3, np.nan)
+    centre = None
+    for _ in range(iterations):
+        cp = reference.closest(x, k=4)
+        sel = allowed[cp.face] & ~cp.beyond_boundary & (cp.distance <= gate)
+        if sel.sum() < 50:
+            return np.full(3, np.nan), np.full(3, np.nan)
+        # the regressors use the closest points, not the scan points: scan noise along the
+        # normal would otherwise enter both sides and bias the scale by ~noise^2 / extent^2
+        q, n, r = cp.point[sel], cp.normal[sel], cp.signed[sel]
+        if centre is None:
+            centre = q.mean(axis=0)
+        A = np.hstack([np.cross(q, n), n, n * (q - centre)])
+        w = w_all[sel] / w_all[sel].mean()
+        sw = np.sqrt(w)
+        step, *_ = np.linalg.lstsq(A * sw[:, None], -r * sw, rcond=None)
+        x = x + np.cross(step[:3], x) + step[3:6] + (x - centre) * step[6:]
+        total += step[6:]
+        dof = max(len(r) - 9, 1)
+        sigma2 = float(np.sum(w * (r + A @ step) ** 2)) / dof
+        try:
+            stderr = np.sqrt(np.diag(sigma2 * np.linalg.inv((A * w[:, None]).T @ A))[6:])
+        except np.linalg.LinAlgError:
+            stderr = np.full(3, np.inf)
+        if np.abs(step[6:]).max() < 1e-5:
+            break
+    return -100.0 * total, 100.0 * stderr

@@ -24,7 +24,7 @@ from planner.compare.landmarks import RULES, LandmarkLocator
 from planner.compare.metrics import distance_metrics
 from planner.errors import InputError
 
-__all__ = ["Comparison", "compare_surfaces", "SIGN_CONVENTION"]
+__all__ = ["Comparison", "compare_surfaces", "check_same_patient", "SIGN_CONVENTION"]
 
 SIGN_CONVENTION = ("signed distance = post-op minus prediction along the predicted outward "
                    "normal: > 0 where the real face is fuller (more outward) than predicted")
@@ -248,3 +248,44 @@ def compare_surfaces(pred: Prediction, scan: Surface, gate: float = 10.0, keep: 
         warnings.append("the prediction gives no landmarks (report.json landmarks_predicted)")
     return Comparison(alignment, aligned, scan.faces, signed, region, reverse, pred, metrics,
                       metrics_reverse, metrics["landmarks"], warnings)
+
+
+def check_same_patient(result: Comparison, scan_path) -> None:
+    """Refuse (InputError naming the scan) a superimposed post-op scan of another patient:
+    its unoperated regions lie a median of more than `OTHER_PATIENT_MEDIAN_MM` from the
+    prediction's, or its face is more than `OTHER_PATIENT_SCALE_PCT` wider or narrower there
+    (`unoperated_scale_pct`). A median above `DOUBTFUL_MEDIAN_MM` adds a warning. Both figures
+    go to the report's `alignment`."""
+    from planner.compare.alignment import (DOUBTFUL_MEDIAN_MM, OTHER_PATIENT_MEDIAN_MM,
+                                           OTHER_PATIENT_SCALE_PCT, SCALE_IGNORED_REGIONS,
+                                           SCALE_MAX_STDERR_PCT, unoperated_median_mm,
+                                           unoperated_scale_pct)
+
+    pred = result.prediction
+    surface = TriangleSurface(pred.vertices, pred.faces)
+
+    def faces_of(names):
+        ids = [pred.region_names.index(n) for n in names]
+        return np.all(np.isin(pred.region, ids)[pred.faces], axis=1)
+
+    median = unoperated_median_mm(result.scan_vertices, surface, faces_of(pred.unoperated_regions))
+    where = ", ".join(pred.unoperated_regions)
+    if median > OTHER_PATIENT_MEDIAN_MM:
+        raise InputError(f"the post-op scan does not match the face where surgery changes nothing "
+                         f"({where}): median distance {median:.2f} mm after superimposition (the "
+                         f"same person's scans agree within ~0.3 mm): another patient's scan?",
+                         file=str(scan_path), field="post-op scan")
+    over_bone = [n for n in pred.unoperated_regions if n not in SCALE_IGNORED_REGIONS]
+    scale, stderr = unoperated_scale_pct(result.scan_vertices, surface, faces_of(over_bone),
+                                         weights=vertex_areas(result.scan_vertices, result.scan_faces))
+    if abs(scale[0]) > OTHER_PATIENT_SCALE_PCT and stderr[0] < SCALE_MAX_STDERR_PCT:
+        raise InputError(f"the post-op scan's face is {abs(scale[0]):.1f}% "
+                         f"{'wider' if scale[0] > 0 else 'narrower'} than the predicted patient's "
+                         f"where surgery changes nothing ({', '.join(over_bone)}; the same person's "
+                         f"scans agree within ~1%, refused beyond {OTHER_PATIENT_SCALE_PCT:g}%): "
+                         "another patient's scan?", file=str(scan_path), field="post-op scan")
+    if median > DOUBTFUL_MEDIAN_MM:
+        result.warnings.append(f"the unoperated regions ({where}) differ by a median {median:.2f} mm: "
+                               "is this the same patient? (the same person's scans agree within ~0.3 mm)")
+    result.alignment.unoperated_median_mm = median
+    result.alignment.unoperated_scale_pct = tuple(round(float(v), 3) for v in scale)

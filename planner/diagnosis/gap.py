@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planner.compare.comparison import compare_surfaces
+from planner.compare.comparison import check_same_patient, compare_surfaces
 from planner.compare.distances import TriangleSurface, vertex_areas
 from planner.compare.inputs import Prediction as ComparePrediction
 from planner.compare.inputs import Surface
@@ -191,6 +191,7 @@ def measure_gap(case, skin: np.ndarray, scan: Surface, max_residual_mm: float = 
     (residual > `max_residual_mm`), no overlap, flipped normals."""
     pred = baseline_prediction(case, skin)
     comp = compare_surfaces(pred, scan, max_residual_mm=max_residual_mm, landmarks=bool(pred.landmarks))
+    check_same_patient(comp, scan.path)   # the unoperated regions' distance and width, as compare
     match = float(comp.alignment.face_coverage)
     if np.isfinite(match) and match < MIN_FACE_MATCH:
         # the same patient's face lies within 2 mm of its prediction almost everywhere (the

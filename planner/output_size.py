@@ -10,8 +10,8 @@ faces, `face_predicted.glb` ~60 bytes), and the pictures (PNG renders of mostly 
 background compress to well under 1 byte per pixel; the bound takes 1; the turntable GIF has
 at most 1 byte per pixel per frame), which `report.html` embeds again in base64 (x 4/3). The
 total is multiplied by `MARGIN` for what the bound leaves out (file-system blocks, the
-temporary copy of a small file, report tables growing with the landmarks). The sizes observed
-on the demo head lie between a quarter and a half of the estimate.
+temporary copy of a small file, report tables growing with the landmarks). The sizes written
+for the demo head and the synthetic heads lie between a quarter and a half of the estimate.
 """
 from __future__ import annotations
 

@@ -27,7 +27,7 @@ import numpy as np
 from planner.compare.distances import TriangleSurface
 
 __all__ = ["Alignment", "trimmed_icp", "align_to_reference", "global_initialisation", "superimpose",
-           "rotation_matrix", "apply", "unoperated_median_mm", "unoperated_scale_pct",
+           "rotation_matrix", "apply", "unoperated_median_mm", "unoperated_width_scale_pct",
            "OTHER_PATIENT_MEDIAN_MM", "OTHER_PATIENT_SCALE_PCT", "SCALE_MAX_STDERR_PCT",
            "SCALE_IGNORED_REGIONS",
            "DOUBTFUL_MEDIAN_MM"]
@@ -42,15 +42,14 @@ DOUBTFUL_MEDIAN_MM = 0.6
 # ~0.1-0.3 % (0.2 mm over a 200 mm face), and the registered model skin that a prediction stands
 # on fits the pre-op skin within ~0.3 mm. A head of nearly the same size can still match the
 # unoperated regions within 1 mm once rigidly superimposed (the ICP hides a few % of scale in a
-# shift), but not once the scale is fitted too: the width (x) scale that maps the scan onto the
-# prediction over the unoperated regions lying over bone, beyond this many percent, is another
-# face (the same patient's post-op scans, swollen ones included, stay within ~1 %). Height and
-# depth are not judged: those regions (nasal root, infra-orbital) span little of either, so
-# their scales are poorly determined; the preauricular regions are left out because the lateral
-# face swells and sags with posture after surgery (the `swelling` and `gravity` effects).
+# shift), but not once the width is fitted too (`unoperated_width_scale_pct`): over the
+# unoperated regions lying over bone, a scan wider or narrower by more than this many percent
+# is another face (the same patient's post-op scans, swollen ones included, stay within ~1 %).
+# The preauricular regions are left out: the lateral face swells and sags with posture after
+# surgery (the `swelling` and `gravity` effects).
 OTHER_PATIENT_SCALE_PCT = 2.5
 SCALE_IGNORED_REGIONS = ("preauricular_left", "preauricular_right")
-# The scale is judged only when the points determine it to this standard error (percent).
+# The width is judged only when the points determine it to this standard error (percent).
 SCALE_MAX_STDERR_PCT = 0.5
 
 
@@ -82,7 +81,7 @@ class Alignment:
     strategy: str = "local"            # "local": ICP from the given frame; "global": 24 starts
     face_coverage: float = float("nan")   # scan fraction within 2 mm of the face (pose check)
     unoperated_median_mm: float = float("nan")   # untrimmed agreement on the unoperated regions
-    unoperated_scale_pct: tuple = ()   # (x, y, z) scale of the scan's face against the prediction's
+    unoperated_width_scale_pct: float = float("nan")   # how much wider the scan's face is there
 
     @property
     def rotation_deg(self) -> float:
@@ -103,7 +102,7 @@ class Alignment:
             "strategy": self.strategy,
             "face_coverage": self.face_coverage,
             "unoperated_median_mm": self.unoperated_median_mm,
-            "unoperated_scale_pct": list(self.unoperated_scale_pct),
+            "unoperated_width_scale_pct": self.unoperated_width_scale_pct,
             "rotation_deg": self.rotation_deg,
             "translation_mm": self.translation_mm,
             "matrix": self.matrix.tolist(),
@@ -334,50 +333,56 @@ def unoperated_median_mm(aligned: np.ndarray, reference: TriangleSurface, allowe
     return float(np.median(np.abs(c.signed[sel]))) if sel.any() else float("nan")
 
 
-def unoperated_scale_pct(aligned: np.ndarray, reference: TriangleSurface, allowed_faces: np.ndarray,
-                         weights: np.ndarray | None = None, gate: float = 5.0,
-                         iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """How much larger the scan's face is than the reference's along x, y and z (percent),
-    over the reference's unoperated triangles, with its standard error (percent).
+def unoperated_width_scale_pct(aligned: np.ndarray, reference: TriangleSurface, allowed_faces: np.ndarray,
+                               weights: np.ndarray | None = None, gate: float = 5.0,
+                               iterations: int = 20, max_step_pct: float = 2.0) -> tuple[float, float, bool]:
+    """How much wider the scan's face is than the reference's (percent, along x) over the
+    reference's unoperated triangles, its standard error (percent), and whether the fit
+    converged (a scan of a different shape can keep the width drifting: no width fits it).
 
-    The aligned scan points over those triangles are moved by a small rigid motion and a scale
-    per axis about their centroid, x' = x + omega x x + t + diag(s) (x - c), chosen to minimise
-    the point-to-plane residuals n . (x' - closest point) (linearised least squares, iterated
-    with fresh closest points; Chen & Medioni 1992 with three scale unknowns added). The scan is
-    larger by -s. The standard error is that of linear least squares, sigma^2 (A^T A)^-1, with
-    sigma the residual RMS; it is optimistic for dense, correlated scan points but large when
-    the regions are barely covered. `weights` (e.g. the scan's vertex areas) make the fit
-    independent of how densely the scan samples each part of the face. NaN when fewer than 50
-    scan points lie over the regions.
+    The aligned scan points over those triangles are moved by a small rigid motion and a width
+    scale about their centroid, x' = x + omega x x + t + s (x - c)_x e_x, chosen to minimise the
+    point-to-plane residuals n . (x' - closest point) (linearised least squares, iterated with
+    fresh closest points; Chen & Medioni 1992 with a scale unknown added). The linearisation is
+    taken at the closest points, which carry no scan noise (with the scan points, noise along the
+    normals would bias the scale by ~noise^2 / extent^2). A step changes the scale by at most
+    `max_step_pct`, so that a scan of a different shape cannot throw the points out of the
+    regions in one step. Only the width is fitted: regions such as the nasal root and the
+    infra-orbital skin span ~80 mm across but little height or depth, where a scale would be
+    poorly determined and would trade off against the rotation. `weights` (e.g. the scan's
+    vertex areas) make the fit independent of how densely the scan samples each part. The
+    standard error is that of weighted linear least squares, sigma^2 (A^T W A)^-1; it is
+    optimistic for dense, correlated scan points but large when the regions are barely covered.
+    The scan is wider by -s. NaN (and converged) when fewer than 50 scan points lie over the
+    regions at the start; not converged when they leave the regions during the fit.
     """
     x = np.asarray(aligned, float).copy()
     allowed = np.asarray(allowed_faces, bool)
     w_all = np.ones(len(x)) if weights is None else np.asarray(weights, float)
-    total = np.zeros(3)
-    stderr = np.full(3, np.nan)
-    centre = None
+    total, stderr, centre = 0.0, float("nan"), None
     for _ in range(iterations):
         cp = reference.closest(x, k=4)
         sel = allowed[cp.face] & ~cp.beyond_boundary & (cp.distance <= gate)
         if sel.sum() < 50:
-            return np.full(3, np.nan), np.full(3, np.nan)
-        # the regressors use the closest points, not the scan points: scan noise along the
-        # normal would otherwise enter both sides and bias the scale by ~noise^2 / extent^2
+            return (float("nan"), float("nan"), True) if centre is None else (-100.0 * total, stderr, False)
         q, n, r = cp.point[sel], cp.normal[sel], cp.signed[sel]
         if centre is None:
             centre = q.mean(axis=0)
-        A = np.hstack([np.cross(q, n), n, n * (q - centre)])
+        A = np.hstack([np.cross(q, n), n, n[:, :1] * (q[:, :1] - centre[0])])
         w = w_all[sel] / w_all[sel].mean()
         sw = np.sqrt(w)
         step, *_ = np.linalg.lstsq(A * sw[:, None], -r * sw, rcond=None)
-        x = x + np.cross(step[:3], x) + step[3:6] + (x - centre) * step[6:]
-        total += step[6:]
-        dof = max(len(r) - 9, 1)
-        sigma2 = float(np.sum(w * (r + A @ step) ** 2)) / dof
+        sigma2 = float(np.sum(w * (r + A @ step) ** 2)) / max(len(r) - 7, 1)
         try:
-            stderr = np.sqrt(np.diag(sigma2 * np.linalg.inv((A * w[:, None]).T @ A))[6:])
+            stderr = 100.0 * float(np.sqrt(sigma2 * np.linalg.inv((A * w[:, None]).T @ A)[6, 6]))
         except np.linalg.LinAlgError:
-            stderr = np.full(3, np.inf)
-        if np.abs(step[6:]).max() < 1e-5:
-            break
-    return -100.0 * total, 100.0 * stderr
+            stderr = float("inf")
+        limit = max_step_pct / 100.0
+        if abs(step[6]) > limit:
+            step = step * (limit / abs(step[6]))
+        x = x + np.cross(step[:3], x) + step[3:6]
+        x[:, 0] += step[6] * (x[:, 0] - centre[0])
+        total += step[6]
+        if abs(step[6]) < 2e-4:   # 0.02 %: settled, far below the 2.5 % that is judged
+            return -100.0 * total, stderr, True
+    return -100.0 * total, stderr, False

@@ -254,12 +254,12 @@ def check_same_patient(result: Comparison, scan_path) -> None:
     """Refuse (InputError naming the scan) a superimposed post-op scan of another patient:
     its unoperated regions lie a median of more than `OTHER_PATIENT_MEDIAN_MM` from the
     prediction's, or its face is more than `OTHER_PATIENT_SCALE_PCT` wider or narrower there
-    (`unoperated_scale_pct`). A median above `DOUBTFUL_MEDIAN_MM` adds a warning. Both figures
+    (`unoperated_width_scale_pct`). A median above `DOUBTFUL_MEDIAN_MM` adds a warning. Both figures
     go to the report's `alignment`."""
     from planner.compare.alignment import (DOUBTFUL_MEDIAN_MM, OTHER_PATIENT_MEDIAN_MM,
                                            OTHER_PATIENT_SCALE_PCT, SCALE_IGNORED_REGIONS,
                                            SCALE_MAX_STDERR_PCT, unoperated_median_mm,
-                                           unoperated_scale_pct)
+                                           unoperated_width_scale_pct)
 
     pred = result.prediction
     surface = TriangleSurface(pred.vertices, pred.faces)
@@ -276,11 +276,18 @@ def check_same_patient(result: Comparison, scan_path) -> None:
                          f"same person's scans agree within ~0.3 mm): another patient's scan?",
                          file=str(scan_path), field="post-op scan")
     over_bone = [n for n in pred.unoperated_regions if n not in SCALE_IGNORED_REGIONS]
-    scale, stderr = unoperated_scale_pct(result.scan_vertices, surface, faces_of(over_bone),
-                                         weights=vertex_areas(result.scan_vertices, result.scan_faces))
-    if abs(scale[0]) > OTHER_PATIENT_SCALE_PCT and stderr[0] < SCALE_MAX_STDERR_PCT:
-        raise InputError(f"the post-op scan's face is {abs(scale[0]):.1f}% "
-                         f"{'wider' if scale[0] > 0 else 'narrower'} than the predicted patient's "
+    scale, stderr, converged = unoperated_width_scale_pct(
+        result.scan_vertices, surface, faces_of(over_bone),
+        weights=vertex_areas(result.scan_vertices, result.scan_faces))
+    if not converged:
+        raise InputError(f"the post-op scan's face has another shape than the predicted patient's "
+                         f"where surgery changes nothing ({', '.join(over_bone)}): no width brings "
+                         f"the two into agreement (the fit drifted to {abs(scale):.0f}% "
+                         f"{'wider' if scale > 0 else 'narrower'}): another patient's scan?",
+                         file=str(scan_path), field="post-op scan")
+    if abs(scale) > OTHER_PATIENT_SCALE_PCT and stderr < SCALE_MAX_STDERR_PCT:
+        raise InputError(f"the post-op scan's face is {abs(scale):.1f}% "
+                         f"{'wider' if scale > 0 else 'narrower'} than the predicted patient's "
                          f"where surgery changes nothing ({', '.join(over_bone)}; the same person's "
                          f"scans agree within ~1%, refused beyond {OTHER_PATIENT_SCALE_PCT:g}%): "
                          "another patient's scan?", file=str(scan_path), field="post-op scan")
@@ -288,4 +295,4 @@ def check_same_patient(result: Comparison, scan_path) -> None:
         result.warnings.append(f"the unoperated regions ({where}) differ by a median {median:.2f} mm: "
                                "is this the same patient? (the same person's scans agree within ~0.3 mm)")
     result.alignment.unoperated_median_mm = median
-    result.alignment.unoperated_scale_pct = tuple(round(float(v), 3) for v in scale)
+    result.alignment.unoperated_width_scale_pct = round(float(scale), 3)

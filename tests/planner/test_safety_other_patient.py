@@ -3,9 +3,10 @@
 Once rigidly superimposed, a face 3 % wider or narrower than the predicted one still matches
 its unoperated regions within a median of 1 mm (the superimposition hides the scale in a
 shift), so `check_same_patient` also fits the width scale over those regions
-(`unoperated_scale_pct`). Checked on the analytic face phantom (`planner.compare.phantom`):
-the fitted scale against known scalings, its independence of scan noise, and the command's
-verdict on a scaled scan and on the patient's own noisy scan.
+(`unoperated_width_scale_pct`). Checked on the analytic face phantom (`planner.compare.phantom`):
+the fitted width against known scalings, its independence of scan noise, and the command's
+verdict on a scaled scan and on the patient's own noisy scan. (On `faceplan synth` cases the
+same check was run from the command line; the figures are in docs/safety.md.)
 """
 import json
 
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from planner.compare.alignment import unoperated_scale_pct
+from planner.compare.alignment import unoperated_width_scale_pct
 from planner.compare.distances import TriangleSurface
 from planner.compare.phantom import face_phantom, write_prediction_folder
 
@@ -37,27 +38,28 @@ def _noisy(scan, sigma, seed):
     return scan.vertices + n * np.random.default_rng(seed).normal(0.0, sigma, (len(n), 1))
 
 
-@pytest.mark.parametrize("factor", [[1.0, 1.0, 1.0], [1.03, 1.0, 1.0], [0.97, 1.0, 1.03]])
-def test_the_fitted_scale_is_the_applied_one(phantoms, factor):
+@pytest.mark.parametrize("factor", [[1.0, 1.0, 1.0], [1.03, 1.0, 1.0], [0.97, 1.0, 1.0], [1.02, 1.0, 1.01]])
+def test_the_fitted_width_is_the_applied_one(phantoms, factor):
     pred, scan = phantoms
     surface, allowed = TriangleSurface(pred.vertices, pred.faces), _unoperated(pred)
     scaled = (scan.vertices - CENTRE) * factor + CENTRE
-    scale, stderr = unoperated_scale_pct(scaled, surface, allowed)
-    # 0.15 %: the chord error of the 2.5 mm facets (< 0.05 mm) against ~40 mm of lever, plus
-    # the linearisation of a 3 % step (second order: 0.03 %); observed < 0.1 %
-    np.testing.assert_allclose(scale[[0, 2]], 100.0 * (np.array(factor)[[0, 2]] - 1.0), atol=0.15)
-    assert np.all(stderr[[0, 2]] < 0.1)
+    scale, stderr, converged = unoperated_width_scale_pct(scaled, surface, allowed)
+    # 0.25 %: the chord error of the 2.5 mm facets (< 0.05 mm) against ~40 mm of lever, the
+    # linearisation of a 3 % step (second order: 0.03 %), and a 1 % height change that the
+    # width-only fit leaves to the rigid motion
+    assert converged and scale == pytest.approx(100.0 * (factor[0] - 1.0), abs=0.25)
+    assert stderr < 0.1
 
 
 @pytest.mark.parametrize("seed", [3, 4])
 def test_scan_noise_does_not_bias_the_scale(phantoms, seed):
-    # 0.5 mm of noise along the normals (2.5x a surface scanner's): with the scan points in the
-    # regressors the width scale came out ~1.3 % (a bias growing as noise^2); the fit must stay
+    # 0.5 mm of noise along the normals (2.5x a surface scanner's): a fit linearised at the
+    # noisy scan points would be biased by ~noise^2 / extent^2 (~1 % here); the fit must stay
     # within 3 standard errors (~0.45 %) of zero
     pred, scan = phantoms
-    scale, stderr = unoperated_scale_pct(_noisy(scan, 0.5, seed), TriangleSurface(pred.vertices, pred.faces),
-                                         _unoperated(pred))
-    assert abs(scale[0]) < 3 * stderr[0] + 0.05, (scale, stderr)
+    scale, stderr, converged = unoperated_width_scale_pct(
+        _noisy(scan, 0.5, seed), TriangleSurface(pred.vertices, pred.faces), _unoperated(pred))
+    assert converged and abs(scale) < 3 * stderr + 0.05, (scale, stderr)
 
 
 def _case(root, pred, vertices, faces):
@@ -88,4 +90,4 @@ def test_compare_keeps_the_patients_own_noisy_scan(phantoms, tmp_path):
     case = _case(tmp_path / "c", pred, _noisy(scan, 0.5, 3), scan.faces)
     assert main(["compare", str(case), "--no-images"]) == 0
     alignment = json.loads((case / "compare" / "report.json").read_text())["alignment"]
-    assert abs(alignment["unoperated_scale_pct"][0]) < 1.0
+    assert abs(alignment["unoperated_width_scale_pct"]) < 1.0

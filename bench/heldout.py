@@ -137,6 +137,10 @@ def run_case(seed: int, resolution: str, root: Path, landmarks: bool) -> dict:
         generic = generic_mesh.load(resolution)
         rec["registered_min_sj"] = float(min_scaled_jacobian(patient.nodes, patient.hexes).min())
         rec["skin_fit_mean_mm"] = reg["fit"]["skin"]["mean_mm"]
+        rec["skin_fit_max_mm"] = reg["fit"]["skin_nodes"]["max_mm"]
+        search = reg.get("landmark_search") or {}
+        rec["landmarks_not_found"] = search.get("not_found", [])
+        rec["head_frame_rotation_deg"] = search.get("head_frame_rotation_deg")
         rec["landmark_error_mm"] = {k: float(np.linalg.norm(patient.nodes[i] - head.landmarks[k]))
                                     for k, i in generic.landmarks.items() if k in head.landmarks}
         stage = "prediction"
@@ -244,14 +248,17 @@ def main() -> int:
                 records.append(rec)
                 if rec["ok"]:
                     lm = rec["landmark_error_mm"]
+                    worst = max(lm, key=lm.get)
                     print(f"  {res} seed {seed}: ok, Newton {rec['newton_iterations']} its "
                           f"({rec['load_steps']} steps, {rec['cutbacks']} cut-backs), min SJ reg "
                           f"{rec['registered_min_sj']:.3f} / pred {rec['predicted_min_sj']:.3f}, "
-                          f"landmarks max {max(lm.values()):.2f} mm, registration "
+                          f"landmarks max {lm[worst]:.2f} mm ({worst}), registration "
                           f"{rec['times_s']['registration']:.1f} s, predict {rec['times_s']['predict']:.1f} s",
                           flush=True)
                 else:
                     print(f"  {res} seed {seed}: FAILED in {rec['failed_in']}: {rec['error']}", flush=True)
+                if args.json:  # every record so far (a long run can be read while it goes on)
+                    Path(args.json).write_text(json.dumps(records, indent=1, default=float))
     lines = [summarise(records, res) for res in resolutions]
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print()

@@ -23,7 +23,9 @@ back by the alignment similarity):
   above the labiomental fold; soft pogonion (Pog): the most anterior point of the chin below
   the fold. Each maximum is refined by a parabola through the profile vertices within +-3 mm of
   arc length of the best vertex (the scan's facets cut convex tips) and Li and Pog are taken on
-  their own local mid-sagittal plane;
+  their own local mid-sagittal plane. A chin that does not stand POG_PROMINENCE_MM in front of
+  its fold's lower edge has no summit of its own: pogonion is then that edge (the most anterior
+  point below the fold, as `facemodel.head_geometry.anatomical_landmarks` defines it);
 * subnasale (Sn) and the labiomental fold: the deepest points under the profile's anterior
   convex hull edges (bitangents) that span the nasolabial and labiomental concavities; the
   subnasale corner is sharper than the scan's facets, which bridge it by a chord: it is taken
@@ -43,7 +45,8 @@ back by the alignment similarity):
   border, a line descending MENTON_TILT deg backwards: the profile point farthest along the
   direction MENTON_TILT deg in front of straight down (refined like the maxima above, on the
   mid-sagittal plane at the point found).
-The cheilia are left where the registration carried them (the mouth slit of these scans fades
+A located landmark that ends above or below its neighbour on the profile (`PROFILE_ORDER`)
+is on the wrong feature: it is not used. The cheilia are left where the registration carried them (the mouth slit of these scans fades
 out towards its corners). The located landmarks are then handled as given ones
 (`registration.landmark_fit` moves the landmark nodes onto them).
 """
@@ -88,11 +91,19 @@ FISSURE_CHORD_MM = 3.0
 FISSURE_BAND_MM = 5.0    # mm: the groove sought within this height of the mouth's centre
 FISSURE_END_LEVEL = 0.1
 FISSURE_MIN_DROP_MM = 0.3
+# mm: the least a chin's summit must stand in front of the lower edge of the labiomental fold
+# for pogonion to be defined (a few times the chord height of a scan's facets over the chin)
+POG_PROMINENCE_MM = 0.5
 MENTON_REACH = 25.0      # mm of profile beyond the carried menton searched for it
 # deg in front of straight down: menton is the chin's extreme along that direction (the chin's
 # inferior border taken as a line descending this much backwards: module docstring); the same
 # convention as the synthetic heads' truth (facemodel.head_geometry.MENTON_TILT)
 MENTON_TILT = 35.0
+# the profile landmarks from top to bottom, as neighbours whose heights cannot swap (the stomia
+# are not compared with each other: lips that overhang can cross at the slit)
+PROFILE_ORDER = (("Prn", "Sn"), ("Sn", "Ls"), ("Ls", "Stms"), ("Ls", "Stmi"), ("Stms", "Li"),
+                 ("Stmi", "Li"), ("Li", "Pog"), ("Pog", "Me"))
+ORDER_TOL_MM = 0.5       # mm: heights compared up to the located landmarks' own scatter
 LOCATED = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "ChL", "ChR", "Pog", "Me")
 
 
@@ -695,6 +706,11 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
             if i1 - i0 >= 3:
                 i_fold = deepest_under_bitangent(p, i0, i1)
                 li, pog = most_anterior(p, i0, i_fold), most_anterior(p, _valley_end(p, i_fold, i1), i1)
+                # a chin that does not come forward of its fold's lower edge by POG_PROMINENCE_MM
+                # has no summit of its own: the most anterior point below the fold is then that
+                # edge itself (a faint bulge lower down, up to 10 mm away along the profile but
+                # no more anterior, is not taken: its place follows the scan's facets)
+                flat_chin = pog[1] - p[i_fold, 1] < POG_PROMINENCE_MM
                 z_fold = p[i_fold, 2]
                 if dense:
                     # the scan samples the lip: its summit on the lip's own mid-sagittal plane
@@ -710,12 +726,16 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
                             found["Li"] = most_anterior(q, a, b)
                 else:
                     found["Li"] = anterior_summit(skin, li, (z_fold, p[i0, 2] - 0.5), SUMMIT_RADIUS["Li"])
-                found["Pog"] = anterior_summit(skin, pog, (p[i1, 2], z_fold), SUMMIT_RADIUS["Pog"])
+                if flat_chin:
+                    found["Pog"] = p[i_fold].copy()
+                else:
+                    found["Pog"] = anterior_summit(skin, pog, (p[i1, 2], z_fold), SUMMIT_RADIUS["Pog"])
                 if "Me" in wanted:
-                    me = _menton(p, _nearest_index(p, pog))
+                    pog_at = found["Pog"]
+                    me = _menton(p, _nearest_index(p, pog_at))
                     if me is not None:  # again on the mid-sagittal plane at that point
                         q = profile(me, MENTON_REACH)
-                        me2 = _menton(q, _nearest_index(q, found["Pog"])) if len(q) >= 4 else None
+                        me2 = _menton(q, _nearest_index(q, pog_at)) if len(q) >= 4 else None
                         found["Me"] = me if me2 is None else me2
     # the cheilia: the lateral ends of the oral fissure, on a scan that samples it densely
     if dense and stms is not None and stmi is not None:
@@ -725,12 +745,29 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
                 point, info = fissure_end(skin, c[k], mouth)
                 if point is not None:
                     found[k] = point
+    disordered = out_of_profile_order(found, c)
     out = {}
     for k in wanted:
-        if k in found:
+        if k in found and k not in disordered:
             out[k] = found[k]
         else:
             missing.append(k)
     report = {"located": {k: {"moved_mm": float(np.linalg.norm(out[k] - c[k]))} for k in out},
-              "not_found": missing}
+              "not_found": missing, "out_of_order": disordered}
     return out, report
+
+
+def out_of_profile_order(found: dict, carried: dict, tol: float = ORDER_TOL_MM) -> list[str]:
+    """Located landmarks that break the top-to-bottom order of the profile landmarks
+    (PROFILE_ORDER; each pair of neighbours compared by height, z superior, found positions
+    where located and carried ones elsewhere): a landmark placed on the wrong feature (the
+    upper lip's summit taken for subnasale, the fold for the chin) lands above or below its
+    neighbour. Of a disordered pair, the located landmark(s) are returned (they stay where the
+    registration carried them)."""
+    pos = {k: np.asarray(found.get(k, carried.get(k)), float) for k in {*found, *carried}
+           if found.get(k, carried.get(k)) is not None}
+    bad: set[str] = set()
+    for upper, lower in PROFILE_ORDER:
+        if upper in pos and lower in pos and pos[upper][2] < pos[lower][2] - tol:
+            bad.update(k for k in (upper, lower) if k in found)
+    return sorted(bad)

@@ -77,8 +77,11 @@ class MatchOptions:
     landmark_max_correction_mm: float = 10.0
     # the same for a located landmark: found by its definition on the scan near the carried
     # node, it may lie farther from it where the head's shape moves the feature along the
-    # profile (menton 13 mm from the generic's on a short, retruded chin)
-    located_max_correction_mm: float = 15.0
+    # profile (menton on a short, retruded chin; pogonion on a chin without a summit of its
+    # own). A located landmark on the wrong feature is caught by the profile order
+    # (`landmark_search.out_of_profile_order`); this bound only keeps the correction within
+    # the reach of the search itself along the profile (landmark_search.MENTON_REACH)
+    located_max_correction_mm: float = 25.0
     # skin nodes placed so that the facets, not only the nodes, fit the skin (least squares)
     facet_fit: bool = True
     # lips kept at least this far apart across the mouth slit (registration.lips); 0 disables

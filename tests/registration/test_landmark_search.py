@@ -390,7 +390,7 @@ def test_menton_of_a_short_retruded_chin(generic):
     """Synthetic head 3 (mandible 6 mm back, chin short): its menton by the definition lies
     ~5 mm of profile below pogonion, 13 mm from where the registration carries the generic's
     menton node. A located landmark may move its node that far (`located_max_correction_mm`,
-    15 mm; a given one 10 mm), and the node lands on the head's true menton."""
+    25 mm; a given one 10 mm), and the node lands on the head's true menton."""
     synthetic = pytest.importorskip("facemodel.synthetic")
     head = synthetic.synthetic_head(3)
     patient, report = mesh_match_and_repair(generic, head.skin, head.bones, None, cache=False)

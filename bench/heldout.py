@@ -18,7 +18,7 @@ head's true landmarks, mm) and the time of each stage; then per resolution the s
 median / max iterations, total cut-backs, the worst scaled Jacobian, landmark error median /
 max, median stage times, and a summary line
 `heldout <res>: ok=<k>/<n> newton_median=.. newton_max=.. cutbacks=.. min_sj=.. inverted=..
-lm_median_mm=.. lm_max_mm=.. predict_median_s=..`.
+lm_median_mm=.. lm_max_mm=.. registration_median_s=.. predict_median_s=..`.
 
 Flags: `--count N` patients (default 30), `--first-seed S` (default 1000), `--resolutions
 coarse,standard`, `--given-landmarks` (the cases give their true landmarks; by default they
@@ -215,6 +215,7 @@ def summarise(records: list[dict], resolution: str) -> str:
             f"newton_median={_median(its):.0f} newton_max={max(its) if its else 'nan'} "
             f"cutbacks={sum(cut)} min_sj={min(sj) if sj else float('nan'):.3f} inverted={inv} folded={folded} "
             f"lm_median_mm={_median(lm):.2f} lm_max_mm={max(lm) if lm else float('nan'):.2f} "
+            f"registration_median_s={_median(stages.get('registration', [])):.1f} "
             f"predict_median_s={_median(stages.get('predict', [])):.1f}")
     return line
 

@@ -131,8 +131,9 @@ def _quads_on_surface(x: np.ndarray, skin_quads: np.ndarray, skin_tris: np.ndarr
 # Without landmarks, the nose is what fixes the face's height on a partial skin: the lips and
 # the chin are smooth along the profile and a face-only scan gives the skull too little to
 # place the face to a few mm, so the elastic stage can slide the generic face along the
-# profile (lips onto the chin, the nose onto its cut stump) with a close skin fit. A skin whose
-# nose region is not fitted (a CBCT cut through the nose) is refused without landmarks.
+# profile (lips onto the chin, the nose onto its cut stump) with a close skin fit. Without
+# landmarks, a registration whose nose region is not fitted (a CBCT cut through the nose, or
+# the model's nose left off the patient's) is refused.
 NOSE_REGION = "nose"
 REGION_FITTED_MIN = 0.5  # a region is fitted when the patient skin covers this share of its nodes
 
@@ -605,12 +606,18 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     # the misplaced face first: it is the cause a failed repair or a poor fit would follow from
     nose = report["regions"].get(NOSE_REGION)
     if align_info.get("method") == "surfaces" and nose is not None and not nose["fitted"]:
+        # the scan ends before the nose (the closest patient point of most of the model's nose
+        # nodes on the scan's border), or the model's nose was not brought onto the patient's
+        ids = np.intersect1d(np.asarray(model.regions[NOSE_REGION], np.int64), skin_ids)
+        beyond = float(cl.on_boundary[np.searchsorted(skin_ids, ids)].mean()) if len(ids) else 1.0
+        why = (f"the patient skin does not show the nose (the scan ends before "
+               f"{100 * beyond:.0f}% of the model's nose region)" if beyond >= 0.5 else
+               f"the face model's nose was not brought onto the patient's (only "
+               f"{100 * nose['covered_fraction']:.0f}% of the model's nose region fits the skin)")
         raise RegistrationFailure(
-            f"the patient skin does not show the nose (it covers {100 * nose['covered_fraction']:.0f}% "
-            f"of the model's nose region) and the case gives no landmarks: nothing on the skin "
-            f"fixes how high the face sits on it, so the registration and the landmarks located "
-            f"on the skin cannot be trusted; give at least four landmarks (landmarks.json), or a "
-            f"skin that includes the nose tip", report)
+            f"{why} and the case gives no landmarks: without the nose nothing on the skin fixes "
+            f"where the face sits on it, so the registration and the landmarks located on the "
+            f"skin cannot be trusted; give at least four landmarks (landmarks.json)", report)
     if len(off):
         where = f" ({', '.join(off_regions)})" if off_regions else ""
         hint = ("the skin and bones alone did not place the face on the scan: give at least "

@@ -23,9 +23,9 @@ back by the alignment similarity):
   above the labiomental fold; soft pogonion (Pog): the most anterior point of the chin below
   the fold. Each maximum is refined by a parabola through the profile vertices within +-3 mm of
   arc length of the best vertex (the scan's facets cut convex tips) and Li and Pog are taken on
-  their own local mid-sagittal plane. A chin that does not stand POG_PROMINENCE_MM in front of
-  its fold's lower edge has no summit of its own: pogonion is then that edge (the most anterior
-  point below the fold, as `facemodel.head_geometry.anatomical_landmarks` defines it);
+  their own local mid-sagittal plane. Pogonion is the chin's summit, past the bottom of the
+  fold's valley (a chin receding down to the profile's end has none: pogonion is then the
+  fold's lower edge), as `facemodel.head_geometry.anatomical_landmarks` defines it;
 * subnasale (Sn) and the labiomental fold: the deepest points under the profile's anterior
   convex hull edges (bitangents) that span the nasolabial and labiomental concavities; the
   subnasale corner is sharper than the scan's facets, which bridge it by a chord: it is taken
@@ -91,9 +91,6 @@ FISSURE_CHORD_MM = 3.0
 FISSURE_BAND_MM = 5.0    # mm: the groove sought within this height of the mouth's centre
 FISSURE_END_LEVEL = 0.1
 FISSURE_MIN_DROP_MM = 0.3
-# mm: the least a chin's summit must stand in front of the lower edge of the labiomental fold
-# for pogonion to be defined (a few times the chord height of a scan's facets over the chin)
-POG_PROMINENCE_MM = 0.5
 MENTON_REACH = 25.0      # mm of profile beyond the carried menton searched for it
 # deg in front of straight down: menton is the chin's extreme along that direction (the chin's
 # inferior border taken as a line descending this much backwards: module docstring); the same
@@ -705,12 +702,14 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
             i0, i1 = _nearest_index(p, stmi), _nearest_index(p, low_end)
             if i1 - i0 >= 3:
                 i_fold = deepest_under_bitangent(p, i0, i1)
-                li, pog = most_anterior(p, i0, i_fold), most_anterior(p, _valley_end(p, i_fold, i1), i1)
-                # a chin that does not come forward of its fold's lower edge by POG_PROMINENCE_MM
-                # has no summit of its own: the most anterior point below the fold is then that
-                # edge itself (a faint bulge lower down, up to 10 mm away along the profile but
-                # no more anterior, is not taken: its place follows the scan's facets)
-                flat_chin = pog[1] - p[i_fold, 1] < POG_PROMINENCE_MM
+                # pogonion: the chin's summit, the most anterior point past the bottom of the
+                # fold's valley; a chin whose profile recedes down to the profile's end has no
+                # summit, and pogonion is the fold's lower edge (the definition in
+                # facemodel.head_geometry.anatomical_landmarks)
+                k_valley = _valley_end(p, i_fold, len(p) - 1)
+                flat_chin = k_valley >= len(p) - 1
+                li = most_anterior(p, i0, i_fold)
+                pog = p[i_fold] if flat_chin else most_anterior(p, k_valley, max(i1, k_valley))
                 z_fold = p[i_fold, 2]
                 if dense:
                     # the scan samples the lip: its summit on the lip's own mid-sagittal plane

@@ -615,9 +615,10 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                f"the face model's nose was not brought onto the patient's (only "
                f"{100 * nose['covered_fraction']:.0f}% of the model's nose region fits the skin)")
         raise RegistrationFailure(
-            f"{why} and the case gives no landmarks: without the nose nothing on the skin fixes "
-            f"where the face sits on it, so the registration and the landmarks located on the "
-            f"skin cannot be trusted; give at least four landmarks (landmarks.json)", report)
+            f"{why} and the case gives fewer than four landmarks: without the nose nothing on "
+            f"the skin fixes where the face sits on it, so the registration and the landmarks "
+            f"located on the skin cannot be trusted; give at least four landmarks "
+            f"(landmarks.json)", report)
     if len(off):
         where = f" ({', '.join(off_regions)})" if off_regions else ""
         hint = ("the skin and bones alone did not place the face on the scan: give at least "

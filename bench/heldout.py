@@ -24,7 +24,8 @@ Flags: `--count N` patients (default 30), `--first-seed S` (default 1000), `--re
 coarse,standard`, `--given-landmarks` (the cases give their true landmarks; by default they
 give none and the registration locates them on the skin, so that the landmark errors measure
 the located landmarks' settings too),
-`--json FILE` (every record). Registrations use a private cache (no result of an earlier run is
+`--json FILE` (every record, rewritten after each case), `--summarise FILE...` (run nothing:
+the summaries of records written by --json, e.g. a cohort run in parts). Registrations use a private cache (no result of an earlier run is
 reused; within a run the prediction reuses the registration just made, as `faceplan predict`
 would on a second call).
 """
@@ -231,7 +232,18 @@ def main() -> int:
                         help="the cases give their true landmarks (default: none given, the "
                              "registration locates them on the skin)")
     parser.add_argument("--json", help="write every record to this file")
+    parser.add_argument("--summarise", nargs="+", metavar="JSON",
+                        help="run nothing: print the summaries of the records in these files "
+                             "(written by --json; e.g. a cohort run in parts)")
     args = parser.parse_args()
+    if args.summarise:
+        records = [r for f in args.summarise for r in json.loads(Path(f).read_text())]
+        order = [r for r in ("coarse", "standard", "fine") if any(x["resolution"] == r for x in records)]
+        lines = [summarise(records, res) for res in order]
+        print()
+        for ln in lines:
+            print(ln)
+        return 0 if all(r["ok"] for r in records) else 1
     resolutions = [r.strip() for r in args.resolutions.split(",") if r.strip()]
     bad = [r for r in resolutions if r not in ("coarse", "standard", "fine")]
     if bad or args.count < 1:

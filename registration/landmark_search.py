@@ -46,8 +46,8 @@ back by the alignment similarity):
   direction MENTON_TILT deg in front of straight down (refined like the maxima above, on the
   mid-sagittal plane at the point found).
 A located landmark that ends above or below its neighbour on the profile (`PROFILE_ORDER`)
-is on the wrong feature: it is not used. The cheilia are left where the registration carried them (the mouth slit of these scans fades
-out towards its corners). The located landmarks are then handled as given ones
+is on the wrong feature: it is not used. The cheilia are left where the registration carried
+them (the mouth slit of these scans fades out towards its corners). The located landmarks are then handled as given ones
 (`registration.landmark_fit` moves the landmark nodes onto them).
 """
 from __future__ import annotations
@@ -730,11 +730,10 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
                 else:
                     found["Pog"] = anterior_summit(skin, pog, (p[i1, 2], z_fold), SUMMIT_RADIUS["Pog"])
                 if "Me" in wanted:
-                    pog_at = found["Pog"]
-                    me = _menton(p, _nearest_index(p, pog_at))
+                    me = _menton(p, _nearest_index(p, pog))
                     if me is not None:  # again on the mid-sagittal plane at that point
                         q = profile(me, MENTON_REACH)
-                        me2 = _menton(q, _nearest_index(q, pog_at)) if len(q) >= 4 else None
+                        me2 = _menton(q, _nearest_index(q, found["Pog"])) if len(q) >= 4 else None
                         found["Me"] = me if me2 is None else me2
     # the cheilia: the lateral ends of the oral fissure, on a scan that samples it densely
     if dense and stms is not None and stmi is not None:

@@ -17,17 +17,17 @@ predicted mesh, inverted elements, landmark errors (registered landmark nodes ag
 head's true landmarks, mm) and the time of each stage; then per resolution the success rate,
 median / max iterations, total cut-backs, the worst scaled Jacobian, landmark error median /
 max, median stage times, and a summary line
-`heldout <res>: ok=<k>/<n> newton_median=.. newton_max=.. cutbacks=.. min_sj=.. inverted=..
+`heldout <res>: ok=<k>/<n> newton_median=.. newton_max=.. cutbacks=.. min_sj=.. inverted=.. folded=..
 lm_median_mm=.. lm_max_mm=.. registration_median_s=.. predict_median_s=..`.
 
 Flags: `--count N` patients (default 30), `--first-seed S` (default 1000), `--resolutions
 coarse,standard`, `--given-landmarks` (the cases give their true landmarks; by default they
 give none and the registration locates them on the skin, so that the landmark errors measure
-the located landmarks' settings too),
-`--json FILE` (every record, rewritten after each case), `--summarise FILE...` (run nothing:
-the summaries of records written by --json, e.g. a cohort run in parts). Registrations use a private cache (no result of an earlier run is
-reused; within a run the prediction reuses the registration just made, as `faceplan predict`
-would on a second call).
+the located landmarks' settings too), `--json FILE` (every record, rewritten after each case),
+`--summarise FILE...` (run nothing: the summaries of records written by --json, e.g. a cohort
+run in parts). Registrations use a private cache (no result of an earlier run is reused; within
+a run the prediction reuses the registration just made, as `faceplan predict` would on a second
+call).
 """
 from __future__ import annotations
 

@@ -2,12 +2,13 @@
 
 `registration_notes(report)` reads the report of `registration.mesh_match_and_repair` and
 returns one sentence per figure far outside what a consistent case gives, naming the likely
-cause, and one when the landmarks were located on the skin without the head's frame (the
-skull fit refused: `registration.mesh_match._head_frame`). On consistent cases (the synthetic heads, the demo head) the skin fit has a p95 below
-1 mm and a maximum below 3 mm, the bone fit a mean below 0.5 mm and a maximum below ~10 mm
-(the chin's edge), and the repair touches 1-2 % of the elements; the limits below are two to
-three times those, so a note means that something in the inputs disagrees (an LPS/RAS mix-up of
-one file, swapped or foreign bone surfaces, a partial or noisy skin), not bad luck.
+cause, and one when the landmarks were located on the skin without the head's frame (the skull
+fit refused: `registration.mesh_match._head_frame`). On consistent cases (the synthetic heads,
+the demo head) the skin fit has a p95 below 1 mm and a maximum below 3 mm, the bone fit a mean
+below 0.5 mm and a maximum below ~10 mm (the chin's edge), and the repair touches 1-2 % of the
+elements; the limits below are two to three times those, so a note means that something in the
+inputs disagrees (an LPS/RAS mix-up of one file, swapped or foreign bone surfaces, a partial or
+noisy skin), not bad luck.
 """
 from __future__ import annotations
 

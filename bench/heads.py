@@ -4,8 +4,9 @@ Heads of the superquadric family (`facemodel.synthetic_alt`), each with its skin
 face region (in front of the ears, down under the chin) at several heights (`--cuts`: a face
 scan to the forehead, a CBCT ending below the eyes, one ending at mid-nose), registered with
 their landmarks (and, with `--no-landmarks`, also without them) at each resolution. One line
-per run: success, minimum scaled Jacobian, inverted elements, skin fit (mean / p95 mm),
-bone fit mean, landmark error (max), coverage, surface nodes the repair released, regions
+per run: success, minimum scaled Jacobian, inverted elements, skin fit (mean / p95 / max mm
+over the covered skin nodes), bone fit mean, landmark error (max over the model's landmark
+nodes against the head's true landmarks: given or located), coverage, surface nodes the repair released, regions
 not fitted, time; a summary per resolution.
 
 With `--family own` the heads come from faceplan's own generator (`facemodel.synthetic`),
@@ -42,15 +43,17 @@ def run_one(model, head, landmarks: bool):
                                              {k: (b.vertices, b.faces) for k, b in head.bones.items()},
                                              landmarks=head.landmarks if landmarks else None, cache=False)
         q = min_scaled_jacobian(patient.nodes, patient.hexes)
+        # every landmark node against the head's true landmark (given or located alike)
+        truth = {k: float(np.linalg.norm(patient.nodes[i] - np.asarray(head.landmarks[k], float)))
+                 for k, i in model.landmarks.items() if k in head.landmarks}
         status, err = "ok", ""
     except (RegistrationFailure, RegistrationInputError) as exc:
         rep = getattr(exc, "report", None) or {}
-        q, status, err = None, "FAIL", str(exc)
+        q, status, err, truth = None, "FAIL", str(exc), {}
     except Exception as exc:  # noqa: BLE001 -- a crash is a result of the bench too
-        rep, q, status, err = {}, None, "CRASH", f"{type(exc).__name__}: {exc}"
+        rep, q, status, err, truth = {}, None, "CRASH", f"{type(exc).__name__}: {exc}", {}
     dt = time.perf_counter() - t0
     fit = rep.get("fit", {})
-    lm = rep.get("landmarks") or {}
     regions = rep.get("regions") or {}
     unfitted = sorted(k for k, v in regions.items() if not v.get("fitted", True))
     row = {"status": status, "time_s": dt, "error": err,
@@ -59,7 +62,8 @@ def run_one(model, head, landmarks: bool):
            "inverted": int((q <= 0).sum()) if q is not None else (rep.get("quality", {}) or {}).get("n_inverted"),
            "skin_mean": (fit.get("skin") or {}).get("mean_mm"), "skin_p95": (fit.get("skin") or {}).get("p95_mm"),
            "bone_mean": (fit.get("bone") or {}).get("mean_mm"),
-           "lm_max": max((v["error_mm"] for v in lm.values()), default=None),
+           "lm_max": max(truth.values(), default=None),
+           "skin_max": (fit.get("skin_nodes") or {}).get("max_mm"),
            "coverage": rep.get("coverage"), "unfitted": unfitted,
            "released": (rep.get("repair") or {}).get("nodes_released_from_surfaces")}
     return row
@@ -100,7 +104,7 @@ def main(argv=None) -> int:
                     rows.append(r)
                     print(f"{res:8s} head {seed} {cut:10s} lm={'y' if with_lm else 'n'} {r['status']:5s} "
                           f"minSJ {fmt(r['min_sj'])} inv {fmt(r['inverted'], 'd')} "
-                          f"skin {fmt(r['skin_mean'])}/{fmt(r['skin_p95'])} mm bone {fmt(r['bone_mean'])} "
+                          f"skin {fmt(r['skin_mean'])}/{fmt(r['skin_p95'])}/{fmt(r['skin_max'], '.1f')} mm bone {fmt(r['bone_mean'])} "
                           f"lm_max {fmt(r['lm_max'], '.2f')} cover {fmt(r['coverage'], '.2f')} released {fmt(r['released'], 'd')} "
                           f"not_fitted [{','.join(r['unfitted'])}] {r['time_s']:.1f} s {r['error'][:120]}",
                           flush=True)
@@ -112,7 +116,11 @@ def main(argv=None) -> int:
         print(f"{res}: {len(ok)}/{len(sel)} registered; crashes {sum(r['status'] == 'CRASH' for r in sel)}; "
               f"min SJ {fmt(min(sj) if sj else None)}; inverted {sum((r['inverted'] or 0) for r in ok)}; "
               f"skin mean max {fmt(max((r['skin_mean'] for r in ok), default=None))} mm; "
+              f"landmark error max {fmt(max((r['lm_max'] for r in ok if r['lm_max'] is not None), default=None), '.2f')} mm; "
               f"time median {np.median([r['time_s'] for r in sel]):.1f} s max {max(r['time_s'] for r in sel):.1f} s")
+        for r in sel:
+            if r["status"] != "ok":
+                print(f"  {r['status']} head {r['seed']} {r['cut']} lm={'y' if r['landmarks'] else 'n'}: {r['error']}")
     return 0 if all(r["status"] == "ok" for r in rows) else 1
 
 

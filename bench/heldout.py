@@ -17,16 +17,17 @@ predicted mesh, inverted elements, landmark errors (registered landmark nodes ag
 head's true landmarks, mm) and the time of each stage; then per resolution the success rate,
 median / max iterations, total cut-backs, the worst scaled Jacobian, landmark error median /
 max, median stage times, and a summary line
-`heldout <res>: ok=<k>/<n> newton_median=.. newton_max=.. cutbacks=.. min_sj=.. inverted=..
-lm_median_mm=.. lm_max_mm=.. predict_median_s=..`.
+`heldout <res>: ok=<k>/<n> newton_median=.. newton_max=.. cutbacks=.. min_sj=.. inverted=.. folded=..
+lm_median_mm=.. lm_max_mm=.. registration_median_s=.. predict_median_s=..`.
 
 Flags: `--count N` patients (default 30), `--first-seed S` (default 1000), `--resolutions
 coarse,standard`, `--given-landmarks` (the cases give their true landmarks; by default they
 give none and the registration locates them on the skin, so that the landmark errors measure
-the located landmarks' settings too),
-`--json FILE` (every record). Registrations use a private cache (no result of an earlier run is
-reused; within a run the prediction reuses the registration just made, as `faceplan predict`
-would on a second call).
+the located landmarks' settings too), `--json FILE` (every record, rewritten after each case),
+`--summarise FILE...` (run nothing: the summaries of records written by --json, e.g. a cohort
+run in parts). Registrations use a private cache (no result of an earlier run is reused; within
+a run the prediction reuses the registration just made, as `faceplan predict` would on a second
+call).
 """
 from __future__ import annotations
 
@@ -137,6 +138,10 @@ def run_case(seed: int, resolution: str, root: Path, landmarks: bool) -> dict:
         generic = generic_mesh.load(resolution)
         rec["registered_min_sj"] = float(min_scaled_jacobian(patient.nodes, patient.hexes).min())
         rec["skin_fit_mean_mm"] = reg["fit"]["skin"]["mean_mm"]
+        rec["skin_fit_max_mm"] = reg["fit"]["skin_nodes"]["max_mm"]
+        search = reg.get("landmark_search") or {}
+        rec["landmarks_not_found"] = search.get("not_found", [])
+        rec["head_frame_rotation_deg"] = search.get("head_frame_rotation_deg")
         rec["landmark_error_mm"] = {k: float(np.linalg.norm(patient.nodes[i] - head.landmarks[k]))
                                     for k, i in generic.landmarks.items() if k in head.landmarks}
         stage = "prediction"
@@ -211,6 +216,7 @@ def summarise(records: list[dict], resolution: str) -> str:
             f"newton_median={_median(its):.0f} newton_max={max(its) if its else 'nan'} "
             f"cutbacks={sum(cut)} min_sj={min(sj) if sj else float('nan'):.3f} inverted={inv} folded={folded} "
             f"lm_median_mm={_median(lm):.2f} lm_max_mm={max(lm) if lm else float('nan'):.2f} "
+            f"registration_median_s={_median(stages.get('registration', [])):.1f} "
             f"predict_median_s={_median(stages.get('predict', [])):.1f}")
     return line
 
@@ -226,7 +232,18 @@ def main() -> int:
                         help="the cases give their true landmarks (default: none given, the "
                              "registration locates them on the skin)")
     parser.add_argument("--json", help="write every record to this file")
+    parser.add_argument("--summarise", nargs="+", metavar="JSON",
+                        help="run nothing: print the summaries of the records in these files "
+                             "(written by --json; e.g. a cohort run in parts)")
     args = parser.parse_args()
+    if args.summarise:
+        records = [r for f in args.summarise for r in json.loads(Path(f).read_text())]
+        order = [r for r in ("coarse", "standard", "fine") if any(x["resolution"] == r for x in records)]
+        lines = [summarise(records, res) for res in order]
+        print()
+        for ln in lines:
+            print(ln)
+        return 0 if all(r["ok"] for r in records) else 1
     resolutions = [r.strip() for r in args.resolutions.split(",") if r.strip()]
     bad = [r for r in resolutions if r not in ("coarse", "standard", "fine")]
     if bad or args.count < 1:
@@ -244,14 +261,17 @@ def main() -> int:
                 records.append(rec)
                 if rec["ok"]:
                     lm = rec["landmark_error_mm"]
+                    worst = max(lm, key=lm.get)
                     print(f"  {res} seed {seed}: ok, Newton {rec['newton_iterations']} its "
                           f"({rec['load_steps']} steps, {rec['cutbacks']} cut-backs), min SJ reg "
                           f"{rec['registered_min_sj']:.3f} / pred {rec['predicted_min_sj']:.3f}, "
-                          f"landmarks max {max(lm.values()):.2f} mm, registration "
+                          f"landmarks max {lm[worst]:.2f} mm ({worst}), registration "
                           f"{rec['times_s']['registration']:.1f} s, predict {rec['times_s']['predict']:.1f} s",
                           flush=True)
                 else:
                     print(f"  {res} seed {seed}: FAILED in {rec['failed_in']}: {rec['error']}", flush=True)
+                if args.json:  # every record so far (a long run can be read while it goes on)
+                    Path(args.json).write_text(json.dumps(records, indent=1, default=float))
     lines = [summarise(records, res) for res in resolutions]
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print()

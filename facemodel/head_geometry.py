@@ -541,7 +541,9 @@ def anatomical_landmarks(shape: HeadShape = GENERIC) -> dict:
       Ls   labrale superius: the most anterior point of the upper lip (below subnasale);
       Li   labrale inferius: the most anterior point of the lower lip, above the labiomental
            fold (the deepest point under the anterior bitangent of lower lip and chin);
-      Pog  soft-tissue pogonion: the most anterior point of the chin, below that fold;
+      Pog  soft-tissue pogonion: the most anterior point of the chin, below that fold: the
+           summit past the bottom of the fold's valley (a chin receding down to the
+           mandible's border has none: the fold's lower edge);
       Me   soft-tissue menton: the lowest point of the chin's contour, below pogonion. The
            submental contour of these heads keeps descending backwards (13-22 deg below the
            Frankfort horizontal: they have no throat), so the profile's lowest point in the
@@ -566,7 +568,15 @@ def anatomical_landmarks(shape: HeadShape = GENERIC) -> dict:
     i_end = int(np.flatnonzero(phi >= -62.0)[-1])       # the lower border of the mandible
     i_fold, _ = _deepest_under_bitangent(yz, i_stmi, i_end)
     i_li = i_stmi + int(np.argmax(yz[i_stmi:i_fold + 1, 0]))
-    i_pog = i_fold + int(np.argmax(yz[i_fold:i_end + 1, 0]))
+    # the chin's summit: the most anterior point past the bottom of the fold's valley (where
+    # the profile stops receding going down). Taken over the whole arc below the fold, the
+    # maximum would jump 10 mm between the fold's lower edge and the summit whenever the two
+    # stand within a fraction of a mm of each other (a chin barely in front of its fold); a
+    # chin that recedes down to the mandible's border has no summit: its fold's lower edge
+    k = i_fold
+    while k < i_end and yz[k + 1, 0] <= yz[k, 0]:
+        k += 1
+    i_pog = i_fold if k >= i_end else k + int(np.argmax(yz[k:i_end + 1, 0]))
     i_me = i_pog + int(np.argmax(yz[i_pog:] @ menton_direction()))
     for name, i in (("Prn", i_prn), ("Sn", i_sn), ("Ls", i_ls), ("Stms", i_stms), ("Stmi", i_stmi),
                     ("Li", i_li), ("Pog", i_pog), ("Me", i_me)):

@@ -2,11 +2,13 @@
 
 `registration_notes(report)` reads the report of `registration.mesh_match_and_repair` and
 returns one sentence per figure far outside what a consistent case gives, naming the likely
-cause. On consistent cases (the synthetic heads, the demo head) the skin fit has a p95 below
-1 mm and a maximum below 3 mm, the bone fit a mean below 0.5 mm and a maximum below ~10 mm
-(the chin's edge), and the repair touches 1-2 % of the elements; the limits below are two to
-three times those, so a note means that something in the inputs disagrees (an LPS/RAS mix-up of
-one file, swapped or foreign bone surfaces, a partial or noisy skin), not bad luck.
+cause, and one when the landmarks were located on the skin without the head's frame (the skull
+fit refused: `registration.mesh_match._head_frame`). On consistent cases (the synthetic heads,
+the demo head) the skin fit has a p95 below 1 mm and a maximum below 3 mm, the bone fit a mean
+below 0.5 mm and a maximum below ~10 mm (the chin's edge), and the repair touches 1-2 % of the
+elements; the limits below are two to three times those, so a note means that something in the
+inputs disagrees (an LPS/RAS mix-up of one file, swapped or foreign bone surfaces, a partial or
+noisy skin), not bad luck.
 """
 from __future__ import annotations
 
@@ -48,4 +50,9 @@ def registration_notes(report: dict) -> list[str]:
         notes.append(f"{repaired} of {n} elements needed repair (normal < {REPAIRED_FRACTION:.0%}): the "
                      "inputs pull the mesh in contradicting directions (skin, bones and landmarks "
                      "disagree)")
+    refused = _get(report, "landmark_search", "head_frame_refused")
+    if refused:
+        notes.append(f"the landmarks were located on the skin without the head's own frame ({refused}): "
+                     "on a face unlike the generic model they can be 10-20 mm off along the profile; "
+                     "give at least four landmarks (landmarks.json)")
     return notes

@@ -23,7 +23,9 @@ back by the alignment similarity):
   above the labiomental fold; soft pogonion (Pog): the most anterior point of the chin below
   the fold. Each maximum is refined by a parabola through the profile vertices within +-3 mm of
   arc length of the best vertex (the scan's facets cut convex tips) and Li and Pog are taken on
-  their own local mid-sagittal plane;
+  their own local mid-sagittal plane. Pogonion is the chin's summit, past the bottom of the
+  fold's valley (a chin receding down to the profile's end has none: pogonion is then the
+  fold's lower edge), as `facemodel.head_geometry.anatomical_landmarks` defines it;
 * subnasale (Sn) and the labiomental fold: the deepest points under the profile's anterior
   convex hull edges (bitangents) that span the nasolabial and labiomental concavities; the
   subnasale corner is sharper than the scan's facets, which bridge it by a chord: it is taken
@@ -43,8 +45,9 @@ back by the alignment similarity):
   border, a line descending MENTON_TILT deg backwards: the profile point farthest along the
   direction MENTON_TILT deg in front of straight down (refined like the maxima above, on the
   mid-sagittal plane at the point found).
-The cheilia are left where the registration carried them (the mouth slit of these scans fades
-out towards its corners). The located landmarks are then handled as given ones
+A located landmark that ends above or below its neighbour on the profile (`PROFILE_ORDER`)
+is on the wrong feature: it is not used. The cheilia are left where the registration carried
+them (the mouth slit of these scans fades out towards its corners). The located landmarks are then handled as given ones
 (`registration.landmark_fit` moves the landmark nodes onto them).
 """
 from __future__ import annotations
@@ -93,6 +96,11 @@ MENTON_REACH = 25.0      # mm of profile beyond the carried menton searched for 
 # inferior border taken as a line descending this much backwards: module docstring); the same
 # convention as the synthetic heads' truth (facemodel.head_geometry.MENTON_TILT)
 MENTON_TILT = 35.0
+# the profile landmarks from top to bottom, as neighbours whose heights cannot swap (the stomia
+# are not compared with each other: lips that overhang can cross at the slit)
+PROFILE_ORDER = (("Prn", "Sn"), ("Sn", "Ls"), ("Ls", "Stms"), ("Ls", "Stmi"), ("Stms", "Li"),
+                 ("Stmi", "Li"), ("Li", "Pog"), ("Pog", "Me"))
+ORDER_TOL_MM = 0.5       # mm: heights compared up to the located landmarks' own scatter
 LOCATED = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "ChL", "ChR", "Pog", "Me")
 
 
@@ -694,7 +702,14 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
             i0, i1 = _nearest_index(p, stmi), _nearest_index(p, low_end)
             if i1 - i0 >= 3:
                 i_fold = deepest_under_bitangent(p, i0, i1)
-                li, pog = most_anterior(p, i0, i_fold), most_anterior(p, _valley_end(p, i_fold, i1), i1)
+                # pogonion: the chin's summit, the most anterior point past the bottom of the
+                # fold's valley; a chin whose profile recedes down to the profile's end has no
+                # summit, and pogonion is the fold's lower edge (the definition in
+                # facemodel.head_geometry.anatomical_landmarks)
+                k_valley = _valley_end(p, i_fold, len(p) - 1)
+                flat_chin = k_valley >= len(p) - 1
+                li = most_anterior(p, i0, i_fold)
+                pog = p[i_fold] if flat_chin else most_anterior(p, k_valley, max(i1, k_valley))
                 z_fold = p[i_fold, 2]
                 if dense:
                     # the scan samples the lip: its summit on the lip's own mid-sagittal plane
@@ -710,7 +725,10 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
                             found["Li"] = most_anterior(q, a, b)
                 else:
                     found["Li"] = anterior_summit(skin, li, (z_fold, p[i0, 2] - 0.5), SUMMIT_RADIUS["Li"])
-                found["Pog"] = anterior_summit(skin, pog, (p[i1, 2], z_fold), SUMMIT_RADIUS["Pog"])
+                if flat_chin:
+                    found["Pog"] = p[i_fold].copy()
+                else:
+                    found["Pog"] = anterior_summit(skin, pog, (p[i1, 2], z_fold), SUMMIT_RADIUS["Pog"])
                 if "Me" in wanted:
                     me = _menton(p, _nearest_index(p, pog))
                     if me is not None:  # again on the mid-sagittal plane at that point
@@ -725,12 +743,29 @@ def locate_landmarks(skin: TargetSurface, x: np.ndarray, pairs: np.ndarray, carr
                 point, info = fissure_end(skin, c[k], mouth)
                 if point is not None:
                     found[k] = point
+    disordered = out_of_profile_order(found, c)
     out = {}
     for k in wanted:
-        if k in found:
+        if k in found and k not in disordered:
             out[k] = found[k]
         else:
             missing.append(k)
     report = {"located": {k: {"moved_mm": float(np.linalg.norm(out[k] - c[k]))} for k in out},
-              "not_found": missing}
+              "not_found": missing, "out_of_order": disordered}
     return out, report
+
+
+def out_of_profile_order(found: dict, carried: dict, tol: float = ORDER_TOL_MM) -> list[str]:
+    """Located landmarks that break the top-to-bottom order of the profile landmarks
+    (PROFILE_ORDER; each pair of neighbours compared by height, z superior, found positions
+    where located and carried ones elsewhere): a landmark placed on the wrong feature (the
+    upper lip's summit taken for subnasale, the fold for the chin) lands above or below its
+    neighbour. Of a disordered pair, the located landmark(s) are returned (they stay where the
+    registration carried them)."""
+    pos = {k: np.asarray(found.get(k, carried.get(k)), float) for k in {*found, *carried}
+           if found.get(k, carried.get(k)) is not None}
+    bad: set[str] = set()
+    for upper, lower in PROFILE_ORDER:
+        if upper in pos and lower in pos and pos[upper][2] < pos[lower][2] - tol:
+            bad.update(k for k in (upper, lower) if k in found)
+    return sorted(bad)

@@ -55,6 +55,13 @@ class MatchOptions:
     # 8-9 mm RMS over the ten landmarks against the generic face
     landmark_rms_max_mm: float = 12.0
     skin_mean_gate_mm: float = 1.0  # refuse to return a mesh fitting worse than this
+    # a skin node of the model farther than this from the patient skin where the scan lies
+    # under it (closest point inside the scan, normals agreeing) is misplaced along the scan:
+    # the snap brings every covered node within max_snap_mm onto the skin and the repair and
+    # facet fit move nodes by a fraction of an element, so a covered node twice the snap
+    # distance away is one the elastic stage never brought near its skin (the face slid
+    # along a scan that does not fix where it sits). None disables the gate
+    skin_off_scan_gate_mm: float | None = 10.0
     # soft-tissue nodes end at least this far outside the teeth (the clearance that
     # facemodel.teeth.clear_teeth asks of a contact start, so that it has nothing to move)
     teeth_clearance_mm: float = 0.25
@@ -70,8 +77,11 @@ class MatchOptions:
     landmark_max_correction_mm: float = 10.0
     # the same for a located landmark: found by its definition on the scan near the carried
     # node, it may lie farther from it where the head's shape moves the feature along the
-    # profile (menton 13 mm from the generic's on a short, retruded chin)
-    located_max_correction_mm: float = 15.0
+    # profile (menton on a short, retruded chin; pogonion on a chin without a summit of its
+    # own). A located landmark on the wrong feature is caught by the profile order
+    # (`landmark_search.out_of_profile_order`); this bound only keeps the correction within
+    # the reach of the search itself along the profile (landmark_search.MENTON_REACH)
+    located_max_correction_mm: float = 25.0
     # skin nodes placed so that the facets, not only the nodes, fit the skin (least squares)
     facet_fit: bool = True
     # lips kept at least this far apart across the mouth slit (registration.lips); 0 disables
@@ -118,6 +128,13 @@ def _quads_on_surface(x: np.ndarray, skin_quads: np.ndarray, skin_tris: np.ndarr
     return skin_quads[node_ok[skin_quads].all(axis=1)]
 
 
+# Without landmarks, the nose is what fixes the face's height on a partial skin: the lips and
+# the chin are smooth along the profile and a face-only scan gives the skull too little to
+# place the face to a few mm, so the elastic stage can slide the generic face along the
+# profile (lips onto the chin, the nose onto its cut stump) with a close skin fit. Without
+# landmarks, a registration whose nose region is not fitted (a CBCT cut through the nose, or
+# the model's nose left off the patient's) is refused.
+NOSE_REGION = "nose"
 REGION_FITTED_MIN = 0.5  # a region is fitted when the patient skin covers this share of its nodes
 
 
@@ -228,13 +245,28 @@ def initial_alignment(model: MatchInput, skin: TargetSurface, landmarks: dict | 
     return sim, info
 
 
-def _head_frame(model: MatchInput, bones: dict, seed: int = 0) -> Similarity | None:
+# deg: the largest tilt the skull may correct in the alignment of skin and bones (module
+# docstring of `_head_frame`); a larger rotation is an ICP slide along a smooth skull
+HEAD_FRAME_MAX_DEG = 15.0
+
+
+def _head_frame(model: MatchInput, bones: dict, seed: int = 0,
+                info: dict | None = None) -> Similarity | None:
     """The head's anatomical frame in the working frame: the similarity that takes the generic
     skull attachment surface (deep facets on the skull, generic frame) onto the patient skull
     by trimmed ICP. The skull is what the face's shape differences leave in place: the
     alignment of the whole skin tilts by several degrees on a strong class II / III (the lower
     face differs most), and the elastic stage keeps that tilt (the surfaces slide freely along
-    each other). None without a skull surface or attachment."""
+    each other). None without a skull surface or attachment.
+
+    The working frame is already the joint alignment of skin and bones, so the skull only
+    corrects a tilt of a few degrees. A skull cap is nearly a piece of a sphere: its rotation
+    about its own centre is weakly determined, and where the patient's skull surface covers
+    another part of the cranium than the generic attachment (a CBCT's field of view, another
+    anatomy) the trimmed ICP slides the cap round by tens of degrees to overlap them. A frame
+    rotated by more than HEAD_FRAME_MAX_DEG from the alignment is such a slide: it is not
+    used (None; `info` records the rotation found and why it was refused), and the
+    definitions' directions are those of the alignment."""
     skull = bones.get("skull")
     if skull is None or model.bone_quads is None or "skull" not in model.bone_node_sets:
         return None
@@ -247,7 +279,16 @@ def _head_frame(model: MatchInput, bones: dict, seed: int = 0) -> Similarity | N
     ids = np.unique(q)
     tris = np.searchsorted(ids, np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]]))
     source = TargetSurface(np.asarray(model.nodes, float)[ids], tris, "generic skull attachment")
-    return trimmed_icp(source, skull, Similarity.identity(), n_points=800, iterations=30, seed=seed).similarity
+    frame = trimmed_icp(source, skull, Similarity.identity(), n_points=800, iterations=30, seed=seed).similarity
+    if info is not None:
+        info["head_frame_rotation_deg"] = frame.rotation_deg
+    if frame.rotation_deg > HEAD_FRAME_MAX_DEG:
+        if info is not None:
+            info["head_frame_refused"] = (f"the skull fit turns the head by {frame.rotation_deg:.1f} deg "
+                                          f"(more than {HEAD_FRAME_MAX_DEG:g}): a slide along the skull, "
+                                          "not a tilt; the alignment's axes are used")
+        return None
+    return frame
 
 
 def _bone_groups(model: MatchInput, bones: dict) -> list[SurfaceGroup]:
@@ -366,11 +407,11 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     if opt.locate_landmarks and opt.landmark_correction and missing:
         t_s = time.perf_counter()
         carried = {k: x[i] for k, i in model.landmark_nodes.items()}
-        head_frame = _head_frame(model, bones_g, opt.seed)
+        frame_info: dict = {}
+        head_frame = _head_frame(model, bones_g, opt.seed, frame_info)
         found, search_report = locate_landmarks(skin_g, x, mirror_pairs(model.nodes, skin_ids), carried,
                                                 missing, frame=head_frame)
-        if head_frame is not None:
-            search_report["head_frame_rotation_deg"] = head_frame.rotation_deg
+        search_report.update(frame_info)
         if found:
             add = list(found)
             located = add
@@ -544,6 +585,14 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         "elastic": elog.levels,
     }
     report["regions_not_fitted"] = sorted(k for k, v in report["regions"].items() if not v["fitted"])
+    # covered skin nodes left far off the scan (MatchOptions.skin_off_scan_gate_mm), by region
+    off = np.zeros(0, np.int64)
+    if opt.skin_off_scan_gate_mm is not None:
+        off = skin_ids[valid & (cl.distance > opt.skin_off_scan_gate_mm)]
+    off_regions = sorted(k for k, v in model.regions.items() if len(np.intersect1d(off, np.asarray(v))))
+    report["fit"]["skin_off_scan"] = {"gate_mm": opt.skin_off_scan_gate_mm, "n_nodes": int(len(off)),
+                                      "max_mm": float(cl.distance[valid].max()) if valid.any() else None,
+                                      "regions": off_regions}
     if lm_given is not None:
         lm = lm_given
         # distance from each carried landmark node to the given landmark, in the patient frame
@@ -554,6 +603,33 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     times["total_s"] = time.perf_counter() - t0
     report["time"] = times
 
+    # the misplaced face first: it is the cause a failed repair or a poor fit would follow from
+    nose = report["regions"].get(NOSE_REGION)
+    if align_info.get("method") == "surfaces" and nose is not None and not nose["fitted"]:
+        # the scan ends before the nose (the closest patient point of most of the model's nose
+        # nodes on the scan's border), or the model's nose was not brought onto the patient's
+        ids = np.intersect1d(np.asarray(model.regions[NOSE_REGION], np.int64), skin_ids)
+        beyond = float(cl.on_boundary[np.searchsorted(skin_ids, ids)].mean()) if len(ids) else 1.0
+        why = (f"the patient skin does not show the nose (the scan ends before "
+               f"{100 * beyond:.0f}% of the model's nose region)" if beyond >= 0.5 else
+               f"the face model's nose was not brought onto the patient's (only "
+               f"{100 * nose['covered_fraction']:.0f}% of the model's nose region fits the skin)")
+        raise RegistrationFailure(
+            f"{why} and the case gives fewer than four landmarks: without the nose nothing on "
+            f"the skin fixes where the face sits on it, so the registration and the landmarks "
+            f"located on the skin cannot be trusted; give at least four landmarks "
+            f"(landmarks.json)", report)
+    if len(off):
+        where = f" ({', '.join(off_regions)})" if off_regions else ""
+        hint = ("the skin and bones alone did not place the face on the scan: give at least "
+                "four landmarks (landmarks.json)"
+                if align_info.get("method") == "surfaces" else
+                "check the landmarks and that the skin is the patient's face")
+        raise RegistrationFailure(
+            f"{len(off)} skin node(s) of the face model{where} lie up to "
+            f"{report['fit']['skin_off_scan']['max_mm']:.1f} mm off the patient skin where the scan "
+            f"covers them (gate {opt.skin_off_scan_gate_mm:g} mm): the model is misplaced along "
+            f"the scan; {hint}", report)
     q = min_scaled_jacobian(x, hexes)
     if q.min() < opt.threshold:
         raise RegistrationFailure(

@@ -24,3 +24,12 @@ def test_each_figure_out_of_range_is_named_with_its_cause():
     (note,) = registration_notes(_report(repaired=274))
     assert "274 of 1632" in note
     assert registration_notes({}) == []          # a report without figures: nothing to say
+
+
+def test_landmarks_located_without_the_head_frame_are_flagged():
+    """A refused skull frame (registration.mesh_match._head_frame) means the landmarks were
+    located in the alignment's axes: the user is told, with the remedy."""
+    rep = _report()
+    rep["landmark_search"] = {"head_frame_refused": "the skull fit turns the head by 47.8 deg"}
+    (note,) = registration_notes(rep)
+    assert "47.8 deg" in note and "landmarks" in note

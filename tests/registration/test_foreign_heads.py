@@ -103,3 +103,68 @@ def test_partial_face_alignment_without_landmarks_recovers_a_rigid_pose(generic,
     # and the unmoved alignment is near the head's own frame: its scale within the family's
     # range of head sizes against the generic (0.85-1.15) -- not a shrunken whole-head fit
     assert 0.85 < s0.scale < 1.15
+
+
+def test_skin_cut_through_the_nose_without_landmarks_is_refused_naming_the_cause(generic, alt):
+    """A CBCT cut at mid-nose takes the nose tip off the skin (this family's pronasale lies
+    above the cut). Without landmarks nothing on the remaining skin fixes how high the face sits
+    on it: the generic face can slide along the lips and chin by 10-20 mm while the skin fit
+    stays within its gate, and the landmarks located on the skin follow it. The registration
+    must not return such a mesh silently: it refuses, naming the uncovered nose and the remedy
+    (landmarks), and its report says which regions were not fitted. With landmarks the same
+    skin registers (test_face_only_skin_reports_what_it_does_not_cover)."""
+    from registration.errors import RegistrationFailure
+
+    head = sa.crop_face(alt, "mid_nose")
+    # the nose tip is not on the cut skin (its vertices are ~1.8 mm apart)
+    prn = np.asarray(head.landmarks["Prn"], float)
+    assert np.linalg.norm(np.asarray(head.skin.vertices) - prn, axis=1).min() > 3.0
+    skin, bones = _arrays(head)
+    with pytest.raises(RegistrationFailure) as info:
+        mesh_match_and_repair(generic, skin, bones, None, cache=False)
+    msg = str(info.value)
+    assert "nose" in msg and "landmarks" in msg
+    rep = info.value.report
+    assert rep["alignment"]["method"] == "surfaces"
+    assert "nose" in rep["regions_not_fitted"] and rep["regions"]["nose"]["covered_fraction"] < 0.5
+
+
+def _with_bone_quads(generic):
+    mi = _match_input(generic)
+    mi.bone_quads = np.asarray(generic.facet_sets["deep_bone"])
+    return mi
+
+
+def test_head_frame_follows_a_tilt_of_the_skull_and_refuses_a_slide(generic, alt):
+    """The head frame (the skull's trimmed ICP fit, used for the directions of the landmark
+    definitions) on faceplan's own head: tilting the patient's bones by a known 6 degrees
+    tilts the frame by the same rotation. Both fits solve one matching problem in two frames,
+    so they differ only by where the ICP stops; 0.5 degree is ~1 mm at the face's 100 mm
+    from the skull's centre, well under a landmark's tolerance. On a head of the other family
+    (a smooth superquadric cranium whose bone shell covers another part of the cranium) the
+    ICP slides the cap round by tens of degrees: that frame is refused (None, with the
+    reason) rather than used."""
+    from scipy.spatial.transform import Rotation as Rot
+
+    from registration.mesh_match import HEAD_FRAME_MAX_DEG, _head_frame
+
+    synthetic = pytest.importorskip("facemodel.synthetic")
+    mi = _with_bone_quads(generic)
+    own = synthetic.synthetic_head(3)
+    tilt = Rot.from_euler("x", 6.0, degrees=True).as_matrix()
+    centre = np.array([0.0, 20.0, 0.0])
+
+    def bones(transform):
+        return {k: as_target((transform(np.asarray(b.vertices, float)), b.faces), k) for k, b in own.bones.items()}
+
+    f0 = _head_frame(mi, bones(lambda v: v))
+    f1 = _head_frame(mi, bones(lambda v: (v - centre) @ tilt.T + centre))
+    assert f0 is not None and f1 is not None
+    rel = Rot.from_matrix(f1.rotation @ f0.rotation.T @ tilt.T).magnitude()
+    assert np.degrees(rel) < 0.5
+
+    info: dict = {}
+    alt_bones = {k: as_target((b.vertices, b.faces), k) for k, b in alt.bones.items()}
+    frame = _head_frame(mi, alt_bones, info=info)
+    assert info["head_frame_rotation_deg"] > HEAD_FRAME_MAX_DEG
+    assert frame is None and "slide" in info["head_frame_refused"]

@@ -547,7 +547,7 @@ def _add_combination(x, Z, y, m):
 
 def preconditioned_gmres(A: sp.csr_matrix, b: np.ndarray, precondition, rtol: float,
                          maxiter: int, x0: np.ndarray | None = None,
-                         history: list | None = None):
+                         history: list | None = None, predict_from: int = 0):
     """Right-preconditioned GMRES (Saad & Schultz 1986; Saad 2003, alg. 9.5, with the
     preconditioned basis kept as in FGMRES, alg. 9.6, so that no substitution is spent on the
     update) on the symmetric matrix given by its upper triangle, to |b - A x| <= rtol |b|.
@@ -558,8 +558,12 @@ def preconditioned_gmres(A: sp.csr_matrix, b: np.ndarray, precondition, rtol: fl
     stopping test is on the caller's residual; the true residual is recomputed at the end (one
     product) and reported. One cycle of at most `maxiter` iterations, no restart (the caller
     refactorises instead). Returns (x, iterations, status, relative residual) as
-    `preconditioned_cg`, status "converged", "maxiter" or "breakdown" (not finite);
-    `history`, if given, receives the relative residual estimate of each iteration.
+    `preconditioned_cg`, status "converged", "maxiter", "breakdown" (not finite) or "slow":
+    with `predict_from` > 0, from that iteration on the solve stops as soon as the mean rate
+    of the residual so far would need more than `maxiter` iterations in all to reach rtol (a
+    stale preconditioner, as in `preconditioned_cg`; x is then the minimiser over the Krylov
+    space built so far). `history`, if given, receives the relative residual estimate of each
+    iteration.
     """
     indptr, indices, data = A.indptr, A.indices, A.data
     n = b.shape[0]
@@ -599,6 +603,11 @@ def preconditioned_gmres(A: sp.csr_matrix, b: np.ndarray, precondition, rtol: fl
         if res <= goal or hn == 0.0:     # hn = 0: the Krylov space holds the solution
             status = "converged"
             break
+        if predict_from and it >= predict_from and it < m:
+            rate = np.log(max(res, 1e-300) / beta) / it
+            if not (rate < 0.0 and np.log(goal / beta) / rate <= m):
+                status = "slow"
+                break
         V[j + 1] = w / hn
     if status != "breakdown":
         y = solve_triangular(H[:it, :it], g[:it])      # the rotated, upper Hessenberg
@@ -639,7 +648,8 @@ class LaggedFactorSolver:
     earlier indefinite tangent, and the Krylov method is right-preconditioned GMRES
     (`preconditioned_gmres`), valid for an indefinite matrix with an indefinite preconditioner
     (CG and MINRES are not) and stopping on the true residual; the LDL^T factor is renewed
-    under the same rules as the Cholesky one. A system that GMRES does not solve even with the
+    under the same rules as the Cholesky one (GMRES on a stale factor gives up from iteration
+    `predict_from` on, as CG does). A system that GMRES does not solve even with the
     fresh factor (a nearly singular tangent, where the single-precision factor is too
     perturbed) is solved by the double-precision LDL^T factorisation with iterative refinement
     (`SymmetricSolver`), as is every system when `maxiter` <= 0. Without PARDISO the back
@@ -781,7 +791,8 @@ class LaggedFactorSolver:
         self._enter_indefinite()
         x = None
         if self._ldl_factor and not self._ldl_stale:
-            x, k, status, rel = preconditioned_gmres(A, b, self._apply_ldl, rtol, self.maxiter)
+            x, k, status, rel = preconditioned_gmres(A, b, self._apply_ldl, rtol, self.maxiter,
+                                                     predict_from=self.predict_from)
             self.krylov_iterations += k
             its += k
             if rel <= rtol:

@@ -238,3 +238,15 @@ def test_a_cut_back_restarts_from_the_converged_state_with_the_terms_as_there(cu
     # both converged to rtol 1e-10 (relative displacement difference ~1e-8 at most)
     ref = solver.newton_solve(body, bcs, steps=2, grow=False, rtol=1e-10)
     assert np.abs(res.u - ref.u).max() < 1e-6 * np.abs(ref.u).max()
+
+
+def test_det3_matches_lapack():
+    # the triple-product determinant of the mesh checks against LAPACK's LU one on random and
+    # nearly singular matrices: both are backward stable, so they agree to a few ulps of the
+    # largest product of entries (|J| ~ 1 here: 1e-13 absolute)
+    from solver.mesh._hexmesh import det3
+
+    rng = np.random.default_rng(7)
+    J = rng.standard_normal((500, 3, 3))
+    J[:50, 2] = J[:50, 0] + 1e-9 * rng.standard_normal((50, 3))      # nearly singular
+    assert np.allclose(det3(J), np.linalg.det(J), rtol=0, atol=1e-13)

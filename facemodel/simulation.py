@@ -300,7 +300,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     info = {"n_nodes": len(X), "n_elements": len(labels), "n_constrained_nodes":
             int(sum(len(c.nodes) for c in constraints)), "terms": list(terms),
             "activations": activations, "sliding": list(sliding),
-            "cutbacks": res.cutbacks, "timings": res.timings}
+            "cutbacks": res.cutbacks, "factorizations": res.factorizations,
+            "krylov_iterations": res.krylov_iterations, "timings": res.timings}
     if contact:
         info["penetration_mm"] = {k: float(t.penetration(x)) for k, t in terms.items()}
         if "lip_contact" in terms:

@@ -42,7 +42,7 @@ __all__ = ["SymmetricSolver", "LaggedFactorSolver", "PardisoError", "available_b
 def available_backends() -> list[str]:
     out = []
     try:
-        import pypardiso  # noqa: F401
+        _mkl_pardiso_function()
         out.append("pardiso")
     except Exception:
         pass
@@ -90,6 +90,34 @@ def _mkl_pardiso_function():
     return _MKL[1]
 
 
+def _mkl_threads() -> int:
+    """MKL's thread count: PARDISO's conditional numerical reproducibility mode (iparm[33] > 0)
+    makes its factors and solutions bitwise the same from run to run for that many threads
+    (without it, the same matrix gives factors that differ in the last bits with the state of
+    the process: a Krylov solve to a loose tolerance then carries the difference into the
+    Newton iterates, and a contact solve's path, and its iteration count, changes)."""
+    try:
+        _mkl_pardiso_function()
+        return max(int(_MKL[0].MKL_Get_Max_Threads()), 1)
+    except Exception:
+        return 1
+
+
+def _aligned(a, dtype) -> np.ndarray:
+    """A C-contiguous copy of `a` as `dtype` on a 64-byte boundary: MKL's conditional
+    numerical reproducibility holds for aligned input and output arrays (oneMKL developer
+    guide, "Obtaining numerically reproducible results"), which NumPy's allocator does not
+    guarantee."""
+    a = np.asarray(a)
+    dtype = np.dtype(dtype)
+    n = a.size
+    buf = np.empty(n * dtype.itemsize + 64, dtype=np.uint8)
+    off = (-buf.ctypes.data) % 64
+    out = buf[off:off + n * dtype.itemsize].view(dtype).reshape(a.shape)
+    out[...] = a
+    return out
+
+
 class PardisoError(RuntimeError):
     """PARDISO returned an error code (-4: zero pivot, e.g. a Cholesky factorisation of a
     matrix that is not positive definite)."""
@@ -127,6 +155,7 @@ class _Pardiso:
         ip[12] = 0                                  # no weighted matching
         ip[20] = 1                                  # Bunch-Kaufman 1x1 / 2x2 pivoting
         ip[27] = 1 if single else 0                 # single-precision factor and solve
+        ip[33] = _mkl_threads()                     # CNR mode: bitwise reproducible
         ip[34] = 1                                  # zero-based indices
         self.iparm = ip
         self._ia = None
@@ -134,10 +163,9 @@ class _Pardiso:
         self._a = None
         self.n = 0
 
-    def _call(self, phase: int, b=None, x=None) -> None:
+    def _call(self, phase: int, b=None, x=None, nrhs: int = 1) -> None:
         err = ctypes.c_int32(0)
         i32 = ctypes.c_int32
-        nrhs = 1
         bptr = xptr = None
         if b is not None:
             bptr, xptr = b.ctypes.data, x.ctypes.data
@@ -151,10 +179,10 @@ class _Pardiso:
         if err.value != 0:
             raise PardisoError(int(err.value), phase)
 
-    def _timed(self, key, phase, b=None, x=None):
+    def _timed(self, key, phase, b=None, x=None, nrhs=1):
         t0 = time.perf_counter()
         try:
-            self._call(phase, b, x)
+            self._call(phase, b, x, nrhs)
         finally:
             TIMING[key] += time.perf_counter() - t0
 
@@ -165,7 +193,7 @@ class _Pardiso:
 
     def factorize(self, A: sp.csr_matrix) -> None:
         if self._same_pattern(A):
-            self._a = np.ascontiguousarray(A.data, dtype=self.dtype)
+            self._a = _aligned(A.data, self.dtype)
         else:
             # A pattern that changes between calls (contact pairs coming and going) is embedded
             # in the union of the analysed pattern and the new one: once the union has
@@ -181,10 +209,10 @@ class _Pardiso:
                          and ja.shape == self._ja.shape)
             a = np.zeros(len(ja))
             _embed_values(ia, ja, ib, jb, np.ascontiguousarray(A.data, dtype=float), a)
-            self._a = a.astype(self.dtype, copy=False)
+            self._a = _aligned(a, self.dtype)
             if grown:
                 self.release()
-                self._ia, self._ja = ia, ja
+                self._ia, self._ja = _aligned(ia, np.int32), _aligned(ja, np.int32)
                 self.n = A.shape[0]
                 self._timed("analysis", 11)
         self._timed("factorization", 22)
@@ -192,10 +220,16 @@ class _Pardiso:
     def apply(self, b: np.ndarray, refine: bool = True) -> np.ndarray:
         """Solve with the stored factor (forward/backward substitution, phase 33); without
         `refine` no iterative refinement steps (each costs a further substitution: a
-        preconditioner application needs none)."""
+        preconditioner application needs none). b (n,) or (n, k): k right-hand sides solved in
+        one call (PARDISO takes them column after column)."""
         self.iparm[7] = 2 if refine else 0
-        bb = np.ascontiguousarray(b, dtype=self.dtype)
-        x = np.empty_like(bb)
+        if np.ndim(b) == 2:
+            bb = _aligned(np.asarray(b).T, self.dtype)     # (k, n): columns
+            x = _aligned(np.zeros(bb.shape), self.dtype)
+            self._timed("substitution", 33, bb, x, nrhs=bb.shape[0])
+            return x.T.astype(np.float64)
+        bb = _aligned(b, self.dtype)
+        x = _aligned(np.zeros(bb.shape), self.dtype)
         self._timed("substitution", 33, bb, x)
         return x.astype(np.float64, copy=False)
 
@@ -513,7 +547,7 @@ def _add_combination(x, Z, y, m):
 
 def preconditioned_gmres(A: sp.csr_matrix, b: np.ndarray, precondition, rtol: float,
                          maxiter: int, x0: np.ndarray | None = None,
-                         history: list | None = None):
+                         history: list | None = None, predict_from: int = 0):
     """Right-preconditioned GMRES (Saad & Schultz 1986; Saad 2003, alg. 9.5, with the
     preconditioned basis kept as in FGMRES, alg. 9.6, so that no substitution is spent on the
     update) on the symmetric matrix given by its upper triangle, to |b - A x| <= rtol |b|.
@@ -524,8 +558,12 @@ def preconditioned_gmres(A: sp.csr_matrix, b: np.ndarray, precondition, rtol: fl
     stopping test is on the caller's residual; the true residual is recomputed at the end (one
     product) and reported. One cycle of at most `maxiter` iterations, no restart (the caller
     refactorises instead). Returns (x, iterations, status, relative residual) as
-    `preconditioned_cg`, status "converged", "maxiter" or "breakdown" (not finite);
-    `history`, if given, receives the relative residual estimate of each iteration.
+    `preconditioned_cg`, status "converged", "maxiter", "breakdown" (not finite) or "slow":
+    with `predict_from` > 0, from that iteration on the solve stops as soon as the mean rate
+    of the residual so far would need more than `maxiter` iterations in all to reach rtol (a
+    stale preconditioner, as in `preconditioned_cg`; x is then the minimiser over the Krylov
+    space built so far). `history`, if given, receives the relative residual estimate of each
+    iteration.
     """
     indptr, indices, data = A.indptr, A.indices, A.data
     n = b.shape[0]
@@ -565,6 +603,11 @@ def preconditioned_gmres(A: sp.csr_matrix, b: np.ndarray, precondition, rtol: fl
         if res <= goal or hn == 0.0:     # hn = 0: the Krylov space holds the solution
             status = "converged"
             break
+        if predict_from and it >= predict_from and it < m:
+            rate = np.log(max(res, 1e-300) / beta) / it
+            if not (rate < 0.0 and np.log(goal / beta) / rate <= m):
+                status = "slow"
+                break
         V[j + 1] = w / hn
     if status != "breakdown":
         y = solve_triangular(H[:it, :it], g[:it])      # the rotated, upper Hessenberg
@@ -605,7 +648,8 @@ class LaggedFactorSolver:
     earlier indefinite tangent, and the Krylov method is right-preconditioned GMRES
     (`preconditioned_gmres`), valid for an indefinite matrix with an indefinite preconditioner
     (CG and MINRES are not) and stopping on the true residual; the LDL^T factor is renewed
-    under the same rules as the Cholesky one. A system that GMRES does not solve even with the
+    under the same rules as the Cholesky one (GMRES on a stale factor gives up from iteration
+    `predict_from` on, as CG does). A system that GMRES does not solve even with the
     fresh factor (a nearly singular tangent, where the single-precision factor is too
     perturbed) is solved by the double-precision LDL^T factorisation with iterative refinement
     (`SymmetricSolver`), as is every system when `maxiter` <= 0. Without PARDISO the back
@@ -747,7 +791,8 @@ class LaggedFactorSolver:
         self._enter_indefinite()
         x = None
         if self._ldl_factor and not self._ldl_stale:
-            x, k, status, rel = preconditioned_gmres(A, b, self._apply_ldl, rtol, self.maxiter)
+            x, k, status, rel = preconditioned_gmres(A, b, self._apply_ldl, rtol, self.maxiter,
+                                                     predict_from=self.predict_from)
             self.krylov_iterations += k
             its += k
             if rel <= rtol:

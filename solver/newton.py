@@ -196,7 +196,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
     while load < 1.0 - 1e-12:
         step_no += 1
         target = stepper.target(load)
-        step, restart = run.solve_load_step(x, target, step_no)
+        step = run.solve_load_step(x, target, step_no)
         if step.converged:
             x, load = step.x, target
             predictor.converged(target, x.copy(), run.mixed_state())
@@ -209,10 +209,13 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
                 step_callback(result)
             stepper.converged(step.iterations, step.first_iterations)
         else:
+            # the shorter step starts from the converged state, with the terms as they were
+            # there: not from the failed solve's iterate (at the higher load) nor with the
+            # multipliers its augmentations updated
             result.cutbacks += 1
             predictor.cut_back()
-            x = restart
             run.restore_step_start()
+            run.restore_terms()
             ok = stepper.cut_back(load, target)
             log.warning("step %d failed at load %.4g (%s); cutting back to step %.4g",
                         step_no, target, step.reason, stepper.dt)
@@ -289,6 +292,7 @@ class _Run:
         self.t_start = time.perf_counter()
         self.pardiso0 = dict(_linalg.TIMING)
         self._start_mixed = None
+        self._term_states = []
 
     # --- state of the three-field iteration --------------------------------------------------
     def mixed_state(self):
@@ -303,6 +307,11 @@ class _Run:
         if isinstance(self.lin, LaggedFactorSolver):
             self.lin.reset()
 
+    def restore_terms(self):
+        """The terms' state at the start of the step (`Term.restore_step`)."""
+        for t, state in zip(self.system.terms, self._term_states):
+            t.restore_step(state)
+
     def uhat(self, x):
         return self.cons.to_local((x - self.X).ravel())
 
@@ -312,10 +321,12 @@ class _Run:
         from x with the tangent predictor if that solve goes astray), then the re-solves the
         terms ask for at convergence (augmentations, at most `max_retries`; a solve stopped
         early for an augmentation that does not come is converged first). Returns the
-        `StepResult` and the state a cut-back restarts from."""
+        `StepResult`; the terms' state at the step start is kept for a cut-back
+        (`restore_terms`)."""
         control, result, terms = self.control, self.result, self.system.terms
         start = x.copy()
         self._start_mixed = self.mixed_state()
+        self._term_states = [t.save_step() for t in terms]
         if isinstance(self.lin, LaggedFactorSolver):
             self.lin.begin_step()
         x_pred = self.predictor.start(target)
@@ -348,7 +359,7 @@ class _Run:
             retries += 1
             start = step.x
         step.retries, step.first_iterations = retries, first_iterations
-        return step, start
+        return step
 
     # --- one Newton solve ----------------------------------------------------------------------
     def _solve(self, x0, target, step_no, x_pred=None, energy0=None, early=None) -> StepResult:

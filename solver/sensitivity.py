@@ -8,16 +8,16 @@ ch. 4; Haug, Choi & Komkov 1986). K is the consistent tangent of the body and th
 at the converged configuration (the Q1/P0 body's displacement-based second variation; contact
 terms with their converged multipliers). The partial derivatives dr/dp (at fixed x) and du_c/dp
 are supplied by the caller (e.g. central differences of the residual, which need no solve);
-one factorisation serves every parameter. Everything is in transformed unknowns
+one symmetric factorisation (`solver.linalg.SymmetricSolver`) serves every parameter. Everything is in transformed unknowns
 u_hat = T u where local frames exist and returned in global components.
 """
 from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from solver.bc import ConstraintSet
+from solver.linalg import SymmetricSolver
 
 __all__ = ["constraint_set", "tangent_matrix", "linear_response"]
 
@@ -58,13 +58,15 @@ def _rotation(cons: ConstraintSet) -> sp.csr_matrix:
     return sp.csr_matrix((cons.rot.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n, 3 * n))
 
 
-def linear_response(body, constraints, terms, x, dr_dp, duc_dp=None, load: float = 1.0):
+def linear_response(body, constraints, terms, x, dr_dp, duc_dp=None, load: float = 1.0,
+                    backend: str = "auto"):
     """du/dp (3n, k) in global components at the converged configuration x (n, 3).
 
     dr_dp (3n, k): partial derivative of the residual (internal + term forces - external)
     with respect to each parameter at fixed x, global components. duc_dp (n_c, k): derivative
     of the prescribed values at the constrained transformed unknowns (`ConstraintSet.dofs`
-    order), or None when no parameter moves a constraint.
+    order), or None when no parameter moves a constraint. backend: the linear solver
+    (`solver.linalg.SymmetricSolver`: PARDISO's LDL^T when installed, else SuperLU).
     """
     cons = constraint_set(body, constraints)
     dr = np.asarray(dr_dp, dtype=float)
@@ -81,9 +83,16 @@ def linear_response(body, constraints, terms, x, dr_dp, duc_dp=None, load: float
     rhs = -dr[free]
     if np.any(duc != 0.0):
         rhs = rhs - K[free][:, cdofs] @ duc
-    lu = spla.splu(sp.csc_matrix(K[free][:, free]))
+    # one symmetric (indefinite: LDL^T) factorisation of K_ff, its upper triangle as the
+    # Newton solver passes it, and one substitution for all parameters together
+    Kff = sp.triu(K[free][:, free], format="csr")
+    Kff.sum_duplicates()
+    Kff.sort_indices()
+    lin = SymmetricSolver(backend)
+    lin.factorize(Kff)
     du = np.zeros((3 * cons.n_nodes, k))
-    du[free] = lu.solve(np.ascontiguousarray(rhs))
+    du[free] = lin.apply(np.ascontiguousarray(rhs)).reshape(-1, k)
+    lin.release_factor()
     du[cdofs] = duc
     if cons.any_frame:
         du = np.stack([cons.to_global(du[:, j]) for j in range(k)], axis=1)

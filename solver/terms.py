@@ -10,6 +10,7 @@ with `as_term`.
 """
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
 
 import numpy as np
@@ -55,6 +56,23 @@ class Term(ABC):
         solver may then stop the solve early, `SolverControl.augmentation_rtol`)."""
         return False
 
+    # attributes that never change during a solve (geometry, settings): not part of the
+    # state `save_step` copies
+    static_state: tuple = ()
+
+    def save_step(self):
+        """The term's state at the start of a load step (multipliers, contact status,
+        counters: a copy of its attributes but `static_state`), for `restore_step`."""
+        return copy.deepcopy({k: v for k, v in vars(self).items()
+                              if k not in self.static_state})
+
+    def restore_step(self, state) -> None:
+        """Back to the state `save_step` returned: the solver cuts a failed step back and
+        solves a shorter one from the step's converged start, which must not carry what the
+        failed solves changed (augmented multipliers, a status decided at the higher load)."""
+        if state is not None:
+            vars(self).update(copy.deepcopy(state))
+
 
 class _Adapted(Term):
     """A term object that does not derive from `Term`: its own methods where it has them,
@@ -63,13 +81,17 @@ class _Adapted(Term):
     def __init__(self, term):
         self.term = term
         for name in ("energy", "end_step", "coupling_pairs", "restart_step",
-                     "augmentation_due"):
+                     "augmentation_due", "save_step", "restore_step"):
             method = getattr(term, name, None)
             if callable(method):
                 setattr(self, name, method)
 
     def assemble(self, x, load):
         return self.term.assemble(x, load)
+
+    def save_step(self):
+        # a foreign object's state is its own business: without its own hooks it is not copied
+        return None
 
     def __getattr__(self, name):
         return getattr(self.__dict__["term"], name)

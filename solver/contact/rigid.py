@@ -77,6 +77,7 @@ class RigidSurfaceContact(ContactTerm):
     """
 
     DEFAULTS = AugmentedLagrangian(search_radius=5.0, max_depth=np.inf)
+    static_state = ("surface", "grid", "settings")
 
     def __init__(self, nodes, vertices, faces, *, settings: AugmentedLagrangian | None = None,
                  slave_facets=None, slave_nodes=None, slave_areas=None, motion=None,

@@ -150,6 +150,8 @@ class SurfaceContact(ContactTerm):
     iteration while the status is searched (0: no hysteresis).
     """
 
+    static_state = ("_reference", "settings")
+
     def __init__(self, nodes, surface_a, surface_b, *, settings: AugmentedLagrangian | None = None,
                  two_pass: bool = True, ignore_initial_penetration: bool = True,
                  pair_hysteresis: float = 0.0, **contact):

@@ -85,6 +85,28 @@ def test_gmres_with_exact_factor_converges_in_one_iteration():
     assert its2 == 0 and status2 == "converged"
 
 
+def test_gmres_gives_up_early_when_its_rate_cannot_reach_the_tolerance():
+    # Unpreconditioned GMRES on the indefinite matrix (cond ~ 1e2, eigenvalues on both sides
+    # of 0) gains far less than a factor 10 per iteration: asked 1e-8 within 10 iterations it
+    # is hopeless, and with predict_from=3 it stops after 3 ("slow") instead of 10
+    # ("maxiter"), returning the minimiser over its 3-dimensional Krylov space (the same
+    # iterate as a 3-iteration solve); with the exact inverse as preconditioner it converges
+    # at its first iteration and the rate check never fires
+    K = _indefinite()
+    U = _upper(K)
+    b = np.random.default_rng(3).standard_normal(K.shape[0])
+    x10, its10, status10, rel10 = preconditioned_gmres(U, b, lambda v: v, 1e-8, 10)
+    x3, its3, status3, rel3 = preconditioned_gmres(U, b, lambda v: v, 1e-8, 10, predict_from=3)
+    assert (status10, its10) == ("maxiter", 10) and (status3, its3) == ("slow", 3)
+    x3ref, *_ = preconditioned_gmres(U, b, lambda v: v, 1e-8, 3)
+    # the same arithmetic up to the basis length allocated: 1e-12 relative
+    assert np.allclose(x3, x3ref, rtol=0, atol=1e-12 * np.abs(x3ref).max())
+    assert rel3 >= rel10 > 1e-8
+    inv = np.linalg.inv(K.toarray())
+    x, its, status, rel = preconditioned_gmres(U, b, lambda v: inv @ v, 1e-8, 10, predict_from=1)
+    assert status == "converged" and its == 1 and rel <= 1e-8
+
+
 @pytest.mark.skipif("pardiso" not in available_backends(), reason="PARDISO not installed")
 @pytest.mark.parametrize("precision", ["single", "double"])
 def test_slowly_changing_indefinite_systems_reuse_the_ldlt_factor(precision):

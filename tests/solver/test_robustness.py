@@ -187,3 +187,66 @@ def test_step_length_limiter_watches_the_nodes_it_is_given(cube):
     assert low_only.iterations == free.iterations
     for r in (every, low_only):
         assert np.abs(r.u - free.u).max() < 1e-6 * np.abs(free.u).max()
+
+
+class _AugmentedThenFailing(solver.Term):
+    """A term with a state (a 'multiplier' that `end_step` raises, asking for a re-solve at
+    the final load) whose re-solve fails once (a NaN force): the cut-back must restart from
+    the converged state of the last step with the multiplier it had there. It adds no force
+    otherwise, so the converged answer is the body's alone."""
+
+    static_state = ("seen", "failures")
+
+    def __init__(self, n):
+        self.n = n
+        self.multiplier = np.zeros(1)
+        self.seen = []               # (load, x, multiplier) of every assembly
+        self.failures = [0]
+
+    def assemble(self, x, load):
+        self.seen.append((load, x.copy(), self.multiplier.copy()))
+        f = np.zeros(3 * self.n)
+        if load == 1.0 and self.multiplier[0] > 0 and self.failures[0] == 0:
+            self.failures[0] += 1
+            f[:] = np.nan
+        return f, None
+
+    def end_step(self, x, load):
+        if load == 1.0 and self.multiplier[0] == 0.0:
+            self.multiplier += 1.0
+            return True
+        return False
+
+
+def test_a_cut_back_restarts_from_the_converged_state_with_the_terms_as_there(cube):
+    nodes, hexes, s = cube
+    body = solver.SolidBody(solver.HexMesh(nodes, hexes), solver.Yeoh(2.5, 1.175, 0.3, K=2500.0))
+    bcs = [solver.fix(s["zmin"]), solver.Prescribed(s["zmax"], [0.1, 0.0, -0.1])]
+    term = _AugmentedThenFailing(len(nodes))
+    converged = {}
+    res = solver.newton_solve(body, bcs, [term], steps=2, grow=False, rtol=1e-10,
+                              step_callback=lambda r: converged.setdefault(r.load, r.x.copy()))
+    assert res.converged and res.cutbacks == 1 and term.failures[0] == 1
+    # the first assembly after the failed solve at load 1 is at the shorter step's load, from
+    # the converged state at 0.5 (exactly: it is that array) with the multiplier of 0.5 (0)
+    k = max(i for i, (load, _, _) in enumerate(term.seen) if load == 1.0 and
+            i + 1 < len(term.seen) and term.seen[i + 1][0] < 1.0)
+    load, x, mult = term.seen[k + 1]
+    assert 0.5 < load < 1.0
+    assert np.array_equal(x, converged[0.5]) and mult[0] == 0.0
+    # the same answer as without the term (it adds no force): the path does not matter here,
+    # both converged to rtol 1e-10 (relative displacement difference ~1e-8 at most)
+    ref = solver.newton_solve(body, bcs, steps=2, grow=False, rtol=1e-10)
+    assert np.abs(res.u - ref.u).max() < 1e-6 * np.abs(ref.u).max()
+
+
+def test_det3_matches_lapack():
+    # the triple-product determinant of the mesh checks against LAPACK's LU one on random and
+    # nearly singular matrices: both are backward stable, so they agree to a few ulps of the
+    # largest product of entries (|J| ~ 1 here: 1e-13 absolute)
+    from solver.mesh._hexmesh import det3
+
+    rng = np.random.default_rng(7)
+    J = rng.standard_normal((500, 3, 3))
+    J[:50, 2] = J[:50, 0] + 1e-9 * rng.standard_normal((50, 3))      # nearly singular
+    assert np.allclose(det3(J), np.linalg.det(J), rtol=0, atol=1e-13)

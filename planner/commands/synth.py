@@ -24,6 +24,7 @@ each case draws from its own seed, so a cohort is the same whatever the number o
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +57,10 @@ BONE_ROTATION_DEG = (1.0, 3.0)
 STIFF_LAYERS = ("dermis", "hypodermis", "muscle")
 SOFTER, STIFFER = (0.5, 0.7), (1.5, 2.5)
 FOLLOW_UP_MONTHS = (3.0, 12.0)
+# a target-set value whose truth solve fails is reduced along its load path (`solve_reducing`)
+MAX_REDUCTIONS = 2
+REDUCTION_MARGIN = 0.9      # of the load fraction reached: the last converged state had it
+MIN_REDUCTION = 0.25        # never below a quarter of the value in one reduction
 TRUTH_RESOLUTION = "standard"   # fine: beyond the 2-minute budget per case (docs/effects.md)
 
 
@@ -235,6 +240,38 @@ def _skin_change(pred, base, regions=None) -> dict:
     return {"rms_mm": round(float(np.sqrt(np.mean(d * d))), 4), "max_mm": round(float(d.max()), 4)}
 
 
+def solve_reducing(solve, effects, name: str | None, attempts: int = MAX_REDUCTIONS):
+    """(prediction, effects used, reductions) of `solve(effects)`; when the solve fails and
+    `name` is an effect whose value was set from a skin-change target (a value the truth model
+    may not be able to reach: large growth pressing the lips together), the effect's distance
+    from "none" is reduced and the solve repeated, `attempts` times at most. The reduction
+    follows the load path: a solve that failed after converging at load fraction L had the
+    effect at L of its value (it is ramped with the load), so the next value is
+    REDUCTION_MARGIN x L of the distance (at least MIN_REDUCTION, a half when L is not known);
+    each reduction is recorded ({"from", "to", "load_reached", "reason"}) for the key. Any
+    other failure, or one still failing after `attempts`, is raised."""
+    from facemodel import effects as fe
+
+    reductions = []
+    while True:
+        try:
+            return solve(effects), effects, reductions
+        except SolveError as exc:
+            if name is None or len(reductions) >= attempts:
+                raise
+            reached = getattr(exc.__cause__, "last_converged_load", None)
+            factor = 0.5
+            if reached is not None and 0.0 < float(reached) < 1.0:
+                factor = max(MIN_REDUCTION, REDUCTION_MARGIN * float(reached))
+            p = fe.parameters(name)[0]
+            v0 = effects.value(name)
+            v = p.none + factor * (v0 - p.none)
+            reductions.append({"from": round(v0, 5), "to": round(v, 5),
+                               "load_reached": None if reached is None else round(float(reached), 4),
+                               "reason": str(exc)[:300]})
+            effects = effects.with_value(name, v)
+
+
 def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                 contact: bool = True) -> dict:
     """Predict and write `folder`/postop/skin.stl (and plan_actual.yaml) for an existing case
@@ -303,23 +340,18 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
             plan_actual = parse_plan(actual, "plan_actual.yaml")
             effects = fe.parse_effects({"bone_execution": 1})
     pred = base
-    retries = 0
-    while effects.active:
-        try:
-            pred = solve_plan(patient, truth_plan, case.bones, effects=effects, plan_actual=plan_actual,
-                              follow_up_months=fu)
-            break
-        except SolveError:
-            # a value set from a skin-change target may ask more than the truth model can
-            # solve (large growth against lip contact): half its distance from "none", twice
-            # at most; the key records the value used and the change it made
-            if name not in SKIN_CHANGE_MM or retries == 2:
-                raise
-            retries += 1
-            p = fe.parameters(name)[0]
-            v = p.none + 0.5 * (effects.value(name) - p.none)
-            effects = effects.with_value(name, v)
-            value = {name: round(v, 5)}
+    reductions = []
+    if effects.active:
+        requested = value
+        pred, effects, reductions = solve_reducing(
+            lambda eff: solve_plan(patient, truth_plan, case.bones, effects=eff,
+                                   plan_actual=plan_actual, follow_up_months=fu),
+            effects, name if name in SKIN_CHANGE_MM else None)
+        if reductions:
+            value = {name: round(effects.value(name), 5)}
+            print(f"faceplan synth: {folder.name}: warning: the truth solve of {name}={requested[name]} "
+                  f"failed; the effect was reduced to {value[name]} ({len(reductions)} reduction(s), "
+                  "recorded in the key)", file=sys.stderr, flush=True)
     region = SKIN_CHANGE_REGIONS.get(name) if name else None
     change = _skin_change(pred, base, region)
     # the post-op skin: the patient's skin moved with the truth model's skin, scanned
@@ -332,7 +364,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
             "perturbation": {"truth_resolution": truth_resolution,
                              "layer_thickness_factors": {"dermis": round(dermis, 4), "deep": round(deep, 4)},
                              **mat_record, "scan": scan},
-            "plan_actual": plan_actual is not None, "value_halvings": retries,
+            "plan_actual": plan_actual is not None, "value_reductions": reductions,
             "effect_skin_change_mm": {"regions": list(region) if region else "skin", **change}}
 
 

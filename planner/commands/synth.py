@@ -315,6 +315,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     except (reg_errors.RegistrationInputError, reg_errors.RegistrationFailure) as exc:
         raise SolveError(f"{folder.name}: registration of the truth model failed: {exc}") from exc
     base = solve_plan(patient, truth_plan, case.bones, follow_up_months=fu)
+    target = None
     if name is not None and value is None:
         # the value that changes the skin by a target drawn from the published range, from
         # the truth model's own sensitivity (linear estimate; the change reached is recorded)
@@ -365,7 +366,8 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                              "layer_thickness_factors": {"dermis": round(dermis, 4), "deep": round(deep, 4)},
                              **mat_record, "scan": scan},
             "plan_actual": plan_actual is not None, "value_reductions": reductions,
-            "effect_skin_change_mm": {"regions": list(region) if region else "skin", **change}}
+            "effect_skin_change_mm": {"regions": list(region) if region else "skin", **change,
+                                      "target_max_mm": None if target is None else round(target, 4)}}
 
 
 def make_case(root: str, seed: int, options: dict) -> dict:

@@ -15,7 +15,9 @@ sees it (`facemodel.synthetic.scan_like_surface`: a range image on a 0.6 mm grid
 ~0.8 mm, the front of the face only, holes at the mouth slit, nostrils and under the chin, 0.2 mm noise along the
 normals, a rigid offset up to 2 mm / 2 deg); case.yaml gets `follow_up_months` (3-12), and
 postop/plan_actual.yaml is written for a random half of the bone_execution cases. Effect
-values are drawn per case from published ranges (`draw_effect`). The effect, its value and the
+values are drawn per case from published ranges (`draw_effect`; swelling, posture and tone from
+a skin-change target, with one secant correction when the change reached leaves the range, and
+a recorded reduction when the truth solve fails, `solve_reducing`). The effect, its value and the
 perturbations go only to the --key file (a JSON list, one record per case, contract fields).
 The cases with post-op scans run as tasks on dask.distributed: a LocalCluster of `--workers`
 processes, or the cluster at `--scheduler ADDRESS` (its workers must see the output folder);
@@ -355,6 +357,31 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                   "recorded in the key)", file=sys.stderr, flush=True)
     region = SKIN_CHANGE_REGIONS.get(name) if name else None
     change = _skin_change(pred, base, region)
+    corrections = []
+    if target is not None and not reductions:
+        # the linear estimate misses where the response is not linear (muscle tone, contact):
+        # a change reached outside the published range gets one secant correction towards the
+        # target, v' = none + (v - none) target / reached (bounded), recorded in the key
+        lo, hi = SKIN_CHANGE_MM[name]
+        if not lo <= change["max_mm"] <= hi and change["max_mm"] > 0:
+            p = fe.parameters(name)[0]
+            v0 = effects.value(name)
+            v = float(np.clip(p.none + (v0 - p.none) * target / change["max_mm"], p.lower, p.upper))
+            if v != v0:
+                try:
+                    pred1, eff1, _ = solve_reducing(
+                        lambda eff: solve_plan(patient, truth_plan, case.bones, effects=eff,
+                                               plan_actual=plan_actual, follow_up_months=fu),
+                        effects.with_value(name, v), None)
+                except SolveError as exc:       # keep the first value: its solve converged
+                    corrections.append({"from": round(v0, 5), "to": None, "reason": str(exc)[:300]})
+                else:
+                    pred, effects = pred1, eff1
+                    value = {name: round(v, 5)}
+                    change1 = _skin_change(pred, base, region)
+                    corrections.append({"from": round(v0, 5), "to": round(v, 5),
+                                        "max_mm_before": change["max_mm"]})
+                    change = change1
     # the post-op skin: the patient's skin moved with the truth model's skin, scanned
     x_pre, tris, ids = skin_surface(pred.model)
     moved_skin = sy.displaced_surface(case.skin.vertices, x_pre, tris, pred.displacement[ids])
@@ -366,6 +393,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                              "layer_thickness_factors": {"dermis": round(dermis, 4), "deep": round(deep, 4)},
                              **mat_record, "scan": scan},
             "plan_actual": plan_actual is not None, "value_reductions": reductions,
+            "value_corrections": corrections,
             "effect_skin_change_mm": {"regions": list(region) if region else "skin", **change,
                                       "target_max_mm": None if target is None else round(target, 4)}}
 

@@ -173,12 +173,14 @@ def test_large_swelling_with_lip_contact_reduced_along_its_load_path():
         return solve_plan(face, plan, effects=eff, follow_up_months=3.0)
 
     pred, eff, red = synth.solve_reducing(solve, fe.parse_effects(["swelling=4"]), "swelling")
-    assert 1 <= len(red) <= synth.MAX_REDUCTIONS and calls[0] == 4.0 and len(calls) == len(red) + 1
+    # today the first solve fails (a solver that converges it would leave nothing to reduce:
+    # the rest of the test then checks the large swelling itself)
+    assert len(red) <= synth.MAX_REDUCTIONS and calls[0] == 4.0 and len(calls) == len(red) + 1
     for r in red:
         assert 0.0 < r["load_reached"] < 1.0 and 1.0 < r["to"] < r["from"]
         assert r["to"] - 1.0 == pytest.approx(max(synth.MIN_REDUCTION, synth.REDUCTION_MARGIN
                                                   * r["load_reached"]) * (r["from"] - 1.0), rel=1e-4)
-    assert eff.swelling == pytest.approx(red[-1]["to"], rel=1e-4)
+    assert eff.swelling == pytest.approx(red[-1]["to"] if red else 4.0, rel=1e-4)
     assert pred.solver["converged"] and "lip_contact" in pred.solver["info"]["terms"]
     # the volume grows (deformed volume: grown reference volume x elastic ratio)
     vol = lambda p: float(np.sum(p.setup["problem"][0].volume
@@ -189,7 +191,7 @@ def test_large_swelling_with_lip_contact_reduced_along_its_load_path():
     n = trimesh.Trimesh(x0, tris, process=False).vertex_normals
     du = pred.displacement[ids] - base.displacement[ids]
     assert np.mean(np.einsum("ij,ij->i", du, n)) > 0.0
-    assert 1.0 < np.linalg.norm(du, axis=1).max() < 3.0
+    assert 1.0 < np.linalg.norm(du, axis=1).max() < (3.0 if red else 4.0)
     # without a target-set effect nothing is reduced: the failure is raised
     with pytest.raises(synth.SolveError):
         synth.solve_reducing(lambda e: (_ for _ in ()).throw(synth.SolveError("no")),

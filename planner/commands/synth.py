@@ -267,8 +267,8 @@ def solve_reducing(solve, effects, name: str | None, attempts: int = MAX_REDUCTI
                 factor = max(MIN_REDUCTION, REDUCTION_MARGIN * float(reached))
             p = fe.parameters(name)[0]
             v0 = effects.value(name)
-            v = p.none + factor * (v0 - p.none)
-            reductions.append({"from": round(v0, 5), "to": round(v, 5),
+            v = round(p.none + factor * (v0 - p.none), 5)      # the key's value is the one used
+            reductions.append({"from": round(v0, 5), "to": v,
                                "load_reached": None if reached is None else round(float(reached), 4),
                                "reason": str(exc)[:300]})
             effects = effects.with_value(name, v)
@@ -366,7 +366,8 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
         if not lo <= change["max_mm"] <= hi and change["max_mm"] > 0:
             p = fe.parameters(name)[0]
             v0 = effects.value(name)
-            v = float(np.clip(p.none + (v0 - p.none) * target / change["max_mm"], p.lower, p.upper))
+            v = round(float(np.clip(p.none + (v0 - p.none) * target / change["max_mm"], p.lower,
+                                    p.upper)), 5)
             if v != v0:
                 try:
                     pred1, eff1, _ = solve_reducing(

@@ -196,3 +196,41 @@ def test_large_swelling_with_lip_contact_reduced_along_its_load_path():
     with pytest.raises(synth.SolveError):
         synth.solve_reducing(lambda e: (_ for _ in ()).throw(synth.SolveError("no")),
                              fe.parse_effects(["gravity=1"]), None)
+
+
+def test_reduction_rule_and_its_limits():
+    """`solve_reducing`'s rule on solves that fail as the solver does (a SolveError caused by a
+    SolveFailed carrying the last converged load): the distance from "none" scales by 0.9 L,
+    at least by 1/4, by 1/2 without L; at most MAX_REDUCTIONS; other effects are not reduced.
+    Exact arithmetic (values rounded to 5 decimals as the key records them)."""
+    from facemodel import effects as fe
+    from solver.errors import SolveFailed
+
+    def failing(loads):
+        seen = []
+
+        def solve(eff):
+            seen.append(eff.swelling)
+            if len(seen) <= len(loads):
+                cause = SolveFailed("stalled", step=3, load=0.8, last_converged_load=loads[len(seen) - 1])
+                try:
+                    raise cause
+                except SolveFailed as exc:
+                    raise synth.SolveError("Newton failed") from exc
+            return "pred"
+        return solve, seen
+
+    solve, seen = failing([0.5])
+    pred, eff, red = synth.solve_reducing(solve, fe.parse_effects(["swelling=3"]), "swelling")
+    assert pred == "pred" and seen == [3.0, 1.9] and red[0]["load_reached"] == 0.5
+    solve, seen = failing([0.1, None])
+    _, eff, red = synth.solve_reducing(solve, fe.parse_effects(["swelling=3"]), "swelling")
+    assert seen == [3.0, 1.5, 1.25]                       # a quarter, then a half
+    solve, seen = failing([0.5, 0.5, 0.5])
+    with pytest.raises(synth.SolveError):
+        synth.solve_reducing(solve, fe.parse_effects(["swelling=3"]), "swelling")
+    assert len(seen) == synth.MAX_REDUCTIONS + 1
+    solve, seen = failing([0.5])
+    with pytest.raises(synth.SolveError):
+        synth.solve_reducing(solve, fe.parse_effects(["swelling=3"]), None)
+    assert seen == [3.0]

@@ -57,8 +57,8 @@ BONE_UNITS = ("mm", "mm", "mm", "deg", "deg", "deg")
 MAX_CORRECTION_MM = 10.0
 MAX_CORRECTION_DEG = 15.0
 # head pitch of the upright scan about the left-right axis (degrees, + = chin down / flexion):
-# natural head position varies by a few degrees about the Frankfort horizontal (SD ~3-5 deg,
-# Cooke & Wei 1988); 30 deg bounds any scan a patient sits upright for
+# natural head position scatters by a few degrees about the Frankfort horizontal (Cooke & Wei
+# 1988, facemodel.materials [pitch]); 30 deg bounds any scan a patient sits upright for
 MAX_PITCH_DEG = 30.0
 # segments fixed to another after the operation: the chin segment is plated to the mandible
 # (genioplasty) or is part of it (no genioplasty), so it follows the mandible's correction

@@ -6,10 +6,12 @@ perioral activation), `swelling` (residual oedema as volumetric growth, F = F_e 
 F_g = theta^(1/3) I, theta(x) = 1 + (theta_peak - 1) w(x), w = 1 at the operated bone and a
 cosine taper to 0 at SWELLING_RADIUS_MM from it; with a follow-up time theta_peak - 1 is scaled
 by the residual fraction of `swelling_residual`), `gravity` (the supine planning CT against the
-upright scan: the body-force difference rho g m (0, +1, -1) applied from the pre-op state, a
-first-order correction about the CT's already loaded state), `stiffness` (factor on every
+upright scan: the body-force difference rho g m [(0, sin phi, -cos phi) - (0, -1, 0)] applied from
+the pre-op state, a first-order correction about the CT's already loaded state; phi the head's
+pitch in the upright scan, 0 by default: (0, +1, -1)), `stiffness` (factor on every
 modulus, uniform or per layer) and `bone_execution` (a rigid correction per segment composed
-after the plan, or the achieved movements of postop/plan_actual.yaml). `Effects` holds the
+after the plan, or the achieved movements of postop/plan_actual.yaml; the chin rides on the
+mandible: a mandible correction moves the chin segment too, `executed_motions`). `Effects` holds the
 values (the value meaning "none" of each gives exactly the baseline); `parse_effects` reads
 the `NAME=VALUE` strings of `--effect` and the `model.effects` mapping of a plan; `parameters`
 lists each effect's continuous parameters (name, unit, bounds, "none" value) so that a fit can
@@ -34,8 +36,8 @@ from facemodel.model import MUSCLES, SEGMENTS
 
 __all__ = ["EFFECT_NAMES", "LAYERS", "Effects", "EffectError", "Parameter", "parse_effects",
            "parameters", "swelling_residual", "swelling_weights", "growth_field",
-           "gravity_density", "correction_matrix", "correction_params", "RHO", "G",
-           "SWELLING_RADIUS_MM"]
+           "gravity_density", "gravity_direction", "correction_matrix", "correction_params",
+           "executed_motions", "CARRIED_BY", "RHO", "G", "SWELLING_RADIUS_MM", "MAX_PITCH_DEG"]
 
 EFFECT_NAMES = ("sliding", "muscle_tone", "swelling", "gravity", "stiffness", "bone_execution")
 # stiffness layers -> the tissue labels they scale
@@ -54,6 +56,13 @@ BONE_DOF = ("tx", "ty", "tz", "rx", "ry", "rz")
 BONE_UNITS = ("mm", "mm", "mm", "deg", "deg", "deg")
 MAX_CORRECTION_MM = 10.0
 MAX_CORRECTION_DEG = 15.0
+# head pitch of the upright scan about the left-right axis (degrees, + = chin down / flexion):
+# natural head position scatters by a few degrees about the Frankfort horizontal (Cooke & Wei
+# 1988, facemodel.materials [pitch]); 30 deg bounds any scan a patient sits upright for
+MAX_PITCH_DEG = 30.0
+# segments fixed to another after the operation: the chin segment is plated to the mandible
+# (genioplasty) or is part of it (no genioplasty), so it follows the mandible's correction
+CARRIED_BY = {"chin": "mandible"}
 
 
 class EffectError(ValueError):
@@ -85,13 +94,15 @@ class Effects:
     sliding: segments whose tissue slides ("*" = every moved segment); stiffness_layers:
     ((layer, factor), ...); bone_execution: ((segment, (tx, ty, tz, rx, ry, rz)), ...) in mm
     and degrees about the segment's planned post-op centroid; plan_actual: use the achieved
-    movements of postop/plan_actual.yaml instead of the plan's.
+    movements of postop/plan_actual.yaml instead of the plan's. gravity_pitch: head pitch of the
+    upright scan (degrees, + = chin down), a setting of the gravity effect (no effect alone).
     """
 
     sliding: tuple = ()
     muscle_tone: float = 0.0
     swelling: float = 1.0
     gravity: float = 0.0
+    gravity_pitch: float = 0.0
     stiffness: float = 1.0
     stiffness_layers: tuple = ()
     bone_execution: tuple = ()
@@ -138,6 +149,8 @@ class Effects:
             out["swelling"] = self.swelling
         if self.gravity != 0.0:
             out["gravity"] = self.gravity
+        if self.gravity_pitch != 0.0:
+            out["gravity.pitch"] = self.gravity_pitch
         if self.stiffness != 1.0:
             out["stiffness"] = self.stiffness
         for layer, f in self.stiffness_layers:
@@ -157,6 +170,8 @@ class Effects:
         head, _, rest = name.partition(".")
         if head in ("muscle_tone", "swelling", "gravity") and not rest:
             return float(getattr(self, head))
+        if name == "gravity.pitch":
+            return float(self.gravity_pitch)
         if head == "stiffness":
             return self.stiffness if not rest else dict(self.stiffness_layers).get(rest, 1.0)
         if head == "bone_execution" and rest.count(".") == 1:
@@ -171,6 +186,8 @@ class Effects:
         v = float(v)
         if head in ("muscle_tone", "swelling", "gravity") and not rest:
             return replace(self, **{head: v})
+        if name == "gravity.pitch":
+            return replace(self, gravity_pitch=v)
         if head == "stiffness":
             if not rest:
                 return replace(self, stiffness=v)
@@ -317,9 +334,13 @@ def parse_effects(items=None, *, segments=SEGMENTS) -> Effects:
                 raise EffectError("effect swelling takes no sub-name", name)
             kw["swelling"] = _in(_number(raw, name), 1.0, SWELLING_MAX, name, "growth ratio")
         elif head == "gravity":
-            if rest:
-                raise EffectError("effect gravity takes no sub-name", name)
-            kw["gravity"] = _in(_number(raw, name), 0.0, 2.0, name, "posture factor")
+            if rest == "pitch":
+                kw["gravity_pitch"] = _in(_number(raw, name), -MAX_PITCH_DEG, MAX_PITCH_DEG, name,
+                                          "head pitch (degrees)")
+            elif rest:
+                raise EffectError("effect gravity takes one sub-name: gravity.pitch=DEGREES", name)
+            else:
+                kw["gravity"] = _in(_number(raw, name), 0.0, 2.0, name, "posture factor")
         elif head == "stiffness":
             v = _in(_number(raw, name), 0.1, 10.0, name, "factor")
             if not rest:
@@ -392,12 +413,26 @@ def growth_field(model, segments, theta_peak: float, months: float | None = None
     return 1.0 + amp * swelling_weights(model, segments)
 
 
-def gravity_density(m: float) -> np.ndarray | None:
+def gravity_direction(pitch_deg: float = 0.0) -> np.ndarray:
+    """Unit direction of gravity in the head's (RAS) frame for the upright posture with the
+    head pitched by `pitch_deg` about the left-right (x) axis, + = chin down (flexion).
+
+    A head flexed by phi is the head frame turned by R = Rx(-phi) in the room (a positive
+    rotation about +x lifts the anterior axis towards superior, i.e. chin up); the room's
+    gravity (0, 0, -1) seen in the head frame is R^T (0, 0, -1) = Rx(phi) (0, 0, -1) =
+    (0, sin phi, -cos phi): with the chin down gravity gains an anterior component (the
+    face looking at the floor, phi = 90 deg, is pulled straight forward)."""
+    a = math.radians(float(pitch_deg))
+    return np.array([0.0, math.sin(a), -math.cos(a)])
+
+
+def gravity_density(m: float, pitch_deg: float = 0.0) -> np.ndarray | None:
     """Body-force density difference (mN/mm^3) upright scan minus supine CT, posture factor m:
-    rho g m [(0, 0, -1) - (0, -1, 0)] in RAS; None for m = 0."""
+    rho g m [g_up(pitch) - (0, -1, 0)] in RAS with g_up = `gravity_direction(pitch)` (pitch 0:
+    rho g m (0, +1, -1)); the supine CT lies face up (gravity posterior, -y). None for m = 0."""
     if m == 0.0:
         return None
-    return RHO * G * float(m) * np.array([0.0, 1.0, -1.0])
+    return RHO * G * float(m) * (gravity_direction(pitch_deg) - np.array([0.0, -1.0, 0.0]))
 
 
 def _rot(axis: int, deg: float) -> np.ndarray:
@@ -430,3 +465,39 @@ def correction_params(T, centre) -> tuple:
     c = np.asarray(centre, float)
     t = T[:3, 3] - (c - R @ c)
     return (float(t[0]), float(t[1]), float(t[2]), rx, ry, rz)
+
+
+def executed_motions(motions: dict, corrections, centroids: dict) -> dict:
+    """Segment -> 4x4 achieved movement: each planned movement `motions[seg]` followed by its
+    rigid correction (tx, ty, tz, rx, ry, rz) about the segment's centroid as moved (`centroids`:
+    pre-op centroids), with the carried segments (`CARRIED_BY`) riding on their carrier.
+
+    For a segment s carried by c (the chin by the mandible) with corrections C_c and C_s:
+        actual_c = C_c(centre = planned c centroid) . plan_c
+        actual_s = C_s(centre = centroid of s moved by C_c . plan_s) . C_c . plan_s
+    i.e. the carrier's correction is a rigid motion of the room applied to the carrier's
+    planned pose, and everything fixed to the carrier (the chin plated to the mandible after a
+    genioplasty, or the chin still part of it without one) undergoes the same motion; the
+    segment's own correction, if any, comes last. A segment the plan does not list has the
+    identity as planned movement. `corrections`: {segment: 6 values} or ((segment, values), ...);
+    a segment with a correction but no centroid raises KeyError."""
+    motions = {k: np.asarray(v, float) for k, v in motions.items()}
+    corr = {s: tuple(float(v) for v in p) for s, p in dict(corrections).items()
+            if any(float(v) != 0.0 for v in p)}
+    # carriers first, so that a carried segment sees its carrier's correction
+    order = sorted(corr.keys() | {s for s, c in CARRIED_BY.items() if c in corr},
+                   key=lambda s: s in CARRIED_BY)
+    applied = {}
+    for seg in order:
+        T = motions.get(seg, np.eye(4))
+        carrier = CARRIED_BY.get(seg)
+        if carrier in applied:
+            T = applied[carrier] @ T
+        if seg in corr:
+            c0 = centroids[seg]
+            c = T[:3, :3] @ np.asarray(c0, float) + T[:3, 3]
+            C = correction_matrix(corr[seg], c)
+            applied[seg] = C
+            T = C @ T
+        motions[seg] = T
+    return motions

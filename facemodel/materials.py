@@ -28,6 +28,16 @@ Sources of the numbers (`SOURCES` holds the key of each value):
 * [fibre] passive fibre k1 = 2 kPa, k2 = 5 (Holzapfel-Gasser-Ogden exponential form) and
   cross-fibre stiffness G_T_active = 20 kPa at full activation (activated muscle stiffer
   across its fibres, Nazari et al. 2010): modelling choices of the same order as the matrix.
+
+Constants of the sim-to-real effects (`facemodel.effects`, docs/effects.md):
+* [swelling] resolution of post-operative swelling: about half gone at 3 weeks, ~80 % at 3
+  months, ~93 % at 12 months (van der Vlis M., Dentino K.M., Vervloet B., Padwa B.L., J Oral
+  Maxillofac Surg 72:2241-2247, 2014, 3D stereophotogrammetry; Kau C.H. et al. 2006).
+* [density] soft-tissue density 1.05 g/cm^3 (Duck F.A., *Physical Properties of Tissue*, 1990),
+  the gravity effect's rho.
+* [pitch] natural head position scatters by a few degrees about the Frankfort horizontal
+  (Cooke M.S., Wei S.H.Y., Am J Orthod Dentofacial Orthop 93:280-288, 1988): the gravity
+  effect's head pitch is bounded at +-30 degrees.
 """
 from __future__ import annotations
 

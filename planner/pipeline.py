@@ -222,7 +222,9 @@ def segment_centroids(model, plan: Plan, bone_vertices: dict) -> dict:
 def effect_motions(plan: Plan, effects: Effects, centroids: dict, plan_actual: Plan | None = None) -> dict:
     """Segment -> 4x4 movement with the bone_execution effect: the achieved movements of
     `plan_actual` when `effects.plan_actual`, then each segment's correction (tx, ty, tz, rx,
-    ry, rz) about its centroid as moved, composed after the movement."""
+    ry, rz) about its centroid as moved, composed after the movement; a segment fixed to a
+    corrected one (the chin to the mandible) follows its correction (`facemodel.effects.
+    executed_motions`)."""
     source = plan
     if effects.plan_actual:
         if plan_actual is None:
@@ -231,15 +233,11 @@ def effect_motions(plan: Plan, effects: Effects, centroids: dict, plan_actual: P
         source = plan_actual
     motions = {k: np.asarray(v, float) for k, v in source.motions(include_identity=True).items()}
     for seg, p in effects.bone_execution:
-        if not any(v != 0.0 for v in p):
-            continue
-        if seg not in centroids:
+        if any(v != 0.0 for v in p) and seg not in centroids:
             raise InputError(f"effect bone_execution.{seg}: the model has no segment {seg!r} "
                              "with attachment nodes or a bone surface", field=f"bone_execution.{seg}")
-        T = motions.get(seg, np.eye(4))
-        c = T[:3, :3] @ centroids[seg] + T[:3, 3]
-        motions[seg] = fe.correction_matrix(p, c) @ T
-    return motions
+    # the chin rides on the mandible: a mandible correction carries it (`executed_motions`)
+    return fe.executed_motions(motions, effects.bone_execution, centroids)
 
 
 def model_inputs(setup: dict, effects: Effects) -> dict:
@@ -269,7 +267,7 @@ def model_inputs(setup: dict, effects: Effects) -> dict:
     degloved = {s: ids for s, ids in setup["degloved"].items() if s not in sliding}
     return dict(motions=motions, activations=activations, contact=plan.model.contact,
                 sliding=sliding, sliding_nodes=degloved, materials=materials, growth=growth,
-                body_force=fe.gravity_density(effects.gravity))
+                body_force=fe.gravity_density(effects.gravity, effects.gravity_pitch))
 
 
 def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,

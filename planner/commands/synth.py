@@ -15,7 +15,9 @@ sees it (`facemodel.synthetic.scan_like_surface`: a range image on a 0.6 mm grid
 ~0.8 mm, the front of the face only, holes at the mouth slit, nostrils and under the chin, 0.2 mm noise along the
 normals, a rigid offset up to 2 mm / 2 deg); case.yaml gets `follow_up_months` (3-12), and
 postop/plan_actual.yaml is written for a random half of the bone_execution cases. Effect
-values are drawn per case from published ranges (`draw_effect`). The effect, its value and the
+values are drawn per case from published ranges (`draw_effect`; swelling, posture and tone from
+a skin-change target, with one secant correction when the change reached leaves the range, and
+a recorded reduction when the truth solve fails, `solve_reducing`). The effect, its value and the
 perturbations go only to the --key file (a JSON list, one record per case, contract fields).
 The cases with post-op scans run as tasks on dask.distributed: a LocalCluster of `--workers`
 processes, or the cluster at `--scheduler ADDRESS` (its workers must see the output folder);
@@ -24,6 +26,7 @@ each case draws from its own seed, so a cohort is the same whatever the number o
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +59,10 @@ BONE_ROTATION_DEG = (1.0, 3.0)
 STIFF_LAYERS = ("dermis", "hypodermis", "muscle")
 SOFTER, STIFFER = (0.5, 0.7), (1.5, 2.5)
 FOLLOW_UP_MONTHS = (3.0, 12.0)
+# a target-set value whose truth solve fails is reduced along its load path (`solve_reducing`)
+MAX_REDUCTIONS = 2
+REDUCTION_MARGIN = 0.9      # of the load fraction reached: the last converged state had it
+MIN_REDUCTION = 0.25        # never below a quarter of the value in one reduction
 TRUTH_RESOLUTION = "standard"   # fine: beyond the 2-minute budget per case (docs/effects.md)
 
 
@@ -235,6 +242,38 @@ def _skin_change(pred, base, regions=None) -> dict:
     return {"rms_mm": round(float(np.sqrt(np.mean(d * d))), 4), "max_mm": round(float(d.max()), 4)}
 
 
+def solve_reducing(solve, effects, name: str | None, attempts: int = MAX_REDUCTIONS):
+    """(prediction, effects used, reductions) of `solve(effects)`; when the solve fails and
+    `name` is an effect whose value was set from a skin-change target (a value the truth model
+    may not be able to reach: large growth pressing the lips together), the effect's distance
+    from "none" is reduced and the solve repeated, `attempts` times at most. The reduction
+    follows the load path: a solve that failed after converging at load fraction L had the
+    effect at L of its value (it is ramped with the load), so the next value is
+    REDUCTION_MARGIN x L of the distance (at least MIN_REDUCTION, a half when L is not known);
+    each reduction is recorded ({"from", "to", "load_reached", "reason"}) for the key. Any
+    other failure, or one still failing after `attempts`, is raised."""
+    from facemodel import effects as fe
+
+    reductions = []
+    while True:
+        try:
+            return solve(effects), effects, reductions
+        except SolveError as exc:
+            if name is None or len(reductions) >= attempts:
+                raise
+            reached = getattr(exc.__cause__, "last_converged_load", None)
+            factor = 0.5
+            if reached is not None and 0.0 < float(reached) < 1.0:
+                factor = max(MIN_REDUCTION, REDUCTION_MARGIN * float(reached))
+            p = fe.parameters(name)[0]
+            v0 = effects.value(name)
+            v = round(p.none + factor * (v0 - p.none), 5)      # the key's value is the one used
+            reductions.append({"from": round(v0, 5), "to": v,
+                               "load_reached": None if reached is None else round(float(reached), 4),
+                               "reason": str(exc)[:300]})
+            effects = effects.with_value(name, v)
+
+
 def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                 contact: bool = True) -> dict:
     """Predict and write `folder`/postop/skin.stl (and plan_actual.yaml) for an existing case
@@ -278,6 +317,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     except (reg_errors.RegistrationInputError, reg_errors.RegistrationFailure) as exc:
         raise SolveError(f"{folder.name}: registration of the truth model failed: {exc}") from exc
     base = solve_plan(patient, truth_plan, case.bones, follow_up_months=fu)
+    target = None
     if name is not None and value is None:
         # the value that changes the skin by a target drawn from the published range, from
         # the truth model's own sensitivity (linear estimate; the change reached is recorded)
@@ -303,25 +343,46 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
             plan_actual = parse_plan(actual, "plan_actual.yaml")
             effects = fe.parse_effects({"bone_execution": 1})
     pred = base
-    retries = 0
-    while effects.active:
-        try:
-            pred = solve_plan(patient, truth_plan, case.bones, effects=effects, plan_actual=plan_actual,
-                              follow_up_months=fu)
-            break
-        except SolveError:
-            # a value set from a skin-change target may ask more than the truth model can
-            # solve (large growth against lip contact): half its distance from "none", twice
-            # at most; the key records the value used and the change it made
-            if name not in SKIN_CHANGE_MM or retries == 2:
-                raise
-            retries += 1
-            p = fe.parameters(name)[0]
-            v = p.none + 0.5 * (effects.value(name) - p.none)
-            effects = effects.with_value(name, v)
-            value = {name: round(v, 5)}
+    reductions = []
+    if effects.active:
+        requested = value
+        pred, effects, reductions = solve_reducing(
+            lambda eff: solve_plan(patient, truth_plan, case.bones, effects=eff,
+                                   plan_actual=plan_actual, follow_up_months=fu),
+            effects, name if name in SKIN_CHANGE_MM else None)
+        if reductions:
+            value = {name: round(effects.value(name), 5)}
+            print(f"faceplan synth: {folder.name}: warning: the truth solve of {name}={requested[name]} "
+                  f"failed; the effect was reduced to {value[name]} ({len(reductions)} reduction(s), "
+                  "recorded in the key)", file=sys.stderr, flush=True)
     region = SKIN_CHANGE_REGIONS.get(name) if name else None
     change = _skin_change(pred, base, region)
+    corrections = []
+    if target is not None and not reductions:
+        # the linear estimate misses where the response is not linear (muscle tone, contact):
+        # a change reached outside the published range gets one secant correction towards the
+        # target, v' = none + (v - none) target / reached (bounded), recorded in the key
+        lo, hi = SKIN_CHANGE_MM[name]
+        if not lo <= change["max_mm"] <= hi and change["max_mm"] > 0:
+            p = fe.parameters(name)[0]
+            v0 = effects.value(name)
+            v = round(float(np.clip(p.none + (v0 - p.none) * target / change["max_mm"], p.lower,
+                                    p.upper)), 5)
+            if v != v0:
+                try:
+                    pred1, eff1, _ = solve_reducing(
+                        lambda eff: solve_plan(patient, truth_plan, case.bones, effects=eff,
+                                               plan_actual=plan_actual, follow_up_months=fu),
+                        effects.with_value(name, v), None)
+                except SolveError as exc:       # keep the first value: its solve converged
+                    corrections.append({"from": round(v0, 5), "to": None, "reason": str(exc)[:300]})
+                else:
+                    pred, effects = pred1, eff1
+                    value = {name: round(v, 5)}
+                    change1 = _skin_change(pred, base, region)
+                    corrections.append({"from": round(v0, 5), "to": round(v, 5),
+                                        "max_mm_before": change["max_mm"]})
+                    change = change1
     # the post-op skin: the patient's skin moved with the truth model's skin, scanned
     x_pre, tris, ids = skin_surface(pred.model)
     moved_skin = sy.displaced_surface(case.skin.vertices, x_pre, tris, pred.displacement[ids])
@@ -332,8 +393,10 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
             "perturbation": {"truth_resolution": truth_resolution,
                              "layer_thickness_factors": {"dermis": round(dermis, 4), "deep": round(deep, 4)},
                              **mat_record, "scan": scan},
-            "plan_actual": plan_actual is not None, "value_halvings": retries,
-            "effect_skin_change_mm": {"regions": list(region) if region else "skin", **change}}
+            "plan_actual": plan_actual is not None, "value_reductions": reductions,
+            "value_corrections": corrections,
+            "effect_skin_change_mm": {"regions": list(region) if region else "skin", **change,
+                                      "target_max_mm": None if target is None else round(target, 4)}}
 
 
 def make_case(root: str, seed: int, options: dict) -> dict:

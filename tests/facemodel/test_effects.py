@@ -228,3 +228,128 @@ def test_bone_corrections(face):
     ids, sens = skin_sensitivities(base, ["bone_execution.maxilla.ty"])
     lip = np.isin(ids, np.asarray(face.regions["upper_lip"]))
     assert 0.3 < sens["bone_execution.maxilla.ty"][lip, 1].mean() < 1.1
+
+
+# ------------------------------------------------------------------ gravity: head pitch
+def test_gravity_pitch_direction_and_magnitude():
+    """The upright gravity rotated by the head pitch phi about the left-right axis:
+    g_up = (0, sin phi, -cos phi) (+ = chin down). Pitch 0 is the unpitched load rho g m
+    (0, +1, -1); the upright part keeps its magnitude rho g m at any pitch (a rotation); chin
+    down gives gravity a forward (+y, anterior) component, chin up a backward one. Tolerances:
+    double round-off of sin/cos (1e-12 relative)."""
+    m = 0.8
+    rg = fe.RHO * fe.G * m
+    assert np.allclose(fe.gravity_density(m, 0.0), rg * np.array([0.0, 1.0, -1.0]), rtol=1e-12, atol=0)
+    assert np.array_equal(fe.gravity_density(m), fe.gravity_density(m, 0.0))
+    supine = rg * np.array([0.0, -1.0, 0.0])
+    for phi in (-30.0, -7.5, 0.0, 12.0, 30.0):
+        upright = fe.gravity_density(m, phi) + supine
+        assert np.linalg.norm(upright) == pytest.approx(rg, rel=1e-12)
+        assert upright[0] == 0.0                                   # no left-right component
+        assert np.sign(upright[1]) == np.sign(phi)                 # chin down: forward
+        assert upright[2] < 0                                      # still downward
+    # a quarter turn face down: straight forward
+    assert np.allclose(fe.gravity_direction(90.0), [0.0, 1.0, 0.0], atol=1e-15)
+    assert fe.gravity_density(0.0, 20.0) is None                   # no gravity, no load
+    e = parse_effects(["gravity=1", "gravity.pitch=-10"])
+    assert e.gravity_pitch == -10.0 and parse_effects(e.as_dict()) == e
+    assert e.value("gravity.pitch") == -10.0 and e.with_value("gravity.pitch", 5).gravity_pitch == 5.0
+    assert parse_effects(["gravity.pitch=10"]).active == ()         # pitch alone is no effect
+    with pytest.raises(InputError) as exc:
+        parse_effects(["gravity.pitch=45"])
+    assert exc.value.field == "--effect gravity.pitch"
+
+
+def test_gravity_pitch_on_the_block():
+    """A block tied at its base under the posture load: with the chin down (pitch +20 deg) the
+    tissue moves further forward (+y) and drops less (-z) than at pitch 0, chin up the
+    reverse; pitch 0 gives the prediction of the unpitched load. Linear regime (strain ~1e-4):
+    the response to each load component is linear, so the y and z means follow the load's
+    components (1 + sin phi, cos phi) to 1 % (non-linearity ~strain, plus the coupling of the
+    two directions through the tied base, which the linear superposition keeps exact)."""
+    model = _block_model(maxilla=False)
+    plan = _plan()
+    u0 = solve_plan(model, plan, effects=["gravity=0.5"]).displacement
+    uy = solve_plan(model, plan, effects=["gravity=0.5", "gravity.pitch=0"]).displacement
+    assert np.abs(uy - u0).max() == 0.0           # the same load vector, the same solve
+    # the response to each load component alone (m = 0.5): y part and z part
+    from facemodel.simulation import simulate
+    rg = fe.RHO * fe.G * 0.5
+    uy1 = simulate(model, contact=False, body_force=np.array([0.0, rg, 0.0])).displacement
+    uz1 = simulate(model, contact=False, body_force=np.array([0.0, 0.0, -rg])).displacement
+    assert np.abs(uy1 + uz1 - uy).max() < 0.01 * np.abs(uy).max()
+    for phi in (20.0, -20.0):
+        u = solve_plan(model, plan, effects=["gravity=0.5", f"gravity.pitch={phi}"]).displacement
+        a = np.radians(phi)
+        expect = (1 + np.sin(a)) * uy1 + np.cos(a) * uz1
+        assert np.abs(u - expect).max() < 0.01 * np.abs(u).max()
+        top = np.abs(model.nodes[:, 2] - 10.0) < 1e-9
+        if phi > 0:
+            assert u[top, 1].mean() > u0[top, 1].mean() and u[top, 2].mean() > u0[top, 2].mean()
+        else:
+            assert u[top, 1].mean() < u0[top, 1].mean() and u[top, 2].mean() > u0[top, 2].mean()
+
+
+# ------------------------------------------------------------------ bone execution: the chin rides on the mandible
+def test_mandible_correction_carries_the_chin():
+    """executed_motions: chin_actual = C_mandible . plan_chin (then the chin's own correction
+    about its centroid as carried), for a plan with a genioplasty (chin moved relative to the
+    mandible) and without one; the maxilla is not carried. Exact rigid algebra: 1e-12."""
+
+    plan = _plan({"maxilla": {"translation": [0, 3, 1]}, "mandible": {"translation": [0, 5, 0]},
+                  "chin": {"translation": [0, 8, 2], "rotation": {"axis": [1, 0, 0], "angle_deg": 4,
+                                                                  "center": [0, 70, -60]}}})
+    cen = {"maxilla": np.array([0, 60.0, -25]), "mandible": np.array([0, 40.0, -55]),
+           "chin": np.array([0, 72.0, -62])}
+    pm = (0.8, -1.2, 0.6, 2.0, -1.0, 1.5)
+    eff = parse_effects([f"bone_execution.mandible={list(pm)}"])
+    mot = effect_motions(plan, eff, cen)
+    T = plan.motions(include_identity=True)
+    c_m = T["mandible"][:3, :3] @ cen["mandible"] + T["mandible"][:3, 3]
+    C = fe.correction_matrix(pm, c_m)
+    assert np.allclose(mot["mandible"], C @ T["mandible"], atol=1e-12)
+    assert np.allclose(mot["chin"], C @ T["chin"], atol=1e-12)
+    assert np.allclose(mot["maxilla"], T["maxilla"], atol=1e-12)
+    # chin and mandible keep their planned relative pose (the plate holds)
+    rel = lambda M: np.linalg.inv(M["mandible"]) @ M["chin"]
+    assert np.allclose(rel(mot), rel(T), atol=1e-12)
+    # the chin's own correction comes after, about its centroid as carried
+    pc = (0.3, 0.0, -0.5, 0.0, 1.0, 0.0)
+    both = effect_motions(plan, parse_effects([f"bone_execution.mandible={list(pm)}",
+                                               f"bone_execution.chin={list(pc)}"]), cen)
+    carried = C @ T["chin"]
+    c_c = carried[:3, :3] @ cen["chin"] + carried[:3, 3]
+    assert np.allclose(both["chin"], fe.correction_matrix(pc, c_c) @ carried, atol=1e-12)
+    # a chin the plan does not list rides on the mandible's correction alone
+    noc = _plan({"mandible": {"translation": [0, 5, 0]}})
+    assert np.allclose(effect_motions(noc, eff, cen)["chin"], C, atol=1e-12)
+    # a chin correction alone leaves the mandible as planned
+    only = effect_motions(plan, parse_effects([f"bone_execution.chin={list(pc)}"]), cen)
+    assert np.allclose(only["mandible"], T["mandible"], atol=1e-12)
+
+
+
+def test_mandible_correction_moves_the_chin_nodes_rigidly(face):
+    """On the coarse face with a genioplasty in the plan: a mandible correction moves the chin
+    segment's tied attachment nodes by exactly C_mandible . plan_chin (prescribed displacements:
+    to the solver's constraint round-off, 1e-9 mm) and the mandible's by C_mandible . plan."""
+    plan = _plan({"mandible": {"translation": [0, 4, 0]},
+                  "chin": {"translation": [0, 6, 1]}})
+    pm = [0.5, 1.0, -0.5, 1.5, 0.0, -1.0]
+    pred = solve_plan(face, plan, effects=[f"bone_execution.mandible={pm}"])
+    X = np.asarray(pred.model.nodes, float)
+    T = plan.motions(include_identity=True)
+    c0 = pred.setup["centroids"]["mandible"]
+    c = T["mandible"][:3, :3] @ c0 + T["mandible"][:3, 3]
+    C = fe.correction_matrix(pm, c)
+    slide = set()
+    for ids in pred.setup["degloved"].values():
+        slide |= set(np.asarray(ids).tolist())
+    for seg, M in (("chin", C @ T["chin"]), ("mandible", C @ T["mandible"])):
+        ids = np.array([i for i in np.asarray(face.node_sets["attach_" + seg]) if i not in slide])
+        # nodes owned by one segment only (a node in two sets follows the later segment)
+        if seg == "mandible":
+            ids = np.setdiff1d(ids, np.asarray(face.node_sets["attach_chin"]))
+        assert len(ids) > 5
+        want = X[ids] @ M[:3, :3].T + M[:3, 3]
+        assert np.abs(X[ids] + pred.displacement[ids] - want).max() < 1e-9

@@ -141,3 +141,96 @@ def test_cohort_on_a_two_worker_cluster_matches_one_process(tmp_path):
 
     info = yaml.safe_load((tmp_path / "cluster" / "synth_0021" / "case.yaml").read_text())
     assert info["follow_up_months"] == r["follow_up_months"]
+
+
+@pytest.mark.slow
+def test_large_swelling_with_lip_contact_reduced_along_its_load_path():
+    """The coarse generic face WITH lip contact, a bimaxillary plan, the 3-month follow-up and a
+    peak swelling of 4 (residual growth 1.6 at the bone: beyond the published 2 mm of skin at 3
+    months, which a peak of ~2.8 gives on this face): the truth solve fails, `solve_reducing`
+    reduces the value along its load path (recorded: from, to, load fraction reached) and the
+    reduced solve converges with contact. The result is a large swelling: the tissue's volume
+    grows, the skin moves outwards (along its outward normals), by 1-3 mm at most (the
+    published upper end is 2 mm: the reduced value stays at that scale). 50-110 s (a baseline
+    and one or two failed solves with contact, then the converged one) on the shared machine."""
+    generic_mesh = pytest.importorskip("generic_mesh")
+    import trimesh
+
+    from facemodel import effects as fe
+    from planner.pipeline import skin_surface, solve_plan
+    from planner.plan import parse_plan
+
+    face = generic_mesh.load("coarse")
+    segs = {"maxilla": {"translation": [0.0, 4.0, 1.0],
+                        "rotation": {"axis": [1, 0, 0], "angle_deg": -2.0, "center": [0, 60, -25]}},
+            "mandible": {"translation": [0.0, 5.0, 0.0]}, "chin": {"translation": [0.0, 5.0, 0.0]}}
+    plan = parse_plan({"faceplan": 1, "segments": segs, "model": {"resolution": "coarse", "contact": True}})
+    base = solve_plan(face, plan, follow_up_months=3.0)
+    calls = []
+
+    def solve(eff):
+        calls.append(eff.swelling)
+        return solve_plan(face, plan, effects=eff, follow_up_months=3.0)
+
+    pred, eff, red = synth.solve_reducing(solve, fe.parse_effects(["swelling=4"]), "swelling")
+    # today the first solve fails (a solver that converges it would leave nothing to reduce:
+    # the rest of the test then checks the large swelling itself)
+    assert len(red) <= synth.MAX_REDUCTIONS and calls[0] == 4.0 and len(calls) == len(red) + 1
+    for r in red:
+        assert 0.0 < r["load_reached"] < 1.0 and 1.0 < r["to"] < r["from"]
+        assert r["to"] - 1.0 == pytest.approx(max(synth.MIN_REDUCTION, synth.REDUCTION_MARGIN
+                                                  * r["load_reached"]) * (r["from"] - 1.0), rel=1e-4)
+    assert eff.swelling == pytest.approx(red[-1]["to"] if red else 4.0, rel=1e-4)
+    assert pred.solver["converged"] and "lip_contact" in pred.solver["info"]["terms"]
+    # the volume grows (deformed volume: grown reference volume x elastic ratio)
+    vol = lambda p: float(np.sum(p.setup["problem"][0].volume
+                                 * p.setup["problem"][0].volume_ratio(face.nodes + p.displacement)))
+    assert vol(pred) > vol(base)
+    # the skin moves out, 1-3 mm at most
+    x0, tris, ids = skin_surface(face, face.nodes + base.displacement)
+    n = trimesh.Trimesh(x0, tris, process=False).vertex_normals
+    du = pred.displacement[ids] - base.displacement[ids]
+    assert np.mean(np.einsum("ij,ij->i", du, n)) > 0.0
+    assert 1.0 < np.linalg.norm(du, axis=1).max() < (3.0 if red else 4.0)
+    # without a target-set effect nothing is reduced: the failure is raised
+    with pytest.raises(synth.SolveError):
+        synth.solve_reducing(lambda e: (_ for _ in ()).throw(synth.SolveError("no")),
+                             fe.parse_effects(["gravity=1"]), None)
+
+
+def test_reduction_rule_and_its_limits():
+    """`solve_reducing`'s rule on solves that fail as the solver does (a SolveError caused by a
+    SolveFailed carrying the last converged load): the distance from "none" scales by 0.9 L,
+    at least by 1/4, by 1/2 without L; at most MAX_REDUCTIONS; other effects are not reduced.
+    Exact arithmetic (values rounded to 5 decimals as the key records them)."""
+    from facemodel import effects as fe
+    from solver.errors import SolveFailed
+
+    def failing(loads):
+        seen = []
+
+        def solve(eff):
+            seen.append(eff.swelling)
+            if len(seen) <= len(loads):
+                cause = SolveFailed("stalled", step=3, load=0.8, last_converged_load=loads[len(seen) - 1])
+                try:
+                    raise cause
+                except SolveFailed as exc:
+                    raise synth.SolveError("Newton failed") from exc
+            return "pred"
+        return solve, seen
+
+    solve, seen = failing([0.5])
+    pred, eff, red = synth.solve_reducing(solve, fe.parse_effects(["swelling=3"]), "swelling")
+    assert pred == "pred" and seen == [3.0, 1.9] and red[0]["load_reached"] == 0.5
+    solve, seen = failing([0.1, None])
+    _, eff, red = synth.solve_reducing(solve, fe.parse_effects(["swelling=3"]), "swelling")
+    assert seen == [3.0, 1.5, 1.25]                       # a quarter, then a half
+    solve, seen = failing([0.5, 0.5, 0.5])
+    with pytest.raises(synth.SolveError):
+        synth.solve_reducing(solve, fe.parse_effects(["swelling=3"]), "swelling")
+    assert len(seen) == synth.MAX_REDUCTIONS + 1
+    solve, seen = failing([0.5])
+    with pytest.raises(synth.SolveError):
+        synth.solve_reducing(solve, fe.parse_effects(["swelling=3"]), None)
+    assert seen == [3.0]

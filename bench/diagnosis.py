@@ -88,7 +88,11 @@ def _fallback_scans(root: Path, folders: list[Path], kinds: list[str], seeds: li
 
 def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: str,
                 truth_resolution: str, workers: int) -> list[dict]:
-    """Case folders with post-op scans and their key (the synth command when it can)."""
+    """Case folders with post-op scans and their key (the synth command when it can). A cohort
+    already in `root` (from an earlier run with --keep) is read back instead of made again."""
+    done = root / "key.json"
+    if done.exists():
+        return json.loads(done.read_text())
     key = []
     folders, kinds, seeds = [], [], []
     for kind, count, s0 in (("random", n_random, seed), ("none", n_none, seed + 500)):
@@ -116,7 +120,38 @@ def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: s
         print("this build's synth writes no post-op scans: scans made by planner.diagnosis.synthetic",
               file=sys.stderr)
         key += _fallback_scans(root, folders, kinds, seeds, resolution)
+    done.write_text(json.dumps(key, indent=1))
     return key
+
+
+class _StoredForward:
+    """A `Forward` whose solves are also kept on disk by (case folder, resolution, request), so
+    that a second run over the same cohort (--keep) repeats no solve; the record's solve count
+    and times are then those of the solves actually run."""
+
+    def __new__(cls, cases, runner, say, folder: Path, tag: str):
+        import hashlib
+        import pickle
+
+        from planner.diagnosis.forward import Forward
+
+        class Stored(Forward):
+            def _file(self, r):
+                h = hashlib.sha1(repr((tag, r[1])).encode()).hexdigest()[:20]
+                return folder / f"{h}.pkl"
+
+            def solve(self, requests):
+                for r in requests:
+                    if self._key(r) not in self._store and self._file(r).exists():
+                        self._store[self._key(r)] = pickle.loads(self._file(r).read_bytes())
+                out = super().solve(requests)
+                for r, skin in zip(requests, out):
+                    if not self._file(r).exists():
+                        self._file(r).write_bytes(pickle.dumps(skin))
+                return out
+
+        folder.mkdir(parents=True, exist_ok=True)
+        return Stored(cases, runner, say)
 
 
 def _relative_errors(fitted: dict, value: dict) -> list[float]:
@@ -136,11 +171,13 @@ def main_bench(argv=None) -> int:
     ap.add_argument("--truth-resolution", choices=("coarse", "standard", "fine"),
                     help="mesh of the synthetic truths (default: one finer than --resolution)")
     ap.add_argument("--workers", type=int, default=2, help="LocalCluster workers (0: in process)")
-    ap.add_argument("--keep", metavar="DIR", help="keep the cohort and diagnoses in DIR")
+    ap.add_argument("--keep", metavar="DIR", help="keep the cohort, its solves and the diagnoses in DIR "
+                    "(a second run over DIR reuses the cohort and every solve)")
+    ap.add_argument("--verbose", action="store_true", help="the diagnosis's progress on stderr")
     args = ap.parse_args(argv)
 
     from planner.diagnosis.forward import Runner
-    from planner.diagnosis.run import diagnose_cases
+    from planner.diagnosis.run import diagnose_data, load_diagnosis_case
 
     t_all = time.perf_counter()
     tmp = None if args.keep else tempfile.TemporaryDirectory(prefix="faceplan-bench-diagnosis-")
@@ -165,8 +202,14 @@ def main_bench(argv=None) -> int:
     try:
         for rec in key:
             t = time.perf_counter()
-            out = diagnose_cases([Path(rec["case"])], resolution=args.resolution, runner=Runner(client))
+            say = (lambda m: print(m, file=sys.stderr, flush=True)) if args.verbose else (lambda m: None)
+            patient, scan, res = load_diagnosis_case(Path(rec["case"]), args.resolution, say)
+            fwd = _StoredForward([patient], Runner(client), say, root / "solves",
+                                 f"{Path(rec['case']).resolve()}|{res}")
+            out = diagnose_data([patient], [scan], forward=fwd, say=say)
             d = out["record"]
+            if args.keep:
+                (Path(rec["case"]) / "diagnosis.json").write_text(json.dumps(d, indent=1, default=str))
             v = d["verdict"]
             fitted = next((e["params"] for e in d["effects"] if e["name"] == v["effect"]), {})
             shrink = d.get("shrinkage") or {}

@@ -90,13 +90,13 @@ def test_effect_is_found_and_its_amplitude_recovered_under_discrepancy(sheet):
     assert f0.sigma_d > f1.sigma_d
 
 
-def _case(P, w, r):
+def _case(P, w, r, em=None):
     """CaseData for a synthetic gap: the sheet in 3 x 3 regions (the cross-validation folds)."""
     names = tuple(f"r{i}" for i in range(9))
     reg = (np.minimum(P[:, 0] // 45, 2) * 3 + np.minimum(P[:, 1] // 45, 2)).astype(int)
     gap = ScanGap(P, w, reg, names, np.zeros((0, 3), int), {}, NOISE, NOISE,
                   discrepancy.LENGTHS_MM[2], 1.0, {n: 1.0 for n in names}, {}, P, np.zeros((0, 3), int))
-    return analysis.CaseData(SimpleNamespace(name="synthetic"), gap, r)
+    return analysis.CaseData(SimpleNamespace(name="synthetic"), gap, r, em)
 
 
 def _candidate(name, pat, r):
@@ -106,9 +106,9 @@ def _candidate(name, pat, r):
     return c
 
 
-def _diagnose(P, w, r, patterns):
+def _diagnose(P, w, r, patterns, em):
     """The analysis's judging steps on linear candidates: fit, score, judge, verdict."""
-    d = _case(P, w, r)
+    d = _case(P, w, r, em)
     base, gp0 = analysis.evidence(None, [d])
     d.gp_n_eff = d.error.n_eff(base[0].ell)
     d.gap.discrepancy_mm = base[0].sigma_d
@@ -137,9 +137,9 @@ def _patterns(P):
 
 @pytest.mark.parametrize("seed", [21, 22, 23])
 def test_pure_discrepancy_gives_null(sheet, seed):
-    P, w, _ = sheet
+    P, w, em = sheet
     delta, eps = _gp_sample(P, seed)
-    verdict, scored = _diagnose(P, w, delta + eps, _patterns(P))
+    verdict, scored = _diagnose(P, w, delta + eps, _patterns(P), em)
     # a gap of model-form error alone, well above the scan noise (0.5 against 0.2 mm), is not
     # forced onto any effect, and no region stands out of noise + discrepancy
     assert verdict["effect"] is None
@@ -149,14 +149,14 @@ def test_pure_discrepancy_gives_null(sheet, seed):
 
 
 def test_effect_over_discrepancy_is_named(sheet):
-    P, w, _ = sheet
+    P, w, em = sheet
     delta, eps = _gp_sample(P, 31)
     pats = _patterns(P)
-    verdict, scored = _diagnose(P, w, 1.5 * pats["bump"] + delta + eps, pats)
+    verdict, scored = _diagnose(P, w, 1.5 * pats["bump"] + delta + eps, pats, em)
     assert verdict["effect"] == "bump"
     assert verdict["confidence"] > 0.9
     bump = next(s for s in scored if s.cand.name == "bump")
     # the estimate is within three of its standard errors under the error model (the
     # discrepancy's own bump-like part cannot be told from the effect)
-    se = bump.gp[0] and _case(P, w, bump.fitted[0]).error.standard_errors(bump.cand.J[0], bump.gp[0])[0]
+    se = em.standard_errors(bump.cand.J[0], bump.gp[0])[0]
     assert abs(bump.theta[0][0] - 1.5) <= 3.0 * se

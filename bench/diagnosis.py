@@ -155,10 +155,19 @@ class _StoredForward:
 
 
 def _relative_errors(fitted: dict, value: dict) -> list[float]:
+    """|fitted - key| / |key - none| per identifiable value (factors: none = 1); a bone
+    correction's translation and rotation each as a vector norm."""
     out = []
-    for k, v in value.items():
-        if k in fitted and isinstance(v, (int, float)) and not isinstance(v, bool) and k != "sliding":
-            out.append(abs(float(fitted[k]) - float(v)) / max(abs(float(v) - (1.0 if k.startswith(("stiffness", "swelling")) else 0.0)), 1e-9))
+    for k, v in (value or {}).items():
+        if k not in fitted or k == "sliding":
+            continue
+        if isinstance(v, list):
+            f, t = np.asarray(fitted[k], float), np.asarray(v, float)
+            for sl in (slice(0, 3), slice(3, 6)):
+                out.append(float(np.linalg.norm(f[sl] - t[sl]) / max(np.linalg.norm(t[sl]), 1e-9)))
+        elif isinstance(v, (int, float)) and not isinstance(v, bool):
+            none = 1.0 if k.startswith(("stiffness", "swelling")) else 0.0
+            out.append(abs(float(fitted[k]) - float(v)) / max(abs(float(v) - none), 1e-9))
     return out
 
 
@@ -218,13 +227,23 @@ def main_bench(argv=None) -> int:
                          "rms0": d["method"]["baseline_rms_mm"],
                          "heldout_after": (shrink.get("overall") or {}).get("heldout_after_mm"),
                          "heldout_shrink": (shrink.get("overall") or {}).get("heldout_shrink_pct"),
+                         "attributable": (shrink.get("overall") or {}).get("attributable_shrink_pct"),
+                         "level": (shrink.get("overall") or {}).get("error_level_mm"),
+                         "discrepancy0": d["error_model"]["discrepancy_mm"],
+                         "effects": [(e["name"], e["heldout_shrink_pct"],
+                                      None if e["bic"] is None else round(d["method"]["baseline_bic"] - e["bic"], 1),
+                                      e["significant"]) for e in d["effects"]],
                          "fitted": fitted, "time_s": time.perf_counter() - t,
                          "solves": d["solves"]["count"], "sensitivity": d["method"]["sensitivity"]})
             r = rows[-1]
             print(f"{r['case']}: withheld {r['truth']} {json.dumps(r['value'])} -> {r['verdict']} "
                   f"(confidence {r['confidence']:.2f}); RMS gap {r['rms0']:.2f} mm, held-out shrink "
-                  f"{r['heldout_shrink']}%; fitted {json.dumps(fitted)}; {r['solves']} solves, "
+                  f"{r['heldout_shrink']}% (attributable {r['attributable']}%); discrepancy "
+                  f"{r['discrepancy0']} mm; fitted {json.dumps(fitted)}; {r['solves']} solves, "
                   f"{r['time_s']:.0f} s", flush=True)
+            print("    held-out %, BIC gain: " + "; ".join(f"{n} {h}% {b}{' *' if sig else ''}"
+                                                         for n, h, b, sig in r["effects"]),
+                  flush=True)
     finally:
         for obj in closing:
             obj.close()
@@ -236,21 +255,32 @@ def main_bench(argv=None) -> int:
             continue
         print(f"{t[:15]:<16}" + "".join(f"{sum(str(r['truth']) == t and str(r['verdict']) == c for r in rows):>15}"
                                         for c in labels))
-    print("\nshrinkage table (held-out RMS gap with the named effect)")
-    print(f"{'case':<12}{'withheld':<16}{'verdict':<16}{'RMS0 mm':>9}{'held-out mm':>12}{'shrink %':>10}")
+    print("\nshrinkage table (held-out RMS gap with the named effect; total = of the whole gap, "
+          "attributable = of the gap beyond noise + discrepancy, see diagnosis.json method.shrinkage)")
+    print(f"{'case':<12}{'withheld':<16}{'verdict':<16}{'conf':>6}{'RMS0 mm':>9}{'held-out mm':>12}"
+          f"{'total %':>9}{'e mm':>7}{'attrib %':>9}")
+
+    def _f(x, w, d=1):
+        return f"{x:>{w}.{d}f}" if isinstance(x, (int, float)) else f"{'-':>{w}}"
+
     for r in rows:
-        print(f"{r['case']:<12}{str(r['truth']):<16}{str(r['verdict']):<16}{r['rms0']:>9.3f}"
-              f"{(r['heldout_after'] if r['heldout_after'] is not None else float('nan')):>12.3f}"
-              f"{(r['heldout_shrink'] if r['heldout_shrink'] is not None else float('nan')):>10.1f}")
+        print(f"{r['case']:<12}{str(r['truth']):<16}{str(r['verdict']):<16}{_f(r['confidence'], 6, 2)}"
+              f"{_f(r['rms0'], 9, 3)}{_f(r['heldout_after'], 12, 3)}{_f(r['heldout_shrink'], 9)}"
+              f"{_f(r['level'], 7, 2)}{_f(r['attributable'], 9)}")
     effect_rows = [r for r in rows if r["truth"] is not None]
     none_rows = [r for r in rows if r["truth"] is None]
     named = sum(r["verdict"] == r["truth"] for r in effect_rows)
     nulls = sum(r["verdict"] is None for r in none_rows)
     shr = [r["heldout_shrink"] for r in effect_rows if r["verdict"] == r["truth"] and r["heldout_shrink"] is not None]
+    att = [r["attributable"] for r in effect_rows if r["verdict"] == r["truth"] and r["attributable"] is not None]
     errs = [e for r in effect_rows if r["verdict"] == r["truth"] for e in _relative_errors(r["fitted"], r["value"])]
     print(f"\nnamed {named}/{len(effect_rows)} (target >= 10/12); none -> null {nulls}/{len(none_rows)} "
           f"(target >= 3/4); held-out shrinkage when named: median "
-          f"{np.median(shr) if shr else float('nan'):.1f}% (target >= 50%); fitted values within 25% of the key: "
+          f"{np.median(shr) if shr else float('nan'):.1f}% of the total gap, {np.median(att) if att else float('nan'):.1f}% "
+          f"of the attributable gap (target >= 50%; >= 50 % in {sum(a >= 50 for a in att)}/{len(att)}); "
+          f"perturbed model alone named with confidence > 0.5: "
+          f"{sum(r['verdict'] not in (None, 'unexplained') and r['confidence'] > 0.5 for r in none_rows)}/{len(none_rows)}; "
+          "fitted values within 25% of the key: "
           f"{sum(e <= 0.25 for e in errs)}/{len(errs)}")
     times = [r["time_s"] for r in rows]
     print(f"cohort made in {t_cohort:.0f} s; diagnosis per case median {np.median(times) if times else 0:.0f} s, "

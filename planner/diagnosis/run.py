@@ -200,6 +200,7 @@ def build_record(data: list, result: dict, effects) -> dict:
                                            "the gap beyond what the model's form error and the scan noise explain"},
             "n_eff": _r(result["n_eff"], 1),
             "baseline_rms_mm": _r(result["rms0"]),
+            "baseline_bic": _r(result["gp_bic0"], 3),
             "baseline_probability": _r(result["probabilities"]["baseline"], 4),
         },
         "warnings": [f"{d.case.name}: {w}" for d in data for w in d.gap.warnings],

@@ -2,15 +2,13 @@
 
 The cohort comes from seeds used nowhere else (default 9101...): `--random` cases with a random
 withheld effect and `--none` cases without any, written by `faceplan synth --withheld-effect
-random|none --key KEY` (its perturbed generic model, scan-like surfaces). When this build's
-`synth` cannot write post-op scans, the same is made here: `faceplan synth` writes the case
-folders and `planner.diagnosis.synthetic` the scans (the registered model perturbed: moduli
-+-15 %, bulk modulus 500-2000 x shear, layer thickness +-20 %; effect values drawn from the
-ranges of issue 19). Each case is then diagnosed on its own (every effect the model can add)
-with its solves on one dask LocalCluster, and the figures are printed: the confusion matrix
-(withheld effect against verdict), the shrinkage table (baseline RMS gap, held-out RMS with the
-named effect, held-out shrinkage), the fitted values of identifiable parameters against the key,
-and the times. Targets: withheld effect named in >= 10 of 12, `none` -> null in >= 3 of 4,
+random|none --key KEY` (its perturbed generic model on a finer mesh, scan-like surfaces), one
+synth per seed, `--workers` at a time; a seed whose truth cannot be solved is reported and left
+out. Each case is then diagnosed on its own (every effect the model can add) with its solves on
+one dask LocalCluster, and the figures are printed: the confusion matrix (withheld effect
+against verdict), the shrinkage table (baseline RMS gap, held-out RMS with the named effect,
+held-out shrinkage of the whole gap and of the gap beyond noise + discrepancy), the fitted
+values of identifiable parameters against the key, and the times. Targets: withheld effect named in >= 10 of 12, `none` -> null in >= 3 of 4,
 held-out shrinkage >= 50 % with the named effect, identifiable values within 25 % of the key;
 one case with six effects at standard resolution in <= 3 min.
 
@@ -35,92 +33,52 @@ from planner.cli import main  # noqa: E402
 SEED_BASE = 9101
 
 
-def _draw(rng, moved: tuple[str, ...]) -> tuple[str, dict]:
-    """A random effect and value (issue 19's ranges) for the fallback scans."""
-    name = str(rng.choice(["sliding", "muscle_tone", "swelling", "gravity", "stiffness", "bone_execution"]))
-    if name == "sliding":
-        return name, {"sliding": 1}
-    if name == "muscle_tone":
-        return name, {"muscle_tone": round(float(rng.uniform(0.1, 0.3)), 3)}
-    if name == "swelling":
-        return name, {"swelling": round(float(rng.uniform(1.1, 1.3)), 3)}
-    if name == "gravity":
-        return name, {"gravity": round(float(rng.uniform(0.8, 1.4)), 3)}
-    if name == "stiffness":
-        layer = str(rng.choice(["dermis", "hypodermis", "muscle"]))
-        f = rng.uniform(0.5, 0.7) if rng.random() < 0.5 else rng.uniform(1.5, 2.5)
-        return name, {f"stiffness.{layer}": round(float(f), 3)}
-    seg = str(rng.choice(list(moved)))
-    t = rng.normal(size=3)
-    t *= rng.uniform(0.5, 2.0) / np.linalg.norm(t)
-    r = rng.normal(size=3)
-    r *= rng.uniform(1.0, 3.0) / np.linalg.norm(r)
-    return name, {f"bone_execution.{seg}": [round(float(x), 3) for x in (*t, *r)]}
+def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str):
+    """A subprocess writing one case with `faceplan synth` (its own folder and key)."""
+    import os
+    import subprocess
 
-
-def _fallback_scans(root: Path, folders: list[Path], kinds: list[str], seeds: list[int], resolution: str) -> list[dict]:
-    import trimesh
-
-    from planner.diagnosis.effects import effect_strings
-    from planner.diagnosis.forward import solve_skin
-    from planner.diagnosis.run import load_diagnosis_case
-    from planner.diagnosis.synthetic import perturbed_case, scan_like
-
-    key = []
-    for folder, kind, seed in zip(folders, kinds, seeds):
-        rng = np.random.default_rng(seed)
-        (folder / "postop").mkdir(exist_ok=True)
-        # a placeholder scan lets the case load; it is replaced below
-        (folder / "postop" / "skin.stl").write_bytes((folder / "preop" / "skin.stl").read_bytes())
-        patient, _, _ = load_diagnosis_case(folder, resolution, lambda s: None)
-        name, value = (None, {}) if kind == "none" else _draw(rng, patient.moved_segments)
-        truth = perturbed_case(patient, seed)
-        skin = solve_skin(truth, effect_strings(value))
-        if isinstance(skin, str):
-            print(f"{folder.name}: the truth could not be solved ({skin}); case left out", file=sys.stderr)
-            continue
-        v, f = scan_like(skin, patient.skin_faces, seed=seed)
-        trimesh.Trimesh(v, f, process=False).export(folder / "postop" / "skin.stl")
-        key.append({"case": str(folder), "seed": seed, "effect": name, "value": value,
-                    "perturbation": "planner.diagnosis.synthetic.perturbed_case", "plan_actual": False})
-    return key
+    out = root / kind / str(seed)
+    cmd = [sys.executable, "-m", "planner.cli", "synth", "--out", str(out), "--count", "1", "--seed", str(seed),
+           "--withheld-effect", kind, "--key", str(root / kind / f"key_{seed}.json"),
+           "--truth-resolution", truth_resolution, "--workers", "1"]
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]) + os.pathsep
+               + os.environ.get("PYTHONPATH", ""))
+    log = open(root / kind / f"synth_{seed}.log", "w")
+    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
 
 
 def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: str,
-                truth_resolution: str, workers: int) -> list[dict]:
-    """Case folders with post-op scans and their key (the synth command when it can). A cohort
-    already in `root` (from an earlier run with --keep) is read back instead of made again."""
-    done = root / "key.json"
-    if done.exists():
-        return json.loads(done.read_text())
-    key = []
-    folders, kinds, seeds = [], [], []
+                truth_resolution: str, workers: int, skip: tuple[int, ...] = ()) -> list[dict]:
+    """Case folders with post-op scans and their key, one `faceplan synth` per seed (`workers`
+    at a time). A seed whose truth cannot be solved is reported and left out (its verdict
+    would say nothing about the diagnosis). Cases already in `root` (an earlier run with
+    --keep) are read back instead of made again."""
+    jobs = []
     for kind, count, s0 in (("random", n_random, seed), ("none", n_none, seed + 500)):
-        if count == 0:
+        (root / kind).mkdir(parents=True, exist_ok=True)
+        jobs += [(kind, s) for s in range(s0, s0 + count) if s not in skip]
+    running: list = []
+    todo = [j for j in jobs if not (root / j[0] / f"key_{j[1]}.json").exists()]
+    while todo or running:
+        while todo and len(running) < max(workers, 1):
+            kind, s = todo.pop(0)
+            running.append((kind, s, _synth_one(root, kind, s, truth_resolution)))
+        time.sleep(2.0)
+        for job in list(running):
+            if job[2].poll() is not None:
+                running.remove(job)
+                print(f"synth {job[0]} seed {job[1]}: exit {job[2].returncode}", file=sys.stderr, flush=True)
+    key = []
+    for kind, s in jobs:
+        kf = root / kind / f"key_{s}.json"
+        if not kf.exists():
+            print(f"seed {s} ({kind}): faceplan synth could not make the case (see {kind}/synth_{s}.log); "
+                  "left out", file=sys.stderr)
             continue
-        out = root / kind
-        keyfile = root / f"key_{kind}.json"
-        code = main(["synth", "--out", str(out), "--count", str(count), "--seed", str(s0),
-                     "--withheld-effect", kind, "--key", str(keyfile), "--truth-resolution", truth_resolution,
-                     "--workers", str(max(workers, 1))])
-        if code == 0 and keyfile.exists() and all((d / "postop" / "skin.stl").exists()
-                                                   for d in sorted(out.iterdir()) if d.is_dir()):
-            recs = json.loads(keyfile.read_text())
-            for r in recs:
-                r["case"] = str(out / r["case"])
-            key += recs
-            continue
-        if code != 0:
-            main(["synth", "--out", str(out), "--count", str(count), "--seed", str(s0)])
-        cases = sorted(d for d in out.iterdir() if d.is_dir())
-        folders += cases
-        kinds += [kind] * len(cases)
-        seeds += [s0 + i for i in range(len(cases))]
-    if folders:
-        print("this build's synth writes no post-op scans: scans made by planner.diagnosis.synthetic",
-              file=sys.stderr)
-        key += _fallback_scans(root, folders, kinds, seeds, resolution)
-    done.write_text(json.dumps(key, indent=1))
+        for r in json.loads(kf.read_text()):
+            r["case"] = str(root / kind / str(s) / r["case"])
+            key.append(r)
     return key
 
 
@@ -183,6 +141,8 @@ def main_bench(argv=None) -> int:
     ap.add_argument("--keep", metavar="DIR", help="keep the cohort, its solves and the diagnoses in DIR "
                     "(a second run over DIR reuses the cohort and every solve)")
     ap.add_argument("--verbose", action="store_true", help="the diagnosis's progress on stderr")
+    ap.add_argument("--skip-seeds", default="", help="comma-separated seeds whose truth synth cannot solve "
+                    "(left out, and said so)")
     args = ap.parse_args(argv)
 
     from planner.diagnosis.forward import Runner
@@ -195,7 +155,10 @@ def main_bench(argv=None) -> int:
     t0 = time.perf_counter()
     finer = {"coarse": "standard", "standard": "fine", "fine": "fine"}
     key = make_cohort(root, args.random, args.none, args.seed, args.resolution,
-                      args.truth_resolution or finer[args.resolution], args.workers)
+                      args.truth_resolution or finer[args.resolution], args.workers,
+                      tuple(int(x) for x in args.skip_seeds.split(",") if x.strip()))
+    if args.skip_seeds:
+        print(f"seeds left out (their truth could not be solved by synth): {args.skip_seeds}", flush=True)
     t_cohort = time.perf_counter() - t0
     client, closing = None, []
     if args.workers > 0:

@@ -32,7 +32,8 @@ does alone) are tried when it leaves a gap above the noise. The verdict is the b
 effect (or pair, when the pair is itself significant and, if a single effect is, strongly
 better than it and shrinks the held-out gap further); else null when no region's gap stands
 out of noise + discrepancy, "unexplained" (with those regions) when some does. Its confidence
-is the model probability among the baseline and every effect compared, from the same BIC.
+is the total model probability (from the same BIC, among the baseline and every effect and pair
+compared) of the models that contain the named effect(s).
 """
 from __future__ import annotations
 
@@ -577,7 +578,12 @@ def _verdict(data, best, pairs, prob) -> dict:
     if winner is None:
         sig = _significant_regions(data, r0s)
         return {"effect": "unexplained" if sig else None, "confidence": round(prob["baseline"], 4), "regions": sig}
-    return {"effect": winner.cand.name, "confidence": round(prob[winner.cand.name], 4),
+    # the probability that the named effect(s) are present: the total probability of every
+    # model compared that contains them (a posterior inclusion probability, Barbieri & Berger,
+    # Ann. Stat. 32:870, 2004), not only of the one model named
+    named = set(winner.cand.name.split("+"))
+    conf = sum(p for m, p in prob.items() if m != "baseline" and named <= set(m.split("+")))
+    return {"effect": winner.cand.name, "confidence": round(conf, 4),
             "regions": _explained_regions(data, r0s, winner.heldout) or above_noise,
             "remaining_significant_regions": _significant_regions(data, winner.heldout),
             "remaining_above_noise_regions": _significant_regions(data, winner.heldout, noise_only=True),

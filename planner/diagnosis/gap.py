@@ -266,6 +266,9 @@ def region_table(gap: ScanGap, r: np.ndarray) -> list[dict]:
                     "above_noise": gap.significant(rms, m, noise_only=True),
                     "covered": True, "mean_signed_mm": round(float(np.average(r[m], weights=gap.weights[m])), 4),
                     "n_points": int(m.sum())})
+        if gap.error_test is not None:
+            # the chi-square p-value of the region's gap under noise + discrepancy
+            out[-1]["p_value"] = float(f"{gap.error_test(r, m):.3g}")
     return out
 
 

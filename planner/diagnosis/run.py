@@ -100,12 +100,13 @@ def _r(x, n=4):
     return None if x is None or not np.isfinite(x) else round(float(x), n)
 
 
-def _params(s) -> dict:
-    """Fitted values in the form `--effect` takes them (per case when case-specific)."""
+def _params(s, least_squares: bool = False) -> dict:
+    """Fitted values in the form `--effect` takes them (per case when case-specific): the
+    estimates under noise + discrepancy, or the refined least-squares fit."""
     from planner.diagnosis.effects import collect_effects
 
     cand = s.cand
-    per_case = [collect_effects(s.values(c)) for c in range(cand.n_cases)]
+    per_case = [collect_effects(cand.values(c) if least_squares else s.values(c)) for c in range(cand.n_cases)]
     if cand.shared or cand.n_cases == 1:
         return per_case[0]
     return {"per_case": per_case}
@@ -116,6 +117,7 @@ def _effect_entry(s: analysis.Scored) -> dict:
     entry = {
         "name": c.name,
         "params": _params(s),
+        "params_least_squares": _params(s, least_squares=True),
         "identifiable": s.identifiable,
         "rms_after_mm": _r(s.rms_after),
         "shrink_pct": _r(s.shrink_pct, 2),
@@ -201,6 +203,7 @@ def build_record(data: list, result: dict, effects) -> dict:
             "n_eff": _r(result["n_eff"], 1),
             "baseline_rms_mm": _r(result["rms0"]),
             "baseline_bic": _r(result["gp_bic0"], 3),
+            "baseline_bic_noise_only": _r(result["bic0"], 3),
             "baseline_probability": _r(result["probabilities"]["baseline"], 4),
         },
         "warnings": [f"{d.case.name}: {w}" for d in data for w in d.gap.warnings],

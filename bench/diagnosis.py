@@ -28,8 +28,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from planner.cli import main  # noqa: E402
-
 SEED_BASE = 9101
 
 

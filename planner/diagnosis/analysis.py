@@ -12,20 +12,28 @@ by bounded Gauss-Newton on the linearised gap, then refined by full nonlinear so
 fitted values (Levenberg-Marquardt style: a step that does not lower the weighted residual is
 halved; the Jacobian follows by Broyden updates), at most `MAX_REFINEMENTS` solves per case.
 
-Effects are ranked by held-out shrinkage of the RMS gap: with one case, spatial
+The model is never exact: the gap carries a smooth model-form discrepancy besides the scan
+noise. Each effect is therefore judged against noise + discrepancy (`planner.diagnosis.
+discrepancy`: a Gaussian-process discrepancy whose amplitude and correlation length are
+estimated by maximum likelihood under each model, Kennedy & O'Hagan 2001), and its reported
+values are the generalised least-squares estimates under that error model about the refined
+fit (Brynjarsdottir & O'Hagan 2014: ordinary least squares lets the parameters absorb the
+discrepancy). Effects are ranked by held-out shrinkage of the RMS gap: with one case, spatial
 cross-validation over the face regions (each region's gap predicted by the parameters fitted on
 all other regions); with several cases, parameters shared by every patient (stiffness, posture)
 are fitted leaving each case out in turn and case-specific ones per case with spatial
 cross-validation. The held-out prediction uses the local model about the refined fit,
-r(theta) = r* + J* (theta - theta*). An effect is `significant` when its BIC beats the
-baseline's by strong evidence (`fit.STRONG_EVIDENCE`) and it removes at least
-`MIN_HELDOUT_SHRINK_PCT` of the held-out gap. When the best effect (significant or not: two
-effects can act together where neither does alone) leaves a significant gap, pairs with it are
-tried greedily. The verdict is the best significant effect (or pair, when the pair is itself
-significant and, if a single effect is, strongly better than it and shrinks the held-out gap
-further), null when no region's gap exceeds the noise floor, or "unexplained"
-when a significant gap remains that no effect reduces significantly; its confidence is the
-BIC model probability among the baseline and every effect compared.
+r(theta) = r* + J* (theta - theta*). An effect is `significant` when its BIC under noise +
+discrepancy beats the baseline's by strong evidence (`fit.STRONG_EVIDENCE`) and it removes at
+least `MIN_HELDOUT_SHRINK_PCT` of the held-out gap and twice that shrinkage's bootstrap spread;
+a model-form gap may remain beside it (its regions are reported). Pairs with the effect of
+largest held-out shrinkage (significant or not: two effects can act together where neither
+does alone) are tried when it leaves a gap above the noise. The verdict is the best significant
+effect (or pair, when the pair is itself significant and, if a single effect is, strongly
+better than it and shrinks the held-out gap further); else null when no region's gap stands
+out of noise + discrepancy, "unexplained" (with those regions) when some does. Its confidence
+is the total model probability (from the same BIC, among the baseline and every effect and pair
+compared) of the models that contain the named effect(s).
 """
 from __future__ import annotations
 
@@ -33,14 +41,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planner.diagnosis import fit
+from planner.diagnosis import discrepancy, fit
 from planner.diagnosis.effects import Effect, Parameter, effect_strings
 
 __all__ = ["CaseData", "Candidate", "analyse", "MIN_HELDOUT_SHRINK_PCT", "MAX_REFINEMENTS"]
 
-# An effect must remove at least this share of the held-out gap to be named: a smaller gain is
-# within what a wrong effect recovers from a model-form error by accident.
-MIN_HELDOUT_SHRINK_PCT = 25.0
+# An effect must remove at least this share of the held-out RMS gap to be named (a tenth: on a
+# 1 mm gap, half the scan noise), and twice its bootstrap spread over the cross-validation
+# units. The share is of the whole gap, which keeps its model-form part: the evidence against
+# that part is the BIC under noise + discrepancy, not this threshold.
+MIN_HELDOUT_SHRINK_PCT = 10.0
 # A pair is named only if it removes this many more percentage points than its best member.
 MIN_PAIR_GAIN_PCT = 10.0
 MAX_REFINEMENTS = 2
@@ -53,10 +63,19 @@ class CaseData:
     case: object                  # forward.CaseModel
     gap: object                   # gap.ScanGap
     r0: np.ndarray                # baseline gap on the fixed scan points
+    _error: object = None
+    gp_n_eff: float | None = None  # independent samples at the baseline's correlation length
 
     @property
     def folds(self) -> dict[str, np.ndarray]:
         return self.gap.region_masks()
+
+    @property
+    def error(self) -> discrepancy.ErrorModel:
+        """The noise + discrepancy error model on this case's scan points."""
+        if self._error is None:
+            self._error = discrepancy.ErrorModel(self.gap.points, self.gap.weights, self.gap.noise_floor_mm)
+        return self._error
 
 
 @dataclass
@@ -364,10 +383,26 @@ class Scored:
     fitted: list
     significant: bool = False
     probability: float = 0.0
+    gp: list = field(default_factory=list)       # per case discrepancy.Fit
+    gp_bic: float = np.nan
+    theta: list = field(default_factory=list)    # per case fitted coordinates (reported)
+
+    def values(self, c: int) -> dict:
+        return self.cand.values(c, self.theta[c] if self.theta else None)
 
 
 def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> Scored:
+    gp, gp_bic = evidence(cand, data)
+    theta = [np.array(t, float) for t in cand.theta]
     fitted = [np.asarray(r) for r in cand.anchor_r]
+    if not (cand.shared and len(data) > 1) and cand.free is not None and cand.free.any():
+        # the estimate under noise + discrepancy (generalised least squares about the refined
+        # fit, linear model): least squares alone lets the parameters absorb the part of the
+        # discrepancy that resembles the effect (Brynjarsdottir & O'Hagan 2014). The candidate
+        # keeps its least-squares anchor (the solves and the pairs build on it)
+        for c, f in enumerate(gp):
+            fitted[c] = cand.anchor_r[c] + cand.J[c] @ (f.theta - cand.theta[c])
+            theta[c] = f.theta.copy()
     heldout = heldout_residuals(cand, data)
     rms_after = _pooled_rms(data, fitted)
     rms_ho = _pooled_rms(data, heldout)
@@ -382,10 +417,39 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
         change = _pooled_rms(data, [a - d.r0 for a, d in zip(cand.anchor_r, data)])
         sigma = max(d.gap.noise_floor_mm for d in data)
         identifiable = bool(change * np.sqrt(n_eff) > 3.0 * sigma)
-    return Scored(cand, rms_after, rms_ho, 100.0 * (1 - rms_after / max(rms0, 1e-12)),
-                  100.0 * (1 - rms_ho / max(rms0, 1e-12)),
-                  shrink_spread(data, [d.r0 for d in data], heldout),
-                  fit.bic(rss, W, n_eff, k), identifiable, heldout, fitted)
+    out = Scored(cand, rms_after, rms_ho, 100.0 * (1 - rms_after / max(rms0, 1e-12)),
+                 100.0 * (1 - rms_ho / max(rms0, 1e-12)),
+                 shrink_spread(data, [d.r0 for d in data], heldout),
+                 fit.bic(rss, W, n_eff, k), identifiable, heldout, fitted)
+    out.gp, out.gp_bic, out.theta = gp, gp_bic, theta
+    return out
+
+
+def evidence(cand: Candidate | None, data: list[CaseData]) -> tuple[list, float]:
+    """Per case the profile fit under noise + discrepancy (`discrepancy.ErrorModel`) and the
+    pooled BIC. Case-specific parameters are refitted by generalised least squares about the
+    refined fit; shared ones (several cases) stay at their pooled fit. `cand` None: the
+    baseline."""
+    fits = []
+    for c, d in enumerate(data):
+        if cand is None:
+            fits.append(d.error.fit(d.r0))
+            continue
+        n_choice = sum(1 for e in cand.effects if e.choices)
+        free = cand.free if cand.free is not None else np.zeros(len(cand.params), bool)
+        if cand.shared and len(data) > 1:
+            f = d.error.fit(cand.anchor_r[c], extra_k=n_choice)
+            f.k = 0 if c else int(free.sum()) + n_choice * len(data)
+        else:
+            f = d.error.fit(cand.anchor_r[c], cand.J[c], cand.theta[c], cand.lower, cand.upper, free,
+                            extra_k=n_choice)
+        fits.append(f)
+    loglik = sum(f.loglik for f in fits)
+    k = sum(f.k for f in fits)
+    # one sample size for every model: the baseline's independent samples (its correlation
+    # length), so that the penalty per parameter is the same whatever a model's own length
+    n = sum(d.gp_n_eff if d.gp_n_eff else d.error.n_eff(f.ell) for d, f in zip(data, fits))
+    return fits, float(-2.0 * loglik + k * np.log(max(n, 2.0)))
 
 
 def _pair(a: Candidate, b: Candidate, data: list[CaseData]) -> Candidate:
@@ -410,6 +474,16 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
     W = sum(float(d.gap.weights.sum()) for d in data)
     rms0 = _pooled_rms(data, [d.r0 for d in data])
     bic0 = fit.bic(sum(_rss(d, d.r0) for d in data), W, n_eff, 0)
+    say("noise + discrepancy error model of the baseline gap")
+    base_fits, _ = evidence(None, data)
+    for d, f in zip(data, base_fits):
+        d.gp_n_eff = d.error.n_eff(f.ell)
+        d.gap.discrepancy_mm = f.sigma_d
+        d.gap.discrepancy_ell_mm = f.ell
+        d.gap.error_test = (lambda em, f: (lambda r, m: em.region_pvalue(r, m, f)))(d.error, f)
+        say(f"  {d.case.name}: discrepancy {f.sigma_d:.2f} mm, correlation length {f.ell:.0f} mm, "
+            f"noise {d.gap.noise_floor_mm:.2f} mm")
+    gp0 = evidence(None, data)[1]
     names = tuple(p.key for e in effects for p in e.parameters)
     sens = [None] * len(data)
     notes = []
@@ -428,16 +502,17 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
     refine(cands, data, forward)
     scored = [score(c, data, rms0, n_eff) for c in cands if c.failed is None]
     failed = [c for c in cands if c.failed is not None]
-    _judge(scored, bic0)
+    _judge(scored, gp0)
     ranked = sorted([s for s in scored if s.identifiable], key=lambda s: -s.heldout_shrink_pct)
     # the gap left by the best effect: pairs when it is still significant somewhere
-    sig_before = any(_significant_regions(data, [d.r0 for d in data]))
+    sig_before = any(_significant_regions(data, [d.r0 for d in data], noise_only=True))
     pairs = []
     best = next((s for s in ranked if s.significant), None)
-    # the greedy step starts from the best effect even when it is not significant alone: two
-    # effects can interact (tone with sliding tissue moves the chin as neither does alone)
-    lead = best or (ranked[0] if ranked else None)
-    if sig_before and lead is not None and _significant_regions(data, lead.heldout):
+    # the greedy step starts from the effect with the largest held-out shrinkage, significant
+    # or not: two effects can interact (tone with sliding tissue moves the chin as neither
+    # does alone); the solves it asks for do not depend on the judging
+    lead = ranked[0] if ranked else None
+    if sig_before and lead is not None and _significant_regions(data, lead.heldout, noise_only=True):
         partners = [s for s in ranked if s is not lead and not set(e.name for e in s.cand.effects)
                     & set(e.name for e in lead.cand.effects)][:PAIR_PARTNERS]
         if partners:
@@ -446,57 +521,70 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
             pair_cands = [_pair(lead.cand, p.cand, data) for p in partners]
             refine(pair_cands, data, forward)
             pairs = [score(c, data, rms0, n_eff) for c in pair_cands]
-            _judge(pairs, bic0)
-    models = {"baseline": bic0, **{s.cand.name: s.bic for s in scored + pairs}}
+            _judge(pairs, gp0)
+    models = {"baseline": gp0, **{s.cand.name: s.gp_bic for s in scored + pairs}}
     prob = fit.model_probabilities(models)
     for s in scored + pairs:
         s.probability = prob[s.cand.name]
     verdict = _verdict(data, best, pairs, prob)
-    return {"rms0": rms0, "bic0": bic0, "n_eff": n_eff, "scored": scored, "pairs": pairs, "notes": notes,
+    return {"rms0": rms0, "bic0": bic0, "gp_bic0": gp0, "baseline_error": base_fits, "n_eff": n_eff, "scored": scored, "pairs": pairs, "notes": notes,
             "failed": failed, "verdict": verdict, "probabilities": prob, "best": best,
             "winner": verdict.get("_scored")}
 
 
-def _judge(scored: list[Scored], bic0: float) -> None:
+def _judge(scored: list[Scored], gp0: float) -> None:
+    """Significant: strong evidence against the baseline under noise + discrepancy, and a
+    held-out shrinkage of at least `MIN_HELDOUT_SHRINK_PCT` and of twice its bootstrap spread
+    (a gain the cross-validation units agree on)."""
     for s in scored:
-        s.significant = bool(s.identifiable and bic0 - s.bic >= fit.STRONG_EVIDENCE
-                             and s.heldout_shrink_pct >= MIN_HELDOUT_SHRINK_PCT)
+        s.significant = bool(s.identifiable and gp0 - s.gp_bic >= fit.STRONG_EVIDENCE
+                             and s.heldout_shrink_pct >= max(MIN_HELDOUT_SHRINK_PCT, 2.0 * s.spread_pct))
 
 
-def _significant_regions(data: list[CaseData], rs: list[np.ndarray]) -> list[str]:
+def _significant_regions(data: list[CaseData], rs: list[np.ndarray], noise_only: bool = False) -> list[str]:
     out = []
     for d, r in zip(data, rs):
         for name, m in d.folds.items():
-            if d.gap.significant(d.gap.rms(r, m), m) and name not in out:
+            if d.gap.significant(d.gap.rms(r, m), m, noise_only, r) and name not in out:
                 out.append(name)
     return out
 
 
 def _explained_regions(data, before, after) -> list[str]:
-    """Significant regions whose held-out gap the effect shrinks by the named share."""
+    """Regions above the noise whose held-out gap the effect shrinks by the named share."""
     out = []
     for d, r0, r1 in zip(data, before, after):
         for name, m in d.folds.items():
             a, b = d.gap.rms(r0, m), d.gap.rms(r1, m)
-            if d.gap.significant(a, m) and b <= a * (1 - MIN_HELDOUT_SHRINK_PCT / 100) and name not in out:
+            if d.gap.significant(a, m, True) and b <= a * (1 - MIN_HELDOUT_SHRINK_PCT / 100) and name not in out:
                 out.append(name)
     return out
 
 
 def _verdict(data, best, pairs, prob) -> dict:
+    """The winning effect when one is significant and the gap is above the noise somewhere;
+    else `null` when no region's gap exceeds noise + discrepancy (the model-form error the
+    baseline is expected to carry), `unexplained` (with those regions) when some does."""
     r0s = [d.r0 for d in data]
-    sig = _significant_regions(data, r0s)
-    if not sig:
-        return {"effect": None, "confidence": round(prob["baseline"], 4), "regions": []}
-    winner = best
+    above_noise = _significant_regions(data, r0s, noise_only=True)
+    winner = best if above_noise else None
     for p in sorted(pairs, key=lambda s: -s.heldout_shrink_pct):
-        if p.significant and (best is None or (best.bic - p.bic >= fit.STRONG_EVIDENCE and p.heldout_shrink_pct
+        if not above_noise:
+            break
+        if p.significant and (best is None or (best.gp_bic - p.gp_bic >= fit.STRONG_EVIDENCE and p.heldout_shrink_pct
                                                >= best.heldout_shrink_pct + MIN_PAIR_GAIN_PCT)):
             winner = p
             break
     if winner is None:
-        return {"effect": "unexplained", "confidence": round(prob["baseline"], 4), "regions": sig}
-    return {"effect": winner.cand.name, "confidence": round(prob[winner.cand.name], 4),
-            "regions": _explained_regions(data, r0s, winner.heldout) or sig,
+        sig = _significant_regions(data, r0s)
+        return {"effect": "unexplained" if sig else None, "confidence": round(prob["baseline"], 4), "regions": sig}
+    # the probability that the named effect(s) are present: the total probability of every
+    # model compared that contains them (a posterior inclusion probability, Barbieri & Berger,
+    # Ann. Stat. 32:870, 2004), not only of the one model named
+    named = set(winner.cand.name.split("+"))
+    conf = sum(p for m, p in prob.items() if m != "baseline" and named <= set(m.split("+")))
+    return {"effect": winner.cand.name, "confidence": round(conf, 4),
+            "regions": _explained_regions(data, r0s, winner.heldout) or above_noise,
             "remaining_significant_regions": _significant_regions(data, winner.heldout),
+            "remaining_above_noise_regions": _significant_regions(data, winner.heldout, noise_only=True),
             "_scored": winner}

@@ -97,7 +97,9 @@ MOVED_SEGMENTS = ("maxilla", "mandible", "chin")
 # Bounds are the plausible ranges of the effects' published values (see docs/diagnosis.md):
 # resting perioral tone up to a third of maximal activation; tissue stiffness within a factor
 # three of the generic values; residual swelling up to 30 % volumetric growth at the operated
-# bone; the posture change from supine to upright up to 1.5 times gravity's full effect.
+# bone (the parameter is the curve's peak; it stays within this range although the effect
+# library allows more, because soft tissue thicker than the generic model fills the face out
+# as swelling does, and a wider range lets swelling absorb that model-form error); the posture change from supine to upright up to 1.5 times gravity's full effect.
 EFFECT_LIBRARY: tuple[Effect, ...] = (
     Effect("sliding", choices=(), shared=False,
            description="soft tissue slides on the moved bone instead of being tied to it"),

@@ -61,6 +61,14 @@ class ScanGap:
     scan_valid: np.ndarray | None = None   # which scan vertices are the points
     scan_path: str = ""
     warnings: list[str] = field(default_factory=list)
+    discrepancy_mm: float = 0.0   # model-form discrepancy amplitude (`discrepancy`), once estimated
+    discrepancy_ell_mm: float = 0.0
+    error_test: object = None     # (r, mask) -> p-value of the gap under noise + discrepancy
+
+    @property
+    def error_level_mm(self) -> float:
+        """RMS of the gap expected without any effect: noise and discrepancy together."""
+        return float(np.hypot(self.noise_floor_mm, self.discrepancy_mm))
 
     def on_scan(self, r: np.ndarray) -> np.ndarray:
         """Values on the fixed points spread to every scan vertex (NaN elsewhere)."""
@@ -107,12 +115,24 @@ class ScanGap:
         r = r if mask is None else r[mask]
         return float(np.sqrt(np.sum(w * r * r) / max(w.sum(), 1e-300)))
 
-    def significant(self, rms: float, mask: np.ndarray | None = None) -> bool:
-        """The gap's systematic part, sqrt(rms^2 - floor^2), is at least the floor, and the
-        mean square exceeds the floor's beyond three standard deviations of noise."""
+    def significant(self, rms: float, mask: np.ndarray | None = None, noise_only: bool = False,
+                    r: np.ndarray | None = None) -> bool:
+        """The gap beyond the error level e (noise and discrepancy; the noise floor alone with
+        `noise_only`), sqrt(rms^2 - e^2), is at least e, and the gap is unlikely under the
+        error: against the noise alone, its mean square exceeds e^2 beyond three standard
+        deviations of a mean square of independent Gaussian errors; against noise +
+        discrepancy (once estimated, given the gap `r`), the region's chi-square p-value under
+        the error model is below `discrepancy.REGION_P`."""
+        from planner.diagnosis.discrepancy import REGION_P
+
+        s2 = (self.noise_floor_mm if noise_only else self.error_level_mm) ** 2
+        if rms ** 2 < 2.0 * s2:
+            return False
+        if not noise_only and self.error_test is not None and r is not None:
+            m = np.ones(len(self.points), bool) if mask is None else mask
+            return bool(self.error_test(r, m) < REGION_P)
         n = self.n_eff(mask)
-        s2 = self.noise_floor_mm ** 2
-        return bool(rms ** 2 >= 2.0 * s2 and rms ** 2 > s2 * (1.0 + 3.0 * np.sqrt(2.0 / max(n, 1.0))))
+        return bool(rms ** 2 > s2 * (1.0 + 3.0 * np.sqrt(2.0 / max(n, 1.0))))
 
     def region_masks(self, min_points: int = 8) -> dict[str, np.ndarray]:
         out = {}
@@ -243,9 +263,13 @@ def region_table(gap: ScanGap, r: np.ndarray) -> list[dict]:
             out.append({"region": name, "rms_mm": None, "significant": False, "covered": False})
             continue
         rms = gap.rms(r, m)
-        out.append({"region": name, "rms_mm": round(rms, 4), "significant": gap.significant(rms, m),
+        out.append({"region": name, "rms_mm": round(rms, 4), "significant": gap.significant(rms, m, r=r),
+                    "above_noise": gap.significant(rms, m, noise_only=True),
                     "covered": True, "mean_signed_mm": round(float(np.average(r[m], weights=gap.weights[m])), 4),
                     "n_points": int(m.sum())})
+        if gap.error_test is not None:
+            # the chi-square p-value of the region's gap under noise + discrepancy
+            out[-1]["p_value"] = float(f"{gap.error_test(r, m):.3g}")
     return out
 
 

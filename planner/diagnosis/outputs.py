@@ -87,9 +87,22 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
               e["heldout_shrink_pct"], e["heldout_shrink_spread_pct"], e["probability"], e["significant"]]
              for e in record["effects"]]),
             "Where the prediction misses (RMS gap per region)": (
-            ["region", "RMS (mm)", "significant", "covered"],
-            [[r["region"], r["rms_mm"], r["significant"], r.get("covered", True)] for r in record["localization"]])}
+            ["region", "RMS (mm)", "beyond noise + discrepancy", "above noise", "covered"],
+            [[r["region"], r["rms_mm"], r["significant"], r.get("above_noise"), r.get("covered", True)]
+             for r in record["localization"]])}
         shrink = record.get("shrinkage")
+        em = record.get("error_model") or {}
+        if "level_mm" in em:
+            tables["Error model of the baseline gap (noise + model-form discrepancy)"] = (
+                ["noise (mm)", "discrepancy (mm)", "correlation length (mm)", "level (mm)"],
+                [[em["noise_mm"], em["discrepancy_mm"], em["correlation_length_mm"], em["level_mm"]]])
+        if shrink and "attributable_shrink_pct" in shrink.get("overall", {}):
+            o = shrink["overall"]
+            tables["Held-out shrinkage: the whole gap and the gap beyond noise + discrepancy"] = (
+                ["", "before (mm)", "held-out after (mm)", "shrink %"],
+                [["whole gap", o["before_mm"], o["heldout_after_mm"], o["heldout_shrink_pct"]],
+                 ["beyond noise + discrepancy", o["attributable_before_mm"], o["attributable_heldout_after_mm"],
+                  o["attributable_shrink_pct"]]])
         if shrink and "regions" in shrink:
             tables["How far the gap shrinks with the verdict's effect"] = (
                 ["region", "before (mm)", "after (mm)", "held-out after (mm)", "held-out shrink %"],
@@ -97,7 +110,7 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
                 + [[n, r["before_mm"], r["after_mm"], r["heldout_after_mm"], r["heldout_shrink_pct"]]
                    for n, r in shrink["regions"].items()])
         v = record["verdict"]
-        intro = (f"Verdict: {v['effect'] if v['effect'] is not None else 'no effect (the gap is within the noise)'}"
+        intro = (f"Verdict: {v['effect'] if v['effect'] is not None else 'no effect (the gap is within noise + model-form discrepancy)'}"
                  f" (confidence {v['confidence']:.2f})"
                  + (f", regions: {', '.join(v['regions'])}" if v["regions"] else "")
                  + f". Noise floor {record['noise_floor_mm']:.2f} mm. Gap = post-op minus prediction "

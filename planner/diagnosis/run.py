@@ -100,11 +100,13 @@ def _r(x, n=4):
     return None if x is None or not np.isfinite(x) else round(float(x), n)
 
 
-def _params(cand) -> dict:
-    """Fitted values in the form `--effect` takes them (per case when case-specific)."""
+def _params(s, least_squares: bool = False) -> dict:
+    """Fitted values in the form `--effect` takes them (per case when case-specific): the
+    estimates under noise + discrepancy, or the refined least-squares fit."""
     from planner.diagnosis.effects import collect_effects
 
-    per_case = [collect_effects(cand.values(c)) for c in range(cand.n_cases)]
+    cand = s.cand
+    per_case = [collect_effects(cand.values(c) if least_squares else s.values(c)) for c in range(cand.n_cases)]
     if cand.shared or cand.n_cases == 1:
         return per_case[0]
     return {"per_case": per_case}
@@ -114,7 +116,8 @@ def _effect_entry(s: analysis.Scored) -> dict:
     c = s.cand
     entry = {
         "name": c.name,
-        "params": _params(c),
+        "params": _params(s),
+        "params_least_squares": _params(s, least_squares=True),
         "identifiable": s.identifiable,
         "rms_after_mm": _r(s.rms_after),
         "shrink_pct": _r(s.shrink_pct, 2),
@@ -122,7 +125,9 @@ def _effect_entry(s: analysis.Scored) -> dict:
         "significant": s.significant,
         "heldout_rms_mm": _r(s.heldout_rms),
         "heldout_shrink_spread_pct": _r(s.spread_pct, 2),
-        "bic": _r(s.bic, 3),
+        "bic": _r(s.gp_bic, 3),
+        "bic_noise_only": _r(s.bic, 3),
+        "discrepancy_mm": _r(float(np.sqrt(np.mean([f.sigma_d ** 2 for f in s.gp]))) if s.gp else None),
         "probability": _r(s.probability, 4),
         "shared": c.shared,
         "sensitivity": c.sensitivity,
@@ -154,9 +159,10 @@ def build_record(data: list, result: dict, effects) -> dict:
                "coverage_pct": _r(100 * d.gap.coverage, 2), "uncovered_regions": d.gap.uncovered_regions,
                "correlation_length_mm": _r(d.gap.correlation_mm, 2), "n_eff": _r(d.gap.n_eff(), 1),
                "scan": d.gap.scan_path, "warnings": d.gap.warnings,
-               "fitted": {s.cand.name: s.cand.values(c) for s in scored if s.identifiable}}
+               "fitted": {s.cand.name: s.values(c) for s in scored if s.identifiable}}
+        rec["error_model"] = _error_entry(d, result["baseline_error"][c])
         if winner is not None:
-            rec["shrinkage"] = _shrinkage(d, d.r0, winner.fitted[c], winner.heldout[c])
+            rec["shrinkage"] = _shrinkage(d, d.r0, winner.fitted[c], winner.heldout[c], winner.gp[c])
         case_records.append(rec)
     floor = float(np.sqrt(np.mean([d.gap.noise_floor_mm ** 2 for d in data])))
     if single:
@@ -171,6 +177,8 @@ def build_record(data: list, result: dict, effects) -> dict:
         "baseline": baseline,
         "localization": localization,
         "noise_floor_mm": _r(floor),
+        "error_model": (case_records[0]["error_model"] if single else
+                        {r["case"]: r["error_model"] for r in case_records}),
         "effects": [_effect_entry(s) for s in ranked],
         "verdict": verdict,
         "shrinkage": (_pooled_shrinkage(data, r0s, winner) if winner is not None else None),
@@ -183,9 +191,19 @@ def build_record(data: list, result: dict, effects) -> dict:
             "heldout": "spatial cross-validation over regions" if single else
                        "leave one case out (shared parameters); spatial cross-validation per case (case-specific)",
             "significance": {"bic_strong_evidence": 6.0,
-                             "min_heldout_shrink_pct": analysis.MIN_HELDOUT_SHRINK_PCT},
+                             "bic": "-2 log L + k ln(n_eff) under noise + model-form discrepancy "
+                                    "(Gaussian process, amplitude and correlation length by maximum likelihood per model)",
+                             "min_heldout_shrink_pct": analysis.MIN_HELDOUT_SHRINK_PCT,
+                             "heldout_shrink_vs_spread": 2.0},
+            "shrinkage": {
+                "heldout_shrink_pct": "1 - RMS(held-out gap with the effect) / RMS(baseline gap): the total gap",
+                "attributable_shrink_pct": "1 - sqrt(max(RMS_heldout^2 - e^2, 0)) / sqrt(max(RMS_baseline^2 - e^2, 0)), "
+                                           "e^2 = noise^2 + discrepancy^2 with the effect (error_model): the part of "
+                                           "the gap beyond what the model's form error and the scan noise explain"},
             "n_eff": _r(result["n_eff"], 1),
             "baseline_rms_mm": _r(result["rms0"]),
+            "baseline_bic": _r(result["gp_bic0"], 3),
+            "baseline_bic_noise_only": _r(result["bic0"], 3),
             "baseline_probability": _r(result["probabilities"]["baseline"], 4),
         },
         "warnings": [f"{d.case.name}: {w}" for d in data for w in d.gap.warnings],
@@ -198,12 +216,30 @@ def build_record(data: list, result: dict, effects) -> dict:
     return record
 
 
-def _shrinkage(d, r0, fitted, heldout) -> dict:
+def _error_entry(d, f) -> dict:
+    return {"noise_mm": _r(d.gap.noise_floor_mm), "discrepancy_mm": _r(f.sigma_d),
+            "correlation_length_mm": _r(f.ell, 1), "level_mm": _r(float(np.hypot(f.sigma_d, d.gap.noise_floor_mm))),
+            "points": int(len(d.error.idx))}
+
+
+def attributable(before: float, after: float, level: float) -> tuple[float, float, float | None]:
+    """(gap beyond the error level before, after, shrink %) of RMS values (see method.shrinkage)."""
+    b = float(np.sqrt(max(before ** 2 - level ** 2, 0.0)))
+    a = float(np.sqrt(max(after ** 2 - level ** 2, 0.0)))
+    return b, a, (100.0 * (1.0 - a / b) if b > 0 else None)
+
+
+def _shrinkage(d, r0, fitted, heldout, gp=None) -> dict:
     g = d.gap
     out = {"overall": {"before_mm": _r(g.rms(r0)), "after_mm": _r(g.rms(fitted)),
                        "heldout_after_mm": _r(g.rms(heldout)),
                        "heldout_shrink_pct": _r(100 * (1 - g.rms(heldout) / max(g.rms(r0), 1e-12)), 2)},
            "regions": {}}
+    if gp is not None:
+        level = float(np.hypot(gp.sigma_d, g.noise_floor_mm))
+        b, a, pct = attributable(g.rms(r0), g.rms(heldout), level)
+        out["overall"].update({"error_level_mm": _r(level), "attributable_before_mm": _r(b),
+                               "attributable_heldout_after_mm": _r(a), "attributable_shrink_pct": _r(pct, 2)})
     for name, m in d.folds.items():
         b, h = g.rms(r0, m), g.rms(heldout, m)
         out["regions"][name] = {"before_mm": _r(b), "after_mm": _r(g.rms(fitted, m)),
@@ -213,13 +249,19 @@ def _shrinkage(d, r0, fitted, heldout) -> dict:
 
 def _pooled_shrinkage(data, r0s, winner) -> dict:
     if len(data) == 1:
-        return _shrinkage(data[0], r0s[0], winner.fitted[0], winner.heldout[0])
+        return _shrinkage(data[0], r0s[0], winner.fitted[0], winner.heldout[0], winner.gp[0])
     b = analysis._pooled_rms(data, r0s)
     h = analysis._pooled_rms(data, winner.heldout)
+    W = [float(d.gap.weights.sum()) for d in data]
+    level = float(np.sqrt(np.average([f.sigma_d ** 2 + d.gap.noise_floor_mm ** 2 for d, f in zip(data, winner.gp)],
+                                     weights=W)))
+    ab, aa, pct = attributable(b, h, level)
     return {"overall": {"before_mm": _r(b), "after_mm": _r(analysis._pooled_rms(data, winner.fitted)),
-                        "heldout_after_mm": _r(h), "heldout_shrink_pct": _r(100 * (1 - h / max(b, 1e-12)), 2)},
-            "per_case": {d.case.name: _shrinkage(d, r0, f, ho)["overall"]
-                         for d, r0, f, ho in zip(data, r0s, winner.fitted, winner.heldout)}}
+                        "heldout_after_mm": _r(h), "heldout_shrink_pct": _r(100 * (1 - h / max(b, 1e-12)), 2),
+                        "error_level_mm": _r(level), "attributable_before_mm": _r(ab),
+                        "attributable_heldout_after_mm": _r(aa), "attributable_shrink_pct": _r(pct, 2)},
+            "per_case": {d.case.name: _shrinkage(d, r0, f, ho, g)["overall"]
+                         for d, r0, f, ho, g in zip(data, r0s, winner.fitted, winner.heldout, winner.gp)}}
 
 
 def _pooled_metrics(data, rs) -> dict:
@@ -254,7 +296,7 @@ def _pooled_localization(data, rs) -> list[dict]:
             covered = True
             num += float(np.sum(d.gap.weights[m] * r[m] ** 2))
             den += float(np.sum(d.gap.weights[m]))
-            sig = sig or d.gap.significant(d.gap.rms(r, m), m)
+            sig = sig or d.gap.significant(d.gap.rms(r, m), m, r=r)
         out.append({"region": name, "rms_mm": _r(np.sqrt(num / den)) if den > 0 else None,
                     "significant": sig, "covered": covered})
     return out

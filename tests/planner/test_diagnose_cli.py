@@ -109,3 +109,28 @@ def test_scan_of_another_patient_exits_2(case, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "postop/skin.stl" in err and "another patient" in err
     assert not (other / "diagnose").exists()
+
+
+def test_existing_cluster_via_scheduler_address(case, tmp_path):
+    import logging
+
+    from distributed import Client, LocalCluster
+
+    # an existing cluster, as a user would start one: the command connects to its address,
+    # sends the solves there and leaves the cluster running
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0",
+                      silence_logs=logging.ERROR) as cluster:
+        out = tmp_path / "diag"
+        code = main(["diagnose", str(case), "--out", str(out), "--scheduler", cluster.scheduler_address,
+                     "--effects", "sliding", "--no-images", "--quiet"])
+        assert code == 0
+        rec = json.loads((out / "diagnosis.json").read_text())
+        assert rec["solves"]["workers"] == 1 and rec["solves"]["count"] >= 2
+        assert rec["effects"][0]["name"] == "sliding"
+        with Client(cluster) as client:
+            assert len(client.scheduler_info()["workers"]) == 1
+
+
+def test_scheduler_and_workers_exclude_each_other(case, capsys):
+    assert main(["diagnose", str(case), "--scheduler", "tcp://127.0.0.1:1", "--workers", "2", "--quiet"]) == 2
+    assert "--workers" in capsys.readouterr().err

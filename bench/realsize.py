@@ -78,19 +78,34 @@ def main() -> int:
               f"{time.perf_counter() - t0:.1f} s", flush=True)
         del skin, head
         lines: list[str] = []
+        cpu: dict[str, float] = {}       # stage -> CPU seconds of this process (the wall time
+        started: dict[str, float] = {}   # on a shared machine counts the other jobs' too)
+
+        def echo(line: str) -> None:
+            lines.append(line)
+            text = line.split("] ", 1)[-1].strip()
+            if text.endswith(" ...") and "done in" not in text:
+                started[text[:-4]] = time.process_time()
+            elif " done in " in text:
+                name = text.split(" done in ")[0]
+                if name in started:
+                    cpu[name] = cpu.get(name, 0.0) + time.process_time() - started.pop(name)
+
+        cpu0 = time.process_time()
         t1 = time.perf_counter()
         try:
             out = predict_case(case, Path(args.out) if args.out else root / "predict",
-                               resolution=args.resolution, render=args.render, echo=lines.append)
+                               resolution=args.resolution, render=args.render, echo=echo)
         except SolveError as exc:
             print(f"the prediction failed after {time.perf_counter() - t1:.1f} s: {exc}")
             return 3
         wall = time.perf_counter() - t1
+        cpu_total = time.process_time() - cpu0
         report = json.loads((out / "report.json").read_text())
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    print(f"predict at {args.resolution}: stage times (s)")
+    print(f"predict at {args.resolution}: stage times (s): wall, CPU of this process")
     for k, v in report["timings_s"].items():
-        print(f"  {k:16s} {v:8.2f}")
+        print(f"  {k:16s} {v:8.2f} {cpu[k]:8.2f}" if k in cpu else f"  {k:16s} {v:8.2f}")
     reg = report.get("registration", {}).get("time", {})
     if reg:
         print("registration stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in reg.items()))
@@ -111,6 +126,8 @@ def main() -> int:
     solve_s = float(report["timings_s"].get("solve", 0.0))
     print(f"realsize: skin_tris={skin_tris} bone_tris={bone_tris} solve_s={solve_s:.1f} "
           f"other_s={wall - solve_s:.1f}")
+    print(f"cpu_s={cpu_total:.1f} (CPU time of this process; wall / CPU > 1 means it waited for "
+          f"the processor: load average {os.getloadavg()[0]:.1f})")
     print(f"total_s={wall:.1f} peak_mb={peak_mb:.0f}")
     return 0
 

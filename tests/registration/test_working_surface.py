@@ -66,9 +66,10 @@ def test_working_surface_stays_on_the_surface():
     cap = float(np.max(60.0 - np.sqrt(np.maximum(60.0 ** 2 - rho ** 2, 0.0))))
     dev = rs.surface_deviation(sphere.vertices, TargetSurface(v, f))
     assert dev["max_mm"] <= 1.5 * cap, (dev, cap)
-    # below the budget the surface is returned as it is
-    v2, f2 = working_surface(sphere.vertices, sphere.faces, max_faces=len(sphere.faces))
-    assert v2 is not None and len(f2) == len(sphere.faces)
+    # up to twice the budget the surface is returned as it is
+    v2, f2 = working_surface(sphere.vertices, sphere.faces, max_faces=len(sphere.faces) // 2)
+    assert v2 is sphere.vertices or np.array_equal(v2, sphere.vertices)
+    assert np.array_equal(f2, sphere.faces)
 
 
 generic_mesh = pytest.importorskip("generic_mesh")
@@ -76,7 +77,8 @@ synthetic = pytest.importorskip("facemodel.synthetic")
 
 
 def test_registration_on_a_working_surface_fits_the_full_skin(generic, tmp_path):
-    """The synthetic head's skin (82k triangles) registered through a working surface of 20k:
+    """The synthetic head's skin (82k triangles) registered through a working surface of 20k
+    (the bones, under twice that, as given):
     the fit measured on the full skin meets the registration's own targets (mean < 0.3 mm, p95
     < 1.0 mm: tests/registration/test_mesh_match.py), and exceeds the fit on the working
     surface by no more than the working surface's own deviation from the full one (the nodes

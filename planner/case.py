@@ -12,7 +12,11 @@ from the same CT as one `bone` surface; dental arches, when given apart, from
 points in the file's `coordinateSystem`, LPS by default as in Slicer, turned to RAS by
 negating x and y) or from an older Slicer fiducial list `preop/landmarks.fcsv`. Every
 surface is checked for what goes wrong in practice: unreadable, empty, NaN coordinates, and
-the size of a head in metres rather than millimetres. Every problem raises
+the size of a head in metres rather than millimetres; each is then cleaned with vectorised
+array operations (a binary STL read straight into arrays, coincident vertices merged, degenerate
+and repeated triangles dropped, the winding made consistent and a closed surface turned
+outward: `clean_triangles`, `check_closed`, `orient_faces`), so that a scan of 10^6 triangles
+is read in seconds. Every problem raises
 `planner.errors.InputError` naming the file and the field. Surfaces extracted from a CT are
 cached by the CT's content hash: `KEY.npz` and, written last, `KEY.sha256` (its SHA-256); an
 entry without a matching digest or with arrays that are not triangle surfaces is deleted

@@ -106,7 +106,7 @@ def blend_face(patient_vertices: np.ndarray, patient_faces: np.ndarray, patch_ve
         q = pv_[near]
         # exact closest points wherever the weight can be non-zero (nearer than 2 gap_mm); the
         # others get a distance that is itself beyond 2 gap_mm, hence weight 0 all the same
-        closest, bary, tri, distance = TriangleTree(xv, xf).closest(q, max_distance=2.0 * gap_mm)
+        closest, bary, tri, distance = TriangleTree(xv, xf).closest(q, k=32, max_distance=2.0 * gap_mm)
         bary = np.clip(bary, 0.0, None)
         bary /= bary.sum(axis=1, keepdims=True)
         u = np.einsum("nk,nkj->nj", bary, ud[xf[tri]])

@@ -338,19 +338,30 @@ class TriangleTree:
         dc, cand = self._tree.query(x, k=kk)
         dc, cand = np.reshape(dc, (n, kk)), np.asarray(cand, np.int64).reshape(n, kk)
         q, bary, face, d = _closest_over_candidates(x, self.vertices, self.faces, cand)
-        if kk < len(self.faces):
-            need = np.flatnonzero((dc[:, -1] - self.radius < d) & (dc[:, 0] - self.radius <= max_distance))
-            for chunk in np.array_split(need, max(1, len(need) // 20000)):
-                if not len(chunk):
-                    continue
-                balls = self._tree.query_ball_point(x[chunk], d[chunk] + self.radius)
-                width = max(len(b) for b in balls)
-                wide = np.full((len(chunk), max(width, 1)), -1, np.int64)
-                for row, b in enumerate(balls):
-                    wide[row, :len(b)] = b
-                q2, b2, f2, d2 = _closest_over_candidates(x[chunk], self.vertices, self.faces, wide)
-                # the ball holds the first candidates: the same answer or a better one
-                q[chunk], bary[chunk], face[chunk], d[chunk] = q2, b2, f2, d2
+        need = np.flatnonzero((dc[:, -1] - self.radius < d) & (dc[:, 0] - self.radius <= max_distance))
+        if not len(need) or kk >= len(self.faces):
+            return q, bary, self.kept[face], d
+        # first twice the candidates (vectorised queries, in chunks to bound the memory),
+        # then, for the points still unsure, every triangle whose centroid lies within d + r
+        # (ragged lists: a loop over those points only). A wider set holds the first
+        # candidates: the same answer or a better one.
+        k2 = int(min(2 * kk, len(self.faces)))
+        still = []
+        for chunk in np.array_split(need, -(-len(need) // 50_000)):
+            dc2, wide = self._tree.query(x[chunk], k=k2)
+            dc2, wide = np.reshape(dc2, (len(chunk), k2)), np.asarray(wide, np.int64).reshape(len(chunk), k2)
+            q[chunk], bary[chunk], face[chunk], d[chunk] = _closest_over_candidates(
+                x[chunk], self.vertices, self.faces, wide)
+            if k2 < len(self.faces):
+                still.append(chunk[dc2[:, -1] - self.radius < d[chunk]])
+        need = np.concatenate(still) if still else np.zeros(0, np.int64)
+        for chunk in np.array_split(need, -(-len(need) // 5_000)) if len(need) else ():
+            balls = self._tree.query_ball_point(x[chunk], d[chunk] + self.radius)
+            wide = np.full((len(chunk), max(1, max(len(b) for b in balls))), -1, np.int64)
+            for row, b in enumerate(balls):
+                wide[row, :len(b)] = b
+            q[chunk], bary[chunk], face[chunk], d[chunk] = _closest_over_candidates(
+                x[chunk], self.vertices, self.faces, wide)
         return q, bary, self.kept[face], d
 
 

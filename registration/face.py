@@ -32,8 +32,8 @@ import numpy as np
 from registration.errors import RegistrationFailure, RegistrationInputError
 from registration.mesh_match import MatchInput, MatchOptions, match_and_repair_arrays
 from registration.quality import EDGE_OPERATOR
-from registration.surface import (WORKING_MAX_FACES, TargetSurface, TriangleTree, surface_deviation,
-                                  working_surface)
+from registration.surface import (WORKING_MAX_FACES, TargetSurface, TriangleTree, simplifies,
+                                  surface_deviation, working_surface)
 from registration.teeth import ARCH_SEGMENT, teeth_arrays
 
 CACHE_FORMAT = 3
@@ -330,7 +330,7 @@ def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dic
     skin_t = as_target(full["skin"] or skin, "skin", working_faces)
     bone_t = {k: as_target(full[f"bone.{k}"] or v, f"bone.{k}", working_faces) for k, v in (bones or {}).items()}
     simplified = {name: t for name, t in (("skin", skin_t), *((f"bone.{k}", b) for k, b in bone_t.items()))
-                  if full[name] is not None and len(full[name][1]) > len(t.faces)}
+                  if full[name] is not None and simplifies(len(full[name][1]), working_faces)}
     working_s = time.perf_counter() - t_w
     segs = [s for s in model.segments if f"attach_{s}" in model.node_sets]
     arrays = MatchInput(

@@ -372,6 +372,11 @@ class TriangleTree:
 WORKING_MAX_FACES = 200_000
 
 
+def simplifies(n_faces: int, max_faces: int | None) -> bool:
+    """Whether `working_surface` simplifies a surface of n_faces triangles."""
+    return max_faces is not None and n_faces > 2 * max_faces
+
+
 def working_surface(vertices: np.ndarray, faces: np.ndarray, max_faces: int = WORKING_MAX_FACES
                     ) -> tuple[np.ndarray, np.ndarray]:
     """The surface registration works on: unchanged up to twice `max_faces` triangles (there a
@@ -383,7 +388,7 @@ def working_surface(vertices: np.ndarray, faces: np.ndarray, max_faces: int = WO
     one (`surface_deviation` measures by how much)."""
     v = np.asarray(vertices, float)
     f = np.asarray(faces, np.int64)
-    if len(f) <= 2 * max_faces:
+    if not simplifies(len(f), max_faces):
         return v, f
     import fast_simplification
 

@@ -310,8 +310,9 @@ class TriangleTree:
     Candidates are the triangles of the k nearest centroids (a k-d tree), projected exactly
     (`_closest_over_candidates`). A triangle whose centroid lies c from the point is at least
     c - r away (r: the largest centroid-to-corner distance of the mesh), so the answer d is
-    exact when the k-th centroid lies beyond d + r; otherwise every triangle whose centroid lies
-    within d + r is projected. Zero-area triangles are left out (their edges belong to their
+    exact when the k-th centroid lies beyond d + r; otherwise the test is made again with twice
+    the candidates, and where it still fails every triangle whose centroid lies within d + r is
+    projected. Zero-area triangles are left out (their edges belong to their
     neighbours); `face` indices refer to the triangles as given."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):

@@ -13,7 +13,11 @@ points in the file's `coordinateSystem`, LPS by default as in Slicer, turned to 
 negating x and y) or from an older Slicer fiducial list `preop/landmarks.fcsv`. Every
 surface is checked for what goes wrong in practice: unreadable, empty, NaN coordinates, and
 the size of a head in metres rather than millimetres; the skin (from a file or a CT) for a face
-looking along -y (an LPS frame read as RAS: `face_direction`). Every problem raises
+looking along -y (an LPS frame read as RAS: `face_direction`). Each surface is then cleaned with
+vectorised array operations (a binary STL read straight into arrays, coincident vertices merged,
+degenerate and repeated triangles dropped, the winding made consistent and a closed surface
+turned outward: `clean_triangles`, `check_closed`, `orient_faces`), so that a scan of 10^6
+triangles is read in seconds. Every problem raises
 `planner.errors.InputError` naming the file and the field. Surfaces extracted from a CT are
 cached by the CT's content hash: `KEY.npz` and, written last, `KEY.sha256` (its SHA-256); an
 entry without a matching digest or with arrays that are not triangle surfaces is deleted
@@ -140,8 +144,11 @@ def load_surface(path, what: str = "surface", *, closed: bool = False):
         raise InputError(f"{what}: unsupported surface format {suffix or '(none)'}; use one of "
                          f"{', '.join(SURFACE_FORMATS)}", file=file, field=what)
     try:
+        binary_stl = _read_binary_stl(path) if suffix == ".stl" else None
         if suffix in VTK_FORMATS:
             vertices, faces = _read_vtk_surface(path)
+        elif binary_stl is not None:
+            vertices, faces = binary_stl
         else:
             mesh = trimesh.load(str(path), force="mesh", process=False)
             vertices, faces = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
@@ -161,23 +168,119 @@ def load_surface(path, what: str = "surface", *, closed: bool = False):
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise InputError(f"{what}: triangles refer to vertices that do not exist",
                          file=file, field=what)
-    used = vertices[np.unique(faces)]
+    referenced = np.zeros(len(vertices), bool)
+    referenced[faces.ravel()] = True
+    used = vertices[referenced]
     diagonal = float(np.linalg.norm(used.max(axis=0) - used.min(axis=0)))
     if diagonal < METRES_DIAGONAL_MM:
         raise InputError(f"{what}: the surface is only {diagonal:.4g} across, which looks like "
                          "metres: multiply by 1000 (faceplan works in mm)", file=file, field=what)
-    mesh = trimesh.Trimesh(vertices, faces, process=True, validate=True)
-    if len(mesh.faces) == 0:
+    vertices, faces = clean_triangles(vertices, faces)
+    if len(faces) == 0:
         raise InputError(f"{what}: every triangle is degenerate", file=file, field=what)
-    watertight = mesh.is_watertight
-    if closed and not watertight:
-        raise InputError(f"{what}: the surface is not closed (it has holes)", file=file, field=what)
-    if watertight:  # closed surfaces get outward normals (some exporters write them inward)
-        if not mesh.is_winding_consistent:
-            trimesh.repair.fix_winding(mesh)
-        if mesh.volume < 0:
-            mesh.invert()
+    watertight = check_closed(faces, closed, file, what)
+    vertices, faces = orient_faces(vertices, faces, watertight)
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    # what was just established, so that trimesh does not recompute it on a large surface
+    mesh._cache["is_watertight"] = watertight
+    mesh._cache["is_winding_consistent"] = True
     return mesh
+
+
+# Vertices closer than this (mm, per coordinate after rounding) are one vertex: STL stores every
+# triangle's corners separately, and exporters round the shared corners identically.
+MERGE_DECIMALS = 8
+# A triangle whose height over its longest edge is below this (mm) has no area to speak of: it
+# gives no normal and no closest-point answer of its own.
+DEGENERATE_HEIGHT_MM = 1e-8
+
+
+def clean_triangles(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Coincident vertices merged (`MERGE_DECIMALS`), then degenerate triangles (a repeated
+    corner, or a height below `DEGENERATE_HEIGHT_MM`) and repeated triangles (the same three
+    corners in any order) dropped, and vertices no triangle uses removed. Vectorised (a hash of
+    the rows, `registration.surface.unique_rows`), so a 10^6-triangle scan costs about a second;
+    the order of the kept triangles and their winding are those of the file."""
+    from registration.surface import unique_rows
+
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces, np.int64)
+    first, inverse = unique_rows(np.round(v, MERGE_DECIMALS) + 0.0)   # + 0.0: -0.0 becomes 0.0
+    v, f = v[first], inverse[f]
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
+    tri = v[f]
+    twice_area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    longest = np.linalg.norm(tri - tri[:, [1, 2, 0]], axis=2).max(axis=1)
+    keep &= twice_area > DEGENERATE_HEIGHT_MM * longest
+    f = f[keep]
+    if len(f):
+        once, _ = unique_rows(np.sort(f, axis=1))
+        f = f[np.sort(once)]
+    used = np.zeros(len(v), bool)
+    used[f.ravel()] = True
+    renumber = np.cumsum(used) - 1
+    return v[used], renumber[f]
+
+
+def _edge_keys(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per directed edge (three per triangle): its key and the key of its undirected edge."""
+    a = faces.ravel()
+    b = faces[:, [1, 2, 0]].ravel()
+    n = np.int64(n_vertices)
+    return a * n + b, np.minimum(a, b) * n + np.maximum(a, b)
+
+
+def check_closed(faces: np.ndarray, required: bool, file: str, what: str) -> bool:
+    """Whether the surface is closed (every edge shared by exactly two triangles); InputError
+    when `required` and it is not."""
+    _, undirected = _edge_keys(faces, int(faces.max()) + 1)
+    key = np.sort(undirected)
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
+    closed = bool(np.all(np.diff(starts) == 2))
+    if required and not closed:
+        raise InputError(f"{what}: the surface is not closed (it has holes)", file=file, field=what)
+    return closed
+
+
+def orient_faces(vertices: np.ndarray, faces: np.ndarray, closed: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles wound consistently (neighbours run their shared edge in opposite directions)
+    and, on a closed surface, outward (positive enclosed volume): some exporters write them
+    inward or mixed. Consistency is tested vectorised (no directed edge twice); only a surface
+    that fails it is re-wound (trimesh's breadth-first `fix_winding`)."""
+    import trimesh
+
+    directed = np.sort(_edge_keys(faces, len(vertices))[0])
+    if np.any(directed[1:] == directed[:-1]):
+        mesh = trimesh.Trimesh(vertices, faces, process=False)
+        trimesh.repair.fix_winding(mesh)
+        faces = np.asarray(mesh.faces, np.int64)
+    if closed:
+        tri = vertices[faces]
+        volume = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0
+        if volume < 0:
+            faces = faces[:, ::-1].copy()
+    return vertices, faces
+
+
+STL_RECORD = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
+
+
+def _read_binary_stl(path: Path):
+    """(vertices, faces) of a binary STL read straight into arrays (80-byte header, uint32
+    count, 50-byte records), every corner its own vertex (`clean_triangles` merges them); None
+    when the file is not a binary STL of exactly that size (an ASCII STL, or a damaged file,
+    which trimesh's reader then reads or refuses)."""
+    size = path.stat().st_size
+    if size < 84:
+        return None
+    with open(path, "rb") as fh:
+        head = fh.read(84)
+        n = int(np.frombuffer(head, "<u4", 1, 80)[0])
+        if n == 0 or size != 84 + 50 * n:
+            return None
+        records = np.fromfile(fh, STL_RECORD, n)
+    vertices = records["corners"].reshape(-1, 3).astype(float)
+    return vertices, np.arange(3 * n, dtype=np.int64).reshape(n, 3)
 
 
 def _read_vtk_surface(path: Path):
@@ -581,6 +684,40 @@ def _check_landmarks_near_skin(landmarks: dict, skin, file: str) -> None:
 
 
 # ------------------------------------------------------------------------------------ anatomy
+# Cell size (mm) of the skin's vertex grid used for the bone-to-skin gaps: one vertex per cell
+# stands for the others, which lie within a cell diagonal of it.
+GAP_CELL_MM = 1.0
+
+
+def nearest_vertex_gaps(skin_vertices: np.ndarray, parts: dict, threshold: float) -> dict:
+    """Per part (name -> (n, 3) points, up to 4000 of them used): the smallest distance from its
+    points to the skin's vertices. Measured first against one skin vertex per `GAP_CELL_MM`
+    cell (a dense scan makes nearest-neighbour searches from centimetres away slow: every
+    vertex of a wide shell is a candidate), which overestimates by at most the cell diagonal;
+    a part whose gap could then exceed `threshold` is measured against every vertex, so the
+    test against `threshold` and the gap reported beyond it are exact."""
+    from scipy.spatial import cKDTree
+
+    from registration.surface import unique_rows
+
+    sv = np.asarray(skin_vertices, float)
+    first, _ = unique_rows(np.floor(sv / GAP_CELL_MM))
+    coarse = cKDTree(sv[first]) if len(first) < len(sv) else None
+    full = None
+    gaps = {}
+    for name, pts in parts.items():
+        q = np.asarray(pts, float)[:: max(1, len(pts) // 4000)]
+        if coarse is not None:
+            d = float(coarse.query(q)[0].min())
+            if d <= threshold - np.sqrt(3.0) * GAP_CELL_MM:
+                gaps[name] = d
+                continue
+        if full is None:
+            full = cKDTree(sv)
+        gaps[name] = float(full.query(q)[0].min())
+    return gaps
+
+
 def _jaw_centre(bones: dict) -> np.ndarray | None:
     jaws = [np.asarray(bones[s].vertices, float) for s in ("maxilla", "mandible", "chin") if s in bones]
     return np.concatenate(jaws).mean(axis=0) if jaws else None
@@ -673,13 +810,10 @@ def check_anatomy(skin, bones: dict, files: dict, landmarks: dict | None = None,
                              f"{z[low]:.0f} mm): are the two bone files swapped ({where('bone.' + high)}, "
                              f"{where('bone.' + low)})?", file=where("bone." + high), field=f"bone.{high}")
     sv = np.asarray(skin.vertices, float)
-    tree = cKDTree(sv)
     # the jaws lie under the facial skin; the skull may lie under parts a face scan leaves out
     near_face = [s for s in ("maxilla", "mandible", "chin") if s in bones] or list(bones)
-    gaps = {}
-    for s in near_face:
-        bv = np.asarray(bones[s].vertices, float)
-        gaps[s] = float(tree.query(bv[:: max(1, len(bv) // 4000)])[0].min())
+    gaps = nearest_vertex_gaps(sv, {s: np.asarray(bones[s].vertices, float) for s in near_face},
+                               BONE_MAX_SKIN_DISTANCE_MM)
     for s, d in gaps.items():
         if d > BONE_MAX_SKIN_DISTANCE_MM:
             raise InputError(f"bone.{s} lies {d:.0f} mm from the skin at its nearest point (soft tissue "
@@ -694,7 +828,7 @@ def check_anatomy(skin, bones: dict, files: dict, landmarks: dict | None = None,
         jv = np.concatenate([np.asarray(bones[s].vertices, float) for s in ("maxilla", "mandible", "chin")
                              if s in bones])
         jv = jv[:: max(1, len(jv) // 2000)]
-        _, i = tree.query(jv)
+        _, i = cKDTree(sv).query(jv)
         i = np.unique(i)
         _, j = cKDTree(jv).query(sv[i])
         outward = np.einsum("ij,ij->i", np.asarray(skin.vertex_normals)[i], sv[i] - jv[j])

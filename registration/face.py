@@ -24,14 +24,16 @@ import shutil
 import time
 import warnings
 from dataclasses import asdict, replace
+from types import SimpleNamespace
 from pathlib import Path
 
 import numpy as np
 
-from registration.errors import RegistrationInputError
+from registration.errors import RegistrationFailure, RegistrationInputError
 from registration.mesh_match import MatchInput, MatchOptions, match_and_repair_arrays
 from registration.quality import EDGE_OPERATOR
-from registration.surface import TargetSurface
+from registration.surface import (WORKING_MAX_FACES, TargetSurface, TriangleTree, simplifies,
+                                  surface_deviation, working_surface)
 from registration.teeth import ARCH_SEGMENT, teeth_arrays
 
 CACHE_FORMAT = 3
@@ -42,14 +44,15 @@ class CacheWarning(UserWarning):
     """A damaged cache entry was found, deleted and is being rebuilt."""
 
 
-def as_target(surface, name: str) -> TargetSurface:
-    """TargetSurface from a trimesh / pyvista-like object, a (vertices, faces) pair or itself."""
-    if isinstance(surface, TargetSurface):
-        return surface
-    if isinstance(surface, (tuple, list)) and len(surface) == 2:
-        v, f = surface
-    elif hasattr(surface, "vertices") and hasattr(surface, "faces"):  # trimesh
+def surface_arrays(surface, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (n, 3) float, triangles (m, 3) int64) of a trimesh / pyvista-like object, a
+    (vertices, faces) pair or a TargetSurface; RegistrationInputError when it is not a finite
+    triangle surface."""
+    if isinstance(surface, TargetSurface) or (hasattr(surface, "vertices") and hasattr(surface, "faces")
+                                              and not isinstance(surface, (tuple, list))):
         v, f = surface.vertices, surface.faces
+    elif isinstance(surface, (tuple, list)) and len(surface) == 2:
+        v, f = surface
     elif hasattr(surface, "points") and hasattr(surface, "faces"):  # pyvista PolyData
         tri = surface.triangulate() if hasattr(surface, "triangulate") else surface
         v, f = tri.points, tri.faces
@@ -60,10 +63,57 @@ def as_target(surface, name: str) -> TargetSurface:
     f = np.asarray(f)
     if f.ndim == 1:  # VTK cell array [3, a, b, c, 3, ...]
         f = f.reshape(-1, 4)[:, 1:]
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+        raise RegistrationInputError(f"{name}: expected vertices (n, 3) and triangles (m, 3)", field=name)
+    if not np.all(np.isfinite(v)):
+        raise RegistrationInputError(f"{name}: vertices contain NaN or infinite values", field=name)
+    if f.min() < 0 or f.max() >= len(v):
+        raise RegistrationInputError(f"{name}: triangles refer to vertices that do not exist", field=name)
+    return v, f.astype(np.int64)
+
+
+def as_target(surface, name: str, max_faces: int | None = None) -> TargetSurface:
+    """TargetSurface from a trimesh / pyvista-like object, a (vertices, faces) pair or itself;
+    with `max_faces`, of the surface simplified to that many triangles when it has more
+    (`registration.surface.working_surface`; a TargetSurface is taken as it is)."""
+    if isinstance(surface, TargetSurface):
+        return surface
+    v, f = surface_arrays(surface, name)
+    if max_faces is not None:
+        v, f = working_surface(v, f, max_faces)
     try:
-        return TargetSurface(v, f.astype(np.int64), name)
+        return TargetSurface(v, f, name)
     except ValueError as exc:
         raise RegistrationInputError(str(exc), field=name) from exc
+
+
+def full_resolution_fit(x: np.ndarray, skin_quads: np.ndarray, working: TargetSurface,
+                        full: tuple[np.ndarray, np.ndarray]) -> dict:
+    """The registered skin measured against the full-resolution patient skin `full` (vertices,
+    faces) over the points the registration measures against its working surface `working`:
+    the skin nodes whose closest working-surface point is inside it with an agreeing normal,
+    and five points inside each skin facet whose four nodes are such (`mesh_match`'s measure).
+    Distances are exact point-to-triangle distances (`TriangleTree`)."""
+    from registration.elastic import vertex_normals
+
+    quads = np.asarray(skin_quads, np.int64)
+    tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    ids = np.unique(quads)
+    normals = vertex_normals(x, tris)
+    cl = working.closest(x[ids])
+    valid = ~cl.on_boundary & (np.einsum("ij,ij->i", normals[ids], cl.normal) > 0.5)
+    node_ok = np.zeros(len(x), bool)
+    node_ok[ids[valid]] = True
+    inside = quads[node_ok[quads].all(axis=1)]
+    uv = np.array([[0.5, 0.5], [0.25, 0.25], [0.75, 0.25], [0.75, 0.75], [0.25, 0.75]])
+    shape = np.stack([(1 - uv[:, 0]) * (1 - uv[:, 1]), uv[:, 0] * (1 - uv[:, 1]),
+                      uv[:, 0] * uv[:, 1], (1 - uv[:, 0]) * uv[:, 1]], axis=1)
+    points = np.concatenate([x[ids[valid]], np.einsum("sc,qcd->qsd", shape, x[inside]).reshape(-1, 3)])
+    if not len(points):
+        return {"mean_mm": None, "p95_mm": None, "max_mm": None, "n_points": 0}
+    d = TriangleTree(*full).closest(points)[3]
+    return {"mean_mm": float(d.mean()), "p95_mm": float(np.percentile(d, 95)), "max_mm": float(d.max()),
+            "n_points": int(len(d))}
 
 
 def centre_jacobians(nodes: np.ndarray, hexes: np.ndarray) -> np.ndarray:
@@ -95,9 +145,9 @@ def _hash_arrays(h, *arrays):
 
 
 def cache_key(model, skin: TargetSurface, bones: dict, landmarks, options: MatchOptions,
-              teeth: dict | None = None) -> str:
+              teeth: dict | None = None, working_faces: int | None = None) -> str:
     h = hashlib.sha256()
-    h.update(f"faceplan-registration-{CACHE_FORMAT}".encode())
+    h.update(f"faceplan-registration-{CACHE_FORMAT}-working-{working_faces}".encode())
     src = Path(__file__).parent
     for py in sorted(src.glob("*.py")):  # the code is part of the key
         h.update(py.read_bytes())
@@ -234,21 +284,30 @@ def _cache_store(path: Path, patient, report: dict) -> None:
 def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dict | None = None, *,
                           options: MatchOptions | None = None, threshold: float | None = None,
                           cache: bool = True, cache_dir: str | os.PathLike | None = None,
-                          files: dict | None = None, teeth: dict | None = None):
+                          files: dict | None = None, teeth: dict | None = None,
+                          working_faces: int | None = WORKING_MAX_FACES):
     """Register the generic `model` onto the patient: returns (patient_model, report).
 
     skin: the patient skin (trimesh, (vertices, faces) or TargetSurface); bones: segment name ->
     bone surface (a segment missing from `bones` is fitted to the union of the others);
     landmarks: optional name -> (3,) mm RAS; teeth: optional arch name ("upper", "lower") ->
     the patient's own teeth surface in the same frame (trimesh, (vertices, faces[, segment]) or
-    TargetSurface; e.g. `Case.teeth`), used instead of the generic arches. Raises RegistrationInputError for data that cannot
+    TargetSurface; e.g. `Case.teeth`), used instead of the generic arches. working_faces: a
+    skin or bone surface with more triangles is registered onto its simplification to that many
+    (`registration.surface.working_surface`; None: never), the skin fit then measured on the
+    full surface too (report `fit.skin_full_resolution`, under the same gate) and the
+    simplification's deviation reported (`working_surfaces`). Raises RegistrationInputError for data that cannot
     be registered and RegistrationFailure if the result would not be valid."""
     t0 = time.perf_counter()
     opt = options or MatchOptions()
     if threshold is not None:
         opt = replace(opt, threshold=float(threshold))
-    skin_t = as_target(skin, "skin")
-    bone_t = {k: as_target(v, f"bone.{k}") for k, v in (bones or {}).items()}
+    # the surfaces as given (hashed for the cache, the skin's kept to measure the fit on), and
+    # the working surfaces the registration runs on
+    given = {"skin": skin, **{f"bone.{k}": v for k, v in (bones or {}).items()}}
+    full = {name: None if isinstance(v, TargetSurface) else surface_arrays(v, name) for name, v in given.items()}
+    keyed = {name: v if full[name] is None else SimpleNamespace(vertices=full[name][0], faces=full[name][1])
+             for name, v in given.items()}
     lms = {k: np.asarray(v, dtype=float).reshape(3) for k, v in (landmarks or {}).items()}
     known = set(model.teeth) | set(ARCH_SEGMENT)
     unknown = sorted(set(teeth or {}) - known)
@@ -258,7 +317,8 @@ def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dic
     own_teeth = {k: teeth_arrays(v, k) for k, v in (teeth or {}).items()}
     own_teeth = {k: (v, f, seg or (model.teeth[k][2] if k in model.teeth else ARCH_SEGMENT[k]))
                  for k, (v, f, seg) in own_teeth.items()}
-    key = cache_key(model, skin_t, bone_t, lms, opt, own_teeth)
+    key = cache_key(model, keyed["skin"], {k: keyed[f"bone.{k}"] for k in (bones or {})}, lms, opt,
+                    own_teeth, working_faces)
     cdir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     if cache:
         hit = _cache_load(cdir / key, model)
@@ -266,6 +326,12 @@ def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dic
             patient, report = hit
             report.update(cached=True, cache_key=key)
             return patient, report
+    t_w = time.perf_counter()
+    skin_t = as_target(full["skin"] or skin, "skin", working_faces)
+    bone_t = {k: as_target(full[f"bone.{k}"] or v, f"bone.{k}", working_faces) for k, v in (bones or {}).items()}
+    simplified = {name: t for name, t in (("skin", skin_t), *((f"bone.{k}", b) for k, b in bone_t.items()))
+                  if full[name] is not None and simplifies(len(full[name][1]), working_faces)}
+    working_s = time.perf_counter() - t_w
     segs = [s for s in model.segments if f"attach_{s}" in model.node_sets]
     arrays = MatchInput(
         nodes=np.asarray(model.nodes, float), hexes=np.asarray(model.hexes),
@@ -281,6 +347,21 @@ def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dic
     )
     x, sim, report, placed = match_and_repair_arrays(arrays, skin_t, bone_t, lms or None, opt, files,
                                                      teeth=own_teeth or None)
+    report["time"]["working_surfaces_s"] = working_s
+    if simplified:
+        t_f = time.perf_counter()
+        report["working_surfaces"] = {name: {"triangles_given": int(len(full[name][1])),
+                                             "triangles_working": int(len(t.faces)),
+                                             "deviation": surface_deviation(full[name][0], t)}
+                                      for name, t in simplified.items()}
+        if "skin" in simplified:
+            fit = full_resolution_fit(x, arrays.skin_quads, skin_t, full["skin"])
+            report["fit"]["skin_full_resolution"] = fit
+            if fit["mean_mm"] is None or fit["mean_mm"] > opt.skin_mean_gate_mm:
+                raise RegistrationFailure(f"the registered skin misses the full-resolution patient skin by "
+                                          f"{fit['mean_mm']} mm on average (gate {opt.skin_mean_gate_mm} mm)",
+                                          report)
+        report["time"]["full_resolution_fit_s"] = time.perf_counter() - t_f
     t1 = time.perf_counter()
     fibres = reorient_fibres(model.nodes, x, np.asarray(model.hexes), model.fibres)
     patient = replace(model, nodes=x, fibres=fibres, teeth=placed)

@@ -32,6 +32,45 @@ from solver.geometry import point_triangle
 TIE_REL = 1e-12
 
 
+def _mix64(x: np.ndarray) -> np.ndarray:
+    """splitmix64's finaliser: a bijection of uint64 that spreads every input bit over the word."""
+    x = x ^ (x >> np.uint64(30))
+    x = x * np.uint64(0xBF58476D1CE4E5B9)
+    x = x ^ (x >> np.uint64(27))
+    x = x * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first, inverse) of the distinct rows of a 2-D float or integer array: a[first] holds each
+    distinct row once, in the order of first appearance, and a[first][inverse] == a.
+
+    The rows are hashed to one uint64 (their bit patterns through splitmix64), so only one
+    integer column is sorted (np.unique(axis=0) sorts whole rows: ~10x slower on 10^6 rows); a
+    hash collision is detected (a row differing from its representative) and answered by the
+    exact row sort, so the result never depends on the hash."""
+    a = np.ascontiguousarray(a)
+    if a.ndim != 2:
+        raise ValueError("unique_rows expects a 2-D array")
+    if len(a) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    bits = a.view(np.uint64) if a.dtype.itemsize == 8 else a.astype(np.int64).view(np.uint64)
+    with np.errstate(over="ignore"):
+        h = np.zeros(len(a), np.uint64)
+        for c in range(bits.shape[1]):
+            h = _mix64(h ^ bits[:, c])
+    _, first, inverse = np.unique(h, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    if not np.array_equal(a[first][inverse], a):
+        _, first, inverse = np.unique(a, axis=0, return_index=True, return_inverse=True)
+        inverse = inverse.reshape(-1)
+    # numbered in the order of first appearance (independent of the hash)
+    order = np.argsort(first)
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    return first[order].astype(np.int64), rank[inverse]
+
+
 @numba.njit(cache=True)
 def _closest_over_candidates(points, vertices, faces, candidates):
     n = points.shape[0]
@@ -102,9 +141,8 @@ class TargetSurface:
             raise ValueError(f"{self.name}: vertices contain NaN or infinite values")
         # merge coincident vertices (STL stores every triangle's corners separately)
         extent = float(np.ptp(v, axis=0).max()) or 1.0
-        _, first, inverse = np.unique(np.round(v / (1e-9 * extent)), axis=0, return_index=True,
-                                      return_inverse=True)
-        v, f = v[first], inverse.reshape(-1)[f]
+        first, inverse = unique_rows(np.round(v / (1e-9 * extent)) + 0.0)
+        v, f = v[first], inverse[f]
         f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
         tri = v[f]
         cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -263,3 +301,109 @@ class TargetSurface:
         out.face_areas = scale * scale * self.face_areas
         out._tree = cKDTree(out.centroids)
         return out
+
+
+class TriangleTree:
+    """Exact closest points on a triangle mesh taken as it is (no merging, no orientation): the
+    light structure for many queries on a large surface or a one-off measure against one.
+
+    Candidates are the triangles of the k nearest centroids (a k-d tree), projected exactly
+    (`_closest_over_candidates`). A triangle whose centroid lies c from the point is at least
+    c - r away (r: the largest centroid-to-corner distance of the mesh), so the answer d is
+    exact when the k-th centroid lies beyond d + r; otherwise the test is made again with twice
+    the candidates, and where it still fails every triangle whose centroid lies within d + r is
+    projected. Zero-area triangles are left out (their edges belong to their
+    neighbours); `face` indices refer to the triangles as given."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+        f = np.ascontiguousarray(faces, dtype=np.int64)
+        tri = self.vertices[f]
+        area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        self.kept = np.flatnonzero(area2 > 1e-12 * max(float(area2.max(initial=0.0)), 1e-300))
+        if not len(self.kept):
+            raise ValueError("the mesh has no triangle of non-zero area")
+        self.faces = np.ascontiguousarray(f[self.kept])
+        tri = tri[self.kept]
+        centroids = tri.mean(axis=1)
+        self.radius = float(np.linalg.norm(tri - centroids[:, None, :], axis=2).max())
+        self._tree = cKDTree(centroids)
+
+    def closest(self, points: np.ndarray, k: int = 16, max_distance: float = np.inf):
+        """(closest points, barycentric coordinates, face index, distance) for points (n, 3);
+        exact for every point nearer than `max_distance` (the others get an upper bound that
+        is itself beyond it)."""
+        x = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        n = len(x)
+        kk = int(min(k, len(self.faces)))
+        dc, cand = self._tree.query(x, k=kk)
+        dc, cand = np.reshape(dc, (n, kk)), np.asarray(cand, np.int64).reshape(n, kk)
+        q, bary, face, d = _closest_over_candidates(x, self.vertices, self.faces, cand)
+        need = np.flatnonzero((dc[:, -1] - self.radius < d) & (dc[:, 0] - self.radius <= max_distance))
+        if not len(need) or kk >= len(self.faces):
+            return q, bary, self.kept[face], d
+        # first twice the candidates (vectorised queries, in chunks to bound the memory),
+        # then, for the points still unsure, every triangle whose centroid lies within d + r
+        # (ragged lists: a loop over those points only). A wider set holds the first
+        # candidates: the same answer or a better one.
+        k2 = int(min(2 * kk, len(self.faces)))
+        still = []
+        for chunk in np.array_split(need, -(-len(need) // 50_000)):
+            dc2, wide = self._tree.query(x[chunk], k=k2)
+            dc2, wide = np.reshape(dc2, (len(chunk), k2)), np.asarray(wide, np.int64).reshape(len(chunk), k2)
+            q[chunk], bary[chunk], face[chunk], d[chunk] = _closest_over_candidates(
+                x[chunk], self.vertices, self.faces, wide)
+            if k2 < len(self.faces):
+                still.append(chunk[dc2[:, -1] - self.radius < d[chunk]])
+        need = np.concatenate(still) if still else np.zeros(0, np.int64)
+        for chunk in np.array_split(need, -(-len(need) // 5_000)) if len(need) else ():
+            balls = self._tree.query_ball_point(x[chunk], d[chunk] + self.radius)
+            wide = np.full((len(chunk), max(1, max(len(b) for b in balls))), -1, np.int64)
+            for row, b in enumerate(balls):
+                wide[row, :len(b)] = b
+            q[chunk], bary[chunk], face[chunk], d[chunk] = _closest_over_candidates(
+                x[chunk], self.vertices, self.faces, wide)
+        return q, bary, self.kept[face], d
+
+
+# Triangle budget of the surfaces registration works on: a CT-derived skin or bone has 10^5-10^6
+# triangles, the face model's skin ~10^4 facets (edges of 2-4 mm); 200,000 triangles keep edges
+# near 1 mm on a head (the CT reader's own budget, `planner.case.CT_MAX_FACES`), where a chord
+# departs from a curved surface by e^2 / 8R (~0.03 mm at R = 5 mm, the nose tip).
+WORKING_MAX_FACES = 200_000
+
+
+def simplifies(n_faces: int, max_faces: int | None) -> bool:
+    """Whether `working_surface` simplifies a surface of n_faces triangles."""
+    return max_faces is not None and n_faces > 2 * max_faces
+
+
+def working_surface(vertices: np.ndarray, faces: np.ndarray, max_faces: int = WORKING_MAX_FACES
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The surface registration works on: unchanged up to twice `max_faces` triangles (there a
+    simplification would cost about what it saves downstream), else its coincident vertices
+    merged and the mesh simplified to `max_faces` triangles by quadric edge collapse (Garland and
+    Heckbert, SIGGRAPH 1997; the `fast_simplification` implementation of Fast Quadric Mesh
+    Simplification), which keeps each new vertex where the squared distances to the planes of
+    the original triangles around it are least, so that the coarse surface stays on the fine
+    one (`surface_deviation` measures by how much)."""
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces, np.int64)
+    if not simplifies(len(f), max_faces):
+        return v, f
+    import fast_simplification
+
+    extent = float(np.ptp(v, axis=0).max()) or 1.0
+    first, inverse = unique_rows(np.round(v / (1e-9 * extent)) + 0.0)
+    v, f = v[first], inverse[f]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+    out_v, out_f = fast_simplification.simplify(v, f, target_count=int(max_faces))
+    return np.asarray(out_v, float), np.asarray(out_f, np.int64)
+
+
+def surface_deviation(full_vertices: np.ndarray, working: TargetSurface, n_max: int = 50_000) -> dict:
+    """How far the vertices of the full surface (up to n_max of them, evenly strided) lie from
+    a working surface made from it: mean, 99th percentile and maximum, mm."""
+    v = np.asarray(full_vertices, float)
+    d = working.closest(v[:: max(1, len(v) // n_max)]).distance
+    return {"mean_mm": float(d.mean()), "p99_mm": float(np.percentile(d, 99)), "max_mm": float(d.max())}

@@ -10,6 +10,12 @@
   continuous where the modelled region meets the rest of the face. Patient vertices farther
   than `gap_mm` from the patch (inside the nostrils, behind the ears) keep their place, with the
   same smooth fade from `gap_mm` to twice it.
+* `face_for_pictures`: the pre-op and predicted whole faces on one coarser triangulation for
+  the pictures only (off-screen rendering time grows with the triangle count). The pre-op face
+  is simplified by quadric edge collapse (Garland & Heckbert 1997, `fast_simplification`) and
+  every simplified vertex takes the mean position, displacement and weight of the original
+  vertices collapsed into it, so the predicted face is the pre-op one moved by the (locally
+  averaged) displacement and both share the triangles. The exports keep the full surface.
 * `write_mesh_glb` / `write_mesh_obj`: binary glTF 2.0 and Wavefront OBJ with per-vertex
   normals (trimesh's exporters), which any 3D viewer, a phone or a browser opens.
 * `write_markups`: landmarks as a 3D Slicer markups file (`.mrk.json`, schema
@@ -121,6 +127,36 @@ def blend_face(patient_vertices: np.ndarray, patient_faces: np.ndarray, patch_ve
         weight[near] = w
         d[near] = w[:, None] * u
     return BlendedFace(pv_ + d, pf, d, weight)
+
+
+# Triangles above which the pictures use a simplified face: a head scan at the scanner's
+# resolution (~0.8 mm, ~2e5 triangles) renders as given, a 10^6-triangle CT skin is reduced.
+PICTURE_TRIANGLES = 250_000
+
+
+def face_for_pictures(pre_face, post_face: BlendedFace, max_triangles: int = PICTURE_TRIANGLES):
+    """(pre_face, post_face) on at most about `max_triangles` shared triangles (module text);
+    returned unchanged when the face already has no more."""
+    pre_v, faces = np.asarray(pre_face[0], float), np.asarray(pre_face[1], np.int64)
+    if len(faces) <= max_triangles:
+        return pre_face, post_face
+    import fast_simplification
+
+    _, _, collapses = fast_simplification.simplify(pre_v, faces, target_reduction=1.0 - max_triangles / len(faces),
+                                                   return_collapses=True)
+    _, faces_s, owner = fast_simplification.replay_simplification(pre_v, faces, collapses)
+    n = int(owner.max()) + 1
+    count = np.bincount(owner, minlength=n).astype(float)
+
+    def mean(values):
+        values = np.asarray(values, float)
+        if values.ndim == 1:
+            return np.bincount(owner, values, minlength=n) / count
+        return np.stack([np.bincount(owner, values[:, j], minlength=n) for j in range(values.shape[1])], 1) / count[:, None]
+
+    pre_s, disp_s = mean(pre_v), mean(post_face.displacement)
+    faces_s = np.asarray(faces_s, np.int64)
+    return (pre_s, faces_s), BlendedFace(pre_s + disp_s, faces_s, disp_s, mean(post_face.weight))
 
 
 def _normals_mesh(vertices, faces):

@@ -759,6 +759,7 @@ def write_outputs(pred: Prediction, out_dir: Path, progress: Progress, inputs: d
     `patient_skin` (a trimesh): the case's pre-op skin, the base of the predicted whole face
     (the model's skin patch without it)."""
     from planner.atomic import atomic_output_dir
+    from planner.export import face_for_pictures
     from planner.html_report import write_html_report
 
     out_dir = Path(out_dir)
@@ -775,8 +776,9 @@ def write_outputs(pred: Prediction, out_dir: Path, progress: Progress, inputs: d
         if render:
             with progress.stage("render"):
                 frame = head_frame_of(pred.model, inputs.get("resolution"))
+                pre_pic, post_pic = face_for_pictures(pre_face, post_face)
                 images, pairs = write_images(
-                    pre_face, post_face, tmp / "images", frame=frame,
+                    pre_pic, post_pic, tmp / "images", frame=frame,
                     landmarks_pre={n: e["preop"] for n, e in lm.items()},
                     landmarks_post={n: e["predicted"] for n, e in lm.items()}, notes=_ratio_notes(lm))
         progress.timings["outputs"] = time.perf_counter() - t_start

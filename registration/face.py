@@ -94,21 +94,15 @@ def full_resolution_fit(x: np.ndarray, skin_quads: np.ndarray, working: TargetSu
     the skin nodes whose closest working-surface point is inside it with an agreeing normal,
     and five points inside each skin facet whose four nodes are such (`mesh_match`'s measure).
     Distances are exact point-to-triangle distances (`TriangleTree`)."""
-    from registration.elastic import vertex_normals
+    from registration.mesh_match import covered_skin
 
     quads = np.asarray(skin_quads, np.int64)
     tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
-    ids = np.unique(quads)
-    normals = vertex_normals(x, tris)
-    cl = working.closest(x[ids])
-    valid = ~cl.on_boundary & (np.einsum("ij,ij->i", normals[ids], cl.normal) > 0.5)
-    node_ok = np.zeros(len(x), bool)
-    node_ok[ids[valid]] = True
-    inside = quads[node_ok[quads].all(axis=1)]
+    node_ok, inside = covered_skin(x, quads, tris, working)
     uv = np.array([[0.5, 0.5], [0.25, 0.25], [0.75, 0.25], [0.75, 0.75], [0.25, 0.75]])
     shape = np.stack([(1 - uv[:, 0]) * (1 - uv[:, 1]), uv[:, 0] * (1 - uv[:, 1]),
                       uv[:, 0] * uv[:, 1], (1 - uv[:, 0]) * uv[:, 1]], axis=1)
-    points = np.concatenate([x[ids[valid]], np.einsum("sc,qcd->qsd", shape, x[inside]).reshape(-1, 3)])
+    points = np.concatenate([x[node_ok], np.einsum("sc,qcd->qsd", shape, x[inside]).reshape(-1, 3)])
     if not len(points):
         return {"mean_mm": None, "p95_mm": None, "max_mm": None, "n_points": 0}
     d = TriangleTree(*full).closest(points)[3]

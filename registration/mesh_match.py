@@ -114,10 +114,10 @@ def _fit_stats(d: np.ndarray) -> dict:
             "max_mm": float(d.max()), "n_points": int(len(d))}
 
 
-def _quads_on_surface(x: np.ndarray, skin_quads: np.ndarray, skin_tris: np.ndarray,
-                      skin: TargetSurface) -> np.ndarray:
-    """Skin quads whose four nodes have their closest patient-skin point inside the surface
-    (not on an open border) with a compatible normal: the facets the patient skin covers."""
+def covered_skin(x: np.ndarray, skin_quads: np.ndarray, skin_tris: np.ndarray, skin) -> tuple[np.ndarray, np.ndarray]:
+    """The skin nodes whose closest patient-skin point (on `skin`, anything with `closest`) is
+    inside the surface (not on an open border) with a compatible normal, as a mask over the
+    nodes of x, and the skin quads whose four nodes are such: the facets the patient skin covers."""
     skin_quads = np.asarray(skin_quads)
     ids = np.unique(skin_quads)
     normals = vertex_normals(x, skin_tris)
@@ -125,7 +125,7 @@ def _quads_on_surface(x: np.ndarray, skin_quads: np.ndarray, skin_tris: np.ndarr
     ok = ~cl.on_boundary & (np.einsum("ij,ij->i", normals[ids], cl.normal) > 0.5)
     node_ok = np.zeros(len(x), bool)
     node_ok[ids[ok]] = True
-    return skin_quads[node_ok[skin_quads].all(axis=1)]
+    return node_ok, skin_quads[node_ok[skin_quads].all(axis=1)]
 
 
 # Without landmarks, the nose is what fixes the face's height on a partial skin: the lips and
@@ -459,7 +459,7 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     facet_report = None
     if opt.facet_fit:
         t6 = time.perf_counter()
-        x, facet_report = facet_fit(x, hexes, _quads_on_surface(x, model.skin_quads, skin_tris, skin),
+        x, facet_report = facet_fit(x, hexes, covered_skin(x, model.skin_quads, skin_tris, skin)[1],
                                     skin_tris, skin, threshold=opt.threshold,
                                     pinned=np.fromiter(model.landmark_nodes.values(), np.int64,
                                                        len(model.landmark_nodes)))

@@ -356,20 +356,14 @@ class CacheWarning(UserWarning):
     """A damaged CT cache entry was found, deleted and is being rebuilt."""
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _cache_load(path: Path):
     """The cached {"skin", "bone"} surfaces of entry `path` (KEY.npz), None when absent; a
     damaged entry is deleted with a CacheWarning (the caller extracts the surfaces again)."""
     import warnings
 
     import trimesh
+
+    from registration.face import file_sha256
 
     digest = path.with_suffix(".sha256")
     if not path.is_file():
@@ -378,7 +372,7 @@ def _cache_load(path: Path):
         recorded = digest.read_text().strip() if digest.is_file() else None
         if recorded is None:
             raise ValueError("no digest (the entry was never completed)")
-        if recorded != _sha256(path):
+        if recorded != file_sha256(path):
             raise ValueError("content does not match its recorded SHA-256 (truncated or altered)")
         out = {}
         with np.load(path, allow_pickle=False) as z:
@@ -400,6 +394,8 @@ def _cache_load(path: Path):
 def _cache_store(path: Path, surfaces: dict) -> None:
     """Write KEY.npz through a temporary file, then KEY.sha256 (also through one) last; a cache
     that cannot be written only costs time, and nothing half-written stays behind."""
+    from registration.face import file_sha256
+
     tmp = path.with_name(f"{path.stem}.tmp-{os.getpid()}.npz")
     tmp_digest = path.with_name(f"{path.stem}.tmp-{os.getpid()}.sha256")
     try:
@@ -407,7 +403,7 @@ def _cache_store(path: Path, surfaces: dict) -> None:
         path.with_suffix(".sha256").unlink(missing_ok=True)
         np.savez_compressed(tmp, **{f"{k}_{a}": getattr(m, a) for k, m in surfaces.items()
                                     for a in ("vertices", "faces")})
-        tmp_digest.write_text(_sha256(tmp))
+        tmp_digest.write_text(file_sha256(tmp))
         os.replace(tmp, path)
         os.replace(tmp_digest, path.with_suffix(".sha256"))
     except OSError:

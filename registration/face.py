@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from registration.errors import RegistrationFailure, RegistrationInputError
-from registration.mesh_match import MatchInput, MatchOptions, match_and_repair_arrays
+from registration.mesh_match import MatchInput, MatchOptions, covered_skin, match_and_repair_arrays
 from registration.quality import EDGE_OPERATOR
 from registration.surface import (WORKING_MAX_FACES, TargetSurface, TriangleTree, simplifies,
                                   surface_deviation, working_surface)
@@ -94,8 +94,6 @@ def full_resolution_fit(x: np.ndarray, skin_quads: np.ndarray, working: TargetSu
     the skin nodes whose closest working-surface point is inside it with an agreeing normal,
     and five points inside each skin facet whose four nodes are such (`mesh_match`'s measure).
     Distances are exact point-to-triangle distances (`TriangleTree`)."""
-    from registration.mesh_match import covered_skin
-
     quads = np.asarray(skin_quads, np.int64)
     tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
     node_ok, inside = covered_skin(x, quads, tris, working)
@@ -170,7 +168,8 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "faceplan" / "registration"
 
 
-def _file_sha256(path: Path) -> str:
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's content, read in 1 MiB blocks (cache entries' digests)."""
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
@@ -191,7 +190,7 @@ def _check_entry(path: Path, model) -> tuple:
     for name in CACHE_FILES:
         if not (path / name).is_file():
             raise ValueError(f"{name} is missing")
-        if _file_sha256(path / name) != digest["files"].get(name):
+        if file_sha256(path / name) != digest["files"].get(name):
             raise ValueError(f"{name} does not match its recorded SHA-256 (truncated or altered)")
     try:
         report = json.loads((path / "report.json").read_text())
@@ -268,7 +267,7 @@ def _cache_store(path: Path, patient, report: dict) -> None:
                             **{f"teeth_{k}": np.asarray(v[0]) for k, v in patient.teeth.items()},
                             **{f"teeth_faces_{k}": np.asarray(v[1]) for k, v in patient.teeth.items()})
         (tmp / "report.json").write_text(json.dumps(report))
-        digest = {"key": path.name, "files": {n: _file_sha256(tmp / n) for n in CACHE_FILES}}
+        digest = {"key": path.name, "files": {n: file_sha256(tmp / n) for n in CACHE_FILES}}
         (tmp / "digest.json").write_text(json.dumps(digest))
         os.replace(tmp, path)
     except OSError:

@@ -139,11 +139,7 @@ class TargetSurface:
             raise ValueError(f"{self.name}: expected vertices (n, 3) and triangles (m, 3)")
         if not np.all(np.isfinite(v)):
             raise ValueError(f"{self.name}: vertices contain NaN or infinite values")
-        # merge coincident vertices (STL stores every triangle's corners separately)
-        extent = float(np.ptp(v, axis=0).max()) or 1.0
-        first, inverse = unique_rows(np.round(v / (1e-9 * extent)) + 0.0)
-        v, f = v[first], inverse[f]
-        f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+        v, f = merge_coincident(v, f)
         tri = v[f]
         cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         area2 = np.linalg.norm(cross, axis=1)
@@ -303,6 +299,16 @@ class TargetSurface:
         return out
 
 
+def merge_coincident(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices that coincide to 1e-9 of the surface's extent merged (STL stores every
+    triangle's corners separately) and the triangles left with a repeated corner dropped."""
+    v, f = np.asarray(vertices, float), np.asarray(faces, np.int64)
+    extent = float(np.ptp(v, axis=0).max()) or 1.0
+    first, inverse = unique_rows(np.round(v / (1e-9 * extent)) + 0.0)   # + 0.0: -0.0 is 0.0
+    v, f = v[first], inverse[f]
+    return v, f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+
+
 class TriangleTree:
     """Exact closest points on a triangle mesh taken as it is (no merging, no orientation): the
     light structure for many queries on a large surface or a one-off measure against one.
@@ -393,10 +399,7 @@ def working_surface(vertices: np.ndarray, faces: np.ndarray, max_faces: int = WO
         return v, f
     import fast_simplification
 
-    extent = float(np.ptp(v, axis=0).max()) or 1.0
-    first, inverse = unique_rows(np.round(v / (1e-9 * extent)) + 0.0)
-    v, f = v[first], inverse[f]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+    v, f = merge_coincident(v, f)
     out_v, out_f = fast_simplification.simplify(v, f, target_count=int(max_faces))
     return np.asarray(out_v, float), np.asarray(out_f, np.int64)
 

@@ -11,6 +11,7 @@ import pytest
 import trimesh
 
 import planner.case as case_mod
+from registration.face import file_sha256
 
 
 @pytest.fixture
@@ -55,7 +56,7 @@ def _empty(p):
 def _wrong_arrays_with_digest(p):
     np.savez_compressed(p, skin_vertices=np.zeros((4, 2)), skin_faces=np.zeros((1, 3), int),
                         bone_vertices=np.zeros((3, 3)), bone_faces=np.array([[0, 1, 7]]))
-    p.with_suffix(".sha256").write_text(case_mod._sha256(p))   # a consistent digest: the shape check catches it
+    p.with_suffix(".sha256").write_text(file_sha256(p))   # a consistent digest: the shape check catches it
 
 
 def _no_digest(p):

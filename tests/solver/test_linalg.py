@@ -188,3 +188,47 @@ def test_several_right_hand_sides_in_one_substitution():
         for j in range(B.shape[1]):
             assert np.linalg.norm(K @ X[:, j] - B[:, j]) < 1e-10 * np.linalg.norm(B[:, j])
             assert np.allclose(X[:, j], lin.apply(B[:, j]), rtol=0, atol=1e-10 * np.abs(X).max())
+
+
+_REPRODUCIBLE_SOLVE = """
+import hashlib, sys
+import numpy as np, scipy.sparse as sp
+from solver.linalg import SymmetricSolver
+junk = [np.empty(int(s)) for s in sys.argv[1:]]   # a different allocation history per process
+n = 16
+one = sp.diags([-1.0, 1.4, -1.0], [-1, 0, 1], shape=(n, n))
+eye = sp.identity(n)
+K = (sp.kron(sp.kron(one, eye), eye) + sp.kron(sp.kron(eye, one), eye) + sp.kron(sp.kron(eye, eye), one))
+rng = np.random.default_rng(3)
+K = (K + sp.diags(0.01 * rng.standard_normal(n ** 3))).tocsr()
+U = sp.triu(K, format="csr"); U.sort_indices()
+b = rng.standard_normal(n ** 3)
+lin = SymmetricSolver("pardiso")
+lin.factorize(U)
+x = lin.apply(b)
+print(hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest())
+"""
+
+
+def test_pardiso_gives_bitwise_the_same_solution_in_every_process():
+    # The solver's claim: the same matrix gives bitwise the same factor and solution whatever
+    # the process's state (PARDISO's conditional numerical reproducibility mode on 64-byte
+    # aligned arrays), so a Newton path (and its iteration count) does not change between a run
+    # with a fresh and one with a cached model. Three processes with different allocation
+    # histories (hence differently aligned NumPy buffers) solve one indefinite system; their
+    # solutions must agree to the last bit (tolerance 0: that is the claim).
+    import subprocess
+    import sys
+
+    import pytest
+
+    from solver.linalg import _aligned, available_backends
+
+    if "pardiso" not in available_backends():
+        pytest.skip("PARDISO (MKL) is not installed")
+    a = _aligned(np.arange(7.0), np.float32)
+    assert a.ctypes.data % 64 == 0 and np.array_equal(a, np.arange(7.0, dtype=np.float32))
+    digests = {subprocess.run([sys.executable, "-c", _REPRODUCIBLE_SOLVE, *sizes], check=True,
+                              capture_output=True, text=True).stdout.strip()
+               for sizes in ([], ["3"], ["1", "5", "1001"])}
+    assert len(digests) == 1, digests

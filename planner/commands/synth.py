@@ -343,13 +343,14 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
             plan_actual = parse_plan(actual, "plan_actual.yaml")
             effects = fe.parse_effects({"bone_execution": 1})
     pred = base
+    def truth(eff):
+        return solve_plan(patient, truth_plan, case.bones, effects=eff, plan_actual=plan_actual,
+                          follow_up_months=fu)
+
     reductions = []
     if effects.active:
         requested = value
-        pred, effects, reductions = solve_reducing(
-            lambda eff: solve_plan(patient, truth_plan, case.bones, effects=eff,
-                                   plan_actual=plan_actual, follow_up_months=fu),
-            effects, name if name in SKIN_CHANGE_MM else None)
+        pred, effects, reductions = solve_reducing(truth, effects, name if name in SKIN_CHANGE_MM else None)
         if reductions:
             value = {name: round(effects.value(name), 5)}
             print(f"faceplan synth: {folder.name}: warning: the truth solve of {name}={requested[name]} "
@@ -370,10 +371,8 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                                     p.upper)), 5)
             if v != v0:
                 try:
-                    pred1, eff1, _ = solve_reducing(
-                        lambda eff: solve_plan(patient, truth_plan, case.bones, effects=eff,
-                                               plan_actual=plan_actual, follow_up_months=fu),
-                        effects.with_value(name, v), None)
+                    eff1 = effects.with_value(name, v)
+                    pred1 = truth(eff1)
                 except SolveError as exc:       # keep the first value: its solve converged
                     corrections.append({"from": round(v0, 5), "to": None, "reason": str(exc)[:300]})
                 else:

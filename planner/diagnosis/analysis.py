@@ -386,9 +386,17 @@ class Scored:
     gp: list = field(default_factory=list)       # per case discrepancy.Fit
     gp_bic: float = np.nan
     theta: list = field(default_factory=list)    # per case fitted coordinates (reported)
+    lpd: np.ndarray | None = None                # held-out log predictive density per fold
+    lpd_gain: float = np.nan                     # sum over folds against the baseline
+    lpd_gain_se: float = np.nan                  # its standard error over the folds
 
     def values(self, c: int) -> dict:
         return self.cand.values(c, self.theta[c] if self.theta else None)
+
+    @property
+    def wins_heldout(self) -> bool:
+        """Predicts the held-out regions better than the discrepancy alone (see `_judge`)."""
+        return bool(np.isfinite(self.lpd_gain) and self.lpd_gain > max(0.0, 2.0 * self.lpd_gain_se))
 
 
 def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> Scored:
@@ -422,7 +430,29 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
                  shrink_spread(data, [d.r0 for d in data], heldout),
                  fit.bic(rss, W, n_eff, k), identifiable, heldout, fitted)
     out.gp, out.gp_bic, out.theta = gp, gp_bic, theta
+    out.lpd = heldout_lpd(cand, data, gp, heldout)
     return out
+
+
+def heldout_lpd(cand: Candidate | None, data: list[CaseData], fits: list, heldout: list | None = None
+                ) -> np.ndarray:
+    """Per cross-validation fold (every region of every case) the log predictive density of
+    its gap under noise + discrepancy with the candidate fitted without it
+    (`discrepancy.ErrorModel.heldout_lpd`); shared parameters of several cases are those
+    fitted on the other cases (`heldout`), the discrepancy then predicts each region from the
+    case's other regions. `cand` None: the baseline."""
+    out = []
+    for c, (d, f) in enumerate(zip(data, fits)):
+        folds = list(d.folds.values()) or [np.ones(len(d.r0), bool)]
+        if cand is None:
+            out.append(d.error.heldout_lpd(d.r0, folds, f))
+        elif cand.shared and len(data) > 1 or cand.free is None or not cand.free.any():
+            r = heldout[c] if heldout is not None else cand.anchor_r[c]
+            out.append(d.error.heldout_lpd(r, folds, f))
+        else:
+            out.append(d.error.heldout_lpd(cand.anchor_r[c], folds, f, cand.J[c], cand.theta[c],
+                                           cand.lower, cand.upper, cand.free))
+    return np.concatenate(out)
 
 
 def evidence(cand: Candidate | None, data: list[CaseData]) -> tuple[list, float]:
@@ -478,12 +508,14 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
     base_fits, _ = evidence(None, data)
     for d, f in zip(data, base_fits):
         d.gp_n_eff = d.error.n_eff(f.ell)
-        d.gap.discrepancy_mm = f.sigma_d
+        d.gap.discrepancy_mm = f.discrepancy_mm
         d.gap.discrepancy_ell_mm = f.ell
         d.gap.error_test = (lambda em, f: (lambda r, m: em.region_pvalue(r, m, f)))(d.error, f)
-        say(f"  {d.case.name}: discrepancy {f.sigma_d:.2f} mm, correlation length {f.ell:.0f} mm, "
+        say(f"  {d.case.name}: discrepancy {f.sigma_d:.2f} mm at correlation length {f.ell:.0f} mm and "
+            f"{f.long_mm:.2f} mm smooth over the face, "
             f"noise {d.gap.noise_floor_mm:.2f} mm")
     gp0 = evidence(None, data)[1]
+    lpd0 = heldout_lpd(None, data, base_fits)
     names = tuple(p.key for e in effects for p in e.parameters)
     sens = [None] * len(data)
     notes = []
@@ -502,7 +534,7 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
     refine(cands, data, forward)
     scored = [score(c, data, rms0, n_eff) for c in cands if c.failed is None]
     failed = [c for c in cands if c.failed is not None]
-    _judge(scored, gp0)
+    _judge(scored, gp0, lpd0)
     ranked = sorted([s for s in scored if s.identifiable], key=lambda s: -s.heldout_shrink_pct)
     # the gap left by the best effect: pairs when it is still significant somewhere
     sig_before = any(_significant_regions(data, [d.r0 for d in data], noise_only=True))
@@ -521,9 +553,8 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
             pair_cands = [_pair(lead.cand, p.cand, data) for p in partners]
             refine(pair_cands, data, forward)
             pairs = [score(c, data, rms0, n_eff) for c in pair_cands]
-            _judge(pairs, gp0)
-    models = {"baseline": gp0, **{s.cand.name: s.gp_bic for s in scored + pairs}}
-    prob = fit.model_probabilities(models)
+            _judge(pairs, gp0, lpd0)
+    prob = probabilities(gp0, scored + pairs)
     for s in scored + pairs:
         s.probability = prob[s.cand.name]
     verdict = _verdict(data, best, pairs, prob)
@@ -532,12 +563,27 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
             "winner": verdict.get("_scored")}
 
 
-def _judge(scored: list[Scored], gp0: float) -> None:
-    """Significant: strong evidence against the baseline under noise + discrepancy, and a
-    held-out shrinkage of at least `MIN_HELDOUT_SHRINK_PCT` and of twice its bootstrap spread
-    (a gain the cross-validation units agree on)."""
+def probabilities(gp0: float, scored: list[Scored]) -> dict[str, float]:
+    """Model probabilities exp(-BIC / 2) normalised over the baseline and the models that
+    predict held-out regions better than the discrepancy alone; the others get 0: an effect
+    whose in-sample evidence does not carry over to unseen regions has fitted the
+    discrepancy, so no effect is given a probability above one half unless it wins on held-out
+    data."""
+    models = {"baseline": gp0, **{s.cand.name: s.gp_bic for s in scored if s.identifiable and s.wins_heldout}}
+    prob = fit.model_probabilities(models)
+    return {"baseline": prob["baseline"], **{s.cand.name: prob.get(s.cand.name, 0.0) for s in scored}}
+
+
+def _judge(scored: list[Scored], gp0: float, lpd0: np.ndarray) -> None:
+    """Significant: strong evidence against the baseline under noise + discrepancy, held-out
+    regions predicted better than by the discrepancy alone (log predictive density gain above
+    twice its standard error over the folds, Vehtari et al. 2017), and a held-out shrinkage of
+    at least `MIN_HELDOUT_SHRINK_PCT` and of twice its bootstrap spread."""
     for s in scored:
-        s.significant = bool(s.identifiable and gp0 - s.gp_bic >= fit.STRONG_EVIDENCE
+        diff = np.asarray(s.lpd, float) - lpd0
+        s.lpd_gain = float(diff.sum())
+        s.lpd_gain_se = float(np.sqrt(len(diff)) * np.std(diff)) if len(diff) > 1 else 0.0
+        s.significant = bool(s.identifiable and gp0 - s.gp_bic >= fit.STRONG_EVIDENCE and s.wins_heldout
                              and s.heldout_shrink_pct >= max(MIN_HELDOUT_SHRINK_PCT, 2.0 * s.spread_pct))
 
 

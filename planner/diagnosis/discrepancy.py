@@ -1,32 +1,58 @@
-"""The error model effects are judged against: scan noise plus a model-form discrepancy.
+"""The error model effects are judged against: scan noise plus a two-scale model-form discrepancy.
 
 A real face is never the model's: even with no unmodelled effect the baseline misses the post-op
-scan by a smooth, spatially correlated gap (mesh, anatomy, thickness and moduli the patient
-does not share with the generic model). Judged against the scan noise alone, that gap is
-significant everywhere and every effect either "explains" part of it or none does. Following
+scan by a spatially correlated gap (mesh, anatomy, thickness and moduli the patient does not
+share with the generic model). That gap has two scales: a short one (the faceting of the finite
+elements, creases, a few mm) and a long one (a face fuller or flatter than the model's over
+whole regions, a fraction of a mm that varies smoothly across the face). Judged against the scan
+noise alone, or against a discrepancy of one correlation length that can only describe the short
+scale, the long part is significant and every smooth effect "explains" some of it. Following
 Kennedy & O'Hagan (*J. R. Stat. Soc. B* 63:425, 2001) the gap on the scan points is modelled as
 
-    r = J theta + delta + eps,   delta ~ GP(0, s_d^2 k_l),   eps ~ N(0, s_n^2 I),
+    r(theta) = r_a + J (theta - theta_a) = delta_s + B beta + eps,
+    delta_s ~ GP(0, s_d^2 k_l),  beta ~ N(0, s_L^2 I_m),  eps ~ N(0, s_n^2 I),
 
-with J theta the effect's signal (`analysis`, linear about the refined fit), delta a zero-mean
-Gaussian-process discrepancy with a Matern-3/2 correlation k_l(d) = (1 + sqrt3 d/l)
-exp(-sqrt3 d/l) (Rasmussen & Williams, *Gaussian processes for machine learning*, 2006,
-eq. 4.17: rough enough for the creases a model-form error leaves, unlike the squared
-exponential) and eps the scan noise at the measured floor. The amplitude s_d and the
-correlation length l are not assumed: they are estimated from the data by maximising the
-marginal likelihood for each model separately (type-II maximum likelihood, the "modular"
-calibration of Liu, Bayarri & Berger, *Bayesian Analysis* 4:119, 2009), so under the baseline
-the discrepancy absorbs the whole gap, and an effect earns evidence only when its particular
-pattern explains the gap better than a generic smooth field of the same amplitude does. This is
-the remedy Brynjarsdottir & O'Hagan (*Inverse Problems* 30:114007, 2014) give for calibrating
-under model-form error: without a discrepancy term the physical parameters absorb the
-discrepancy and the evidence is overstated. The profile log-likelihood of a model with k fitted
-parameters is penalised as BIC = -2 log L + k ln(n_eff) with n_eff the independent samples of
-the face (area / (pi l^2)), so a k-parameter effect must do better than fit k directions of the
-discrepancy by chance. The likelihood is evaluated on an area-uniform subsample of the scan
-points (one per cube of side `spacing`, at most `MAX_POINTS`), small enough for a dense
-eigendecomposition of the correlation matrix per correlation length, and the bounded
-generalised least-squares fit of theta is exact in the whitened coordinates.
+so that r(theta) ~ N(0, Sigma), Sigma = s_d^2 K_l + s_L^2 B B^T + s_n^2 I. r(theta) is the gap
+left with the effect at theta (`analysis`: linear about the refined fit, J = dr/dtheta);
+delta_s the short-scale discrepancy, a Gaussian process with the Matern-3/2 correlation
+k_l(d) = (1 + sqrt3 d/l) exp(-sqrt3 d/l) (Rasmussen & Williams, *Gaussian processes for machine
+learning*, 2006, eq. 4.17: rough enough for the creases a model-form error leaves); B beta the
+long-scale discrepancy, a linear polynomial in the (centred, scaled) coordinates with Gaussian
+coefficients (a degenerate Gaussian process, Rasmussen & Williams sect. 2.7; O'Hagan,
+*J. R. Stat. Soc. B* 40:1, 1978): an offset and tilts of the whole face (`smooth_basis`);
+eps the scan noise at the measured floor. The amplitudes s_d and s_L and the length l are not
+assumed: they are estimated from the data by maximising the marginal likelihood for each model
+separately (type-II maximum likelihood, the "modular" calibration of Liu, Bayarri & Berger,
+*Bayesian Analysis* 4:119, 2009). s_L = 0 is one of the values tried, so the evidence itself
+decides whether the long scale is present. With theta profiled (bounded generalised least
+squares) the log-likelihood is
+
+    log L = -1/2 [ min_theta,beta ( |W (r(theta) - B beta)|^2 + |beta|^2 / s_L^2 )
+                   + sum_i log v_i + log det(I_m + s_L^2 C^T C) + n log 2 pi ],
+
+with K_l = U diag(lambda) U^T, v = s_d^2 lambda + s_n^2, W = diag(v)^-1/2 U^T and C = W B:
+minimising over beta with its Gaussian penalty gives exactly the quadratic form of Sigma^-1
+(Woodbury), and the determinant lemma gives log det Sigma, so one eigendecomposition per length
+serves every amplitude. Under the baseline the discrepancy absorbs the whole gap, and an effect
+earns evidence only when its particular pattern explains the gap better than generic fields of
+both scales do: the remedy Brynjarsdottir & O'Hagan (*Inverse Problems* 30:114007, 2014) give
+for calibrating under model-form error. The profile log-likelihood of a model with k fitted
+parameters is penalised as BIC = -2 log L + k ln(n_eff), n_eff the independent samples of the
+face (area / (pi l^2)).
+
+In-sample evidence can still favour an effect whose pattern resembles the discrepancy's on this
+face by chance. Each model is therefore also judged on held-out data (`heldout_lpd`): the scan
+is cut into its regions; for each region theta is fitted on the other regions, and the
+region's gap is predicted by the effect plus the conditional (kriging) distribution of the
+discrepancy given the other regions' residuals. The log predictive density of the left-out
+regions summed (Geisser & Eddy, *J. Am. Stat. Assoc.* 74:153, 1979; Vehtari, Gelman & Gabry,
+*Statistics and Computing* 27:1413, 2017, whose standard error of the difference is used) is
+compared with the baseline's: an effect that does not predict unseen regions better than the
+discrepancy alone does is not named.
+
+The likelihood is evaluated on an area-uniform subsample of the scan points (one per cube of
+side `spacing`, at most `MAX_POINTS`), small enough for a dense eigendecomposition of the
+correlation matrix per correlation length.
 """
 from __future__ import annotations
 
@@ -34,19 +60,38 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ErrorModel", "Fit", "subsample", "matern32", "LENGTHS_MM", "MAX_POINTS", "REGION_P"]
+__all__ = ["ErrorModel", "Fit", "subsample", "matern32", "smooth_basis", "LENGTHS_MM", "MAX_POINTS",
+           "REGION_P"]
 
 MAX_POINTS = 900                      # subsample size of the likelihood
 REGION_P = 1e-3                       # a region's gap beyond noise + discrepancy at this p-value
-# correlation lengths tried (mm): from a few scan spacings to the size of a face region
+# correlation lengths of the short scale (mm): from a few scan spacings to the size of a region
 LENGTHS_MM = (4.0, 6.0, 9.0, 13.0, 19.0, 28.0, 40.0)
-# discrepancy amplitudes tried, relative to the gap's RMS (a log grid, refined by a parabola)
-_AMPLITUDES = np.geomspace(0.02, 3.0, 40)
+# short-scale amplitudes tried, relative to the gap's RMS (log grid; the maximum is unimodal in it)
+_AMPLITUDES = np.geomspace(0.02, 3.0, 32)
+# long-scale amplitudes (per unit-RMS basis function) relative to the gap's RMS; 0: no long scale
+_LONG_AMPLITUDES = np.concatenate([[0.0], np.geomspace(0.01, 1.0, 9)])
 
 
 def matern32(d: np.ndarray, ell: float) -> np.ndarray:
     a = np.sqrt(3.0) * np.asarray(d, float) / ell
     return (1.0 + a) * np.exp(-a)
+
+
+def smooth_basis(points: np.ndarray) -> np.ndarray:
+    """The long-scale basis: 1, x, y, z in coordinates centred on the points' mean and scaled
+    by their RMS radius, each column scaled to unit RMS. Degree one: an offset and tilts of the
+    whole face. Curvatures are left out on purpose: a quadratic over a face already bends
+    within a region's width and would take the pattern of a regional effect (posture, swelling)
+    as discrepancy; what bends on that scale is for the effects and the short scale."""
+    p = np.asarray(points, float)
+    q = p - p.mean(axis=0)
+    q /= max(float(np.sqrt(np.mean(np.sum(q * q, axis=1)))), 1e-9)
+    x, y, z = q.T
+    B = np.stack([np.ones(len(q)), x, y, z], axis=1)
+    rms = np.sqrt(np.mean(B * B, axis=0))
+    keep = rms > 1e-9
+    return B[:, keep] / rms[keep]
 
 
 def subsample(points: np.ndarray, weights: np.ndarray, max_points: int = MAX_POINTS) -> np.ndarray:
@@ -76,51 +121,114 @@ def subsample(points: np.ndarray, weights: np.ndarray, max_points: int = MAX_POI
 
 @dataclass
 class Fit:
-    """One model's profile maximum: parameters, discrepancy amplitude and length, log L."""
+    """One model's profile maximum: parameters, discrepancy amplitudes and length, log L."""
 
     theta: np.ndarray
     sigma_d: float
     ell: float
     loglik: float
     k: int
+    sigma_long: float = 0.0       # long-scale amplitude per unit-RMS basis function
+    long_mm: float = 0.0          # RMS of the long-scale field over the points (s_L sqrt(m))
+
+    @property
+    def discrepancy_mm(self) -> float:
+        """RMS of the whole discrepancy, both scales."""
+        return float(np.hypot(self.sigma_d, self.long_mm))
 
     def bic(self, n_eff: float) -> float:
         return float(-2.0 * self.loglik + self.k * np.log(max(n_eff, 2.0)))
 
 
+def _bounded_quadratic(H: np.ndarray, g: np.ndarray, lo, hi, k: int) -> np.ndarray:
+    """argmin of y^T H y / 2 + g^T y (H positive definite) with the first k entries of y in
+    (lo, hi) and the others free: the unconstrained minimum when it is inside the bounds, else
+    bounded least squares on the Cholesky factor (|R y + R^-T g|^2 is the same quadratic)."""
+    from scipy.optimize import lsq_linear
+
+    R = np.linalg.cholesky(H).T
+    y = -np.linalg.solve(H, g)
+    if k == 0 or (np.all(y[:k] >= lo - 1e-12) and np.all(y[:k] <= hi + 1e-12)):
+        return y
+    b = -np.linalg.solve(R.T, g)
+    nb = len(g) - k
+    lo_all = np.concatenate([lo, np.full(nb, -np.inf)])
+    hi_all = np.concatenate([hi, np.full(nb, np.inf)])
+    return lsq_linear(R, b, bounds=(lo_all, hi_all), method="bvls").x
+
+
 class ErrorModel:
-    """Noise + discrepancy on one case's scan points (see the module text)."""
+    """Noise + two-scale discrepancy on one case's scan points (see the module text)."""
 
     def __init__(self, points: np.ndarray, weights: np.ndarray, sigma_n: float,
-                 lengths: tuple[float, ...] = LENGTHS_MM, max_points: int = MAX_POINTS):
+                 lengths: tuple[float, ...] = LENGTHS_MM, max_points: int = MAX_POINTS,
+                 long_scale: bool = True):
         self.idx = subsample(points, weights, max_points)
         self.points = np.asarray(points, float)[self.idx]
         self.area = float(np.sum(weights))
         self.sigma_n = float(max(sigma_n, 1e-6))
-        d = np.linalg.norm(self.points[:, None] - self.points[None], axis=2)
+        self._d = np.linalg.norm(self.points[:, None] - self.points[None], axis=2)
         self.lengths = tuple(float(x) for x in lengths)
+        self.B = smooth_basis(self.points) if long_scale else np.zeros((len(self.idx), 0))
+        self.long_amplitudes = _LONG_AMPLITUDES if long_scale else np.zeros(1)
         self._eig = []
         for ell in self.lengths:
-            lam, U = np.linalg.eigh(matern32(d, ell))
-            self._eig.append((np.clip(lam, 0.0, None), U))
+            lam, U = np.linalg.eigh(matern32(self._d, ell))
+            self._eig.append((np.clip(lam, 0.0, None), U, U.T @ self.B))
 
     def n_eff(self, ell: float) -> float:
         """Independent samples of the face for correlation length ell: area / (pi l^2)."""
         return float(np.clip(self.area / (np.pi * ell ** 2), 2.0, len(self.idx)))
 
-    def _loglik(self, z: np.ndarray, lam: np.ndarray, s_d: float) -> float:
-        v = s_d * s_d * lam + self.sigma_n ** 2
-        return float(-0.5 * (np.sum(z * z / v) + np.sum(np.log(v)) + len(z) * np.log(2 * np.pi)))
+    def covariance(self, fit: Fit, sel: np.ndarray | None = None) -> np.ndarray:
+        """Sigma on the subsample (rows/columns `sel`) under the error model `fit`."""
+        sel = np.ones(len(self.idx), bool) if sel is None else np.asarray(sel, bool)
+        d, B = self._d[np.ix_(sel, sel)], self.B[sel]
+        return (fit.sigma_d ** 2 * matern32(d, fit.ell) + fit.sigma_long ** 2 * (B @ B.T)
+                + self.sigma_n ** 2 * np.eye(int(sel.sum())))
+
+    def _profiles(self, zr, zJ, C, v, longs, lo, hi):
+        """(log L, x, s_L) at the best long-scale amplitude among `longs`, for fixed s_d and
+        l: bounded GLS of theta (offset x from the anchor) with the long-scale coefficients
+        under their Gaussian prior, in the normal equations of the whitened system (module
+        text; the eigenbasis of K_l makes the whitening diagonal)."""
+        w = 1.0 / v
+        k = zJ.shape[1] if zJ is not None else 0
+        G = np.concatenate([zJ if k else np.zeros((len(zr), 0)), -C], axis=1)
+        Gw = G * w[:, None]
+        H0 = G.T @ Gw
+        g0 = Gw.T @ zr
+        q0 = float(zr @ (zr * w))
+        base = float(np.sum(np.log(v))) + len(zr) * np.log(2 * np.pi)
+        m = C.shape[1]
+        best = None
+        for s_l in longs:
+            if s_l > 0 and m:
+                H = H0.copy()
+                H[k:, k:] += np.eye(m) / (s_l * s_l)
+                g = g0
+                logdet = float(np.linalg.slogdet(np.eye(m) + s_l * s_l * H0[k:, k:])[1])
+            else:
+                H, g, logdet = H0[:k, :k], g0[:k], 0.0
+            if len(g):
+                y = _bounded_quadratic(H + 1e-12 * np.trace(H) * np.eye(len(g)) / len(g), g, lo, hi, k)
+                q = q0 + float(y @ H @ y) + 2.0 * float(g @ y)
+                x = y[:k]
+            else:
+                q, x = q0, np.zeros(0)
+            ll = -0.5 * (q + logdet + base)
+            if best is None or ll > best[0]:
+                best = (ll, x, float(s_l))
+        return best
 
     def fit(self, r: np.ndarray, J: np.ndarray | None = None, theta_a: np.ndarray | None = None,
-            lower=None, upper=None, free=None, extra_k: int = 0) -> Fit:
-        """Profile maximum of log N(r + J (theta - theta_a); 0, s_d^2 K_l + s_n^2 I) over the
-        free parameters within bounds, s_d and l; `r` and `J` on all scan points (the
-        subsample is taken here). k = free parameters + `extra_k` (discrete choices)."""
-        from scipy.optimize import lsq_linear
-
+            lower=None, upper=None, free=None, extra_k: int = 0, long_scale: bool = True) -> Fit:
+        """Profile maximum of log N(r + J (theta - theta_a); 0, Sigma) over the free parameters
+        within bounds, s_d, l and s_L; `r` and `J` on all scan points (the subsample is taken
+        here). k = free parameters + `extra_k` (discrete choices). `long_scale` False: s_L = 0."""
         r = np.asarray(r, float)[self.idx]
         nfree = 0
+        lo = hi = np.zeros(0)
         if J is not None and free is not None and np.any(free):
             free = np.asarray(free, bool)
             Jf = np.asarray(J, float)[self.idx][:, free]
@@ -128,39 +236,35 @@ class ErrorModel:
             lo = np.asarray(lower, float)[free] - theta_a[free]
             hi = np.asarray(upper, float)[free] - theta_a[free]
         scale = float(np.sqrt(np.mean(r * r))) or self.sigma_n
+        longs = self.long_amplitudes if long_scale else np.zeros(1)
         best = None
-        for ell, (lam, U) in zip(self.lengths, self._eig):
+        for ell, (lam, U, UB) in zip(self.lengths, self._eig):
             zr = U.T @ r
             zJ = U.T @ Jf if nfree else None
             here = -np.inf
             for s_d in scale * _AMPLITUDES:
-                x = np.zeros(nfree)
-                if nfree:
-                    sv = 1.0 / np.sqrt(s_d * s_d * lam + self.sigma_n ** 2)
-                    res = lsq_linear(zJ * sv[:, None], -zr * sv, bounds=(lo, hi), method="bvls")
-                    x = res.x
-                z = zr + (zJ @ x if nfree else 0.0)
-                ll = self._loglik(z, lam, s_d)
-                if best is None or ll > best[0]:
-                    best = (ll, s_d, ell, x)
-                if ll < here - 1e-9:
+                v = s_d * s_d * lam + self.sigma_n ** 2
+                top = self._profiles(zr, zJ, UB, v, scale * longs, lo, hi)
+                if best is None or top[0] > best[0]:
+                    best = (top[0], s_d, ell, top[1], top[2])
+                if top[0] < here - 1e-9:
                     break               # past this length's maximum in s_d (unimodal)
-                here = ll
-        ll, s_d, ell, x = best
+                here = top[0]
+        ll, s_d, ell, x, s_l = best
         theta = None
         if theta_a is not None:
             theta = np.array(theta_a, float)
             if nfree:
                 theta[free] = theta_a[free] + x
-        return Fit(theta, float(s_d), float(ell), float(ll), nfree + int(extra_k))
+        long_mm = float(s_l * np.sqrt(np.mean(np.sum(self.B * self.B, axis=1)))) if self.B.size else 0.0
+        return Fit(theta, float(s_d), float(ell), float(ll), nfree + int(extra_k), float(s_l), long_mm)
 
     def standard_errors(self, J: np.ndarray, fit: Fit) -> np.ndarray:
         """Standard errors of the parameters (columns of J) under the error model `fit`:
         sqrt(diag((J^T Sigma^-1 J)^-1)), inf along directions the data do not see."""
-        lam, U = self._eig[self.lengths.index(fit.ell)]
-        sv = 1.0 / np.sqrt(fit.sigma_d ** 2 * lam + self.sigma_n ** 2)
-        A = (U.T @ np.asarray(J, float)[self.idx]) * sv[:, None]
-        F = A.T @ A
+        S = self.covariance(fit)
+        Jw = np.asarray(J, float)[self.idx]
+        F = Jw.T @ np.linalg.solve(S, Jw)
         try:
             cov = np.linalg.inv(F)
         except np.linalg.LinAlgError:
@@ -177,13 +281,54 @@ class ErrorModel:
         m = int(sel.sum())
         if m == 0:
             return 1.0
-        p = self.points[sel]
-        d = np.linalg.norm(p[:, None] - p[None], axis=2)
-        S = fit.sigma_d ** 2 * matern32(d, fit.ell) + self.sigma_n ** 2 * np.eye(m)
+        S = self.covariance(fit, sel)
         x = np.asarray(r, float)[self.idx][sel]
         q = float(x @ np.linalg.solve(S, x))
         return float(chi2.sf(q, m))
 
+    def heldout_lpd(self, r: np.ndarray, folds: list[np.ndarray], fit: Fit, J: np.ndarray | None = None,
+                    theta_a: np.ndarray | None = None, lower=None, upper=None, free=None) -> np.ndarray:
+        """Per fold (a mask on all scan points) the log predictive density of its gap given the
+        other folds: theta fitted on the others by generalised least squares (bounded), the
+        fold's residual predicted by the discrepancy's conditional Gaussian distribution given
+        the others' residuals (the error model's amplitudes and length: `fit`)."""
+        from scipy.linalg import cho_factor, cho_solve
+        from scipy.optimize import lsq_linear
+
+        r = np.asarray(r, float)[self.idx]
+        nfree = int(np.sum(free)) if (J is not None and free is not None) else 0
+        if nfree:
+            free = np.asarray(free, bool)
+            Jf = np.asarray(J, float)[self.idx][:, free]
+            lo = np.asarray(lower, float)[free] - theta_a[free]
+            hi = np.asarray(upper, float)[free] - theta_a[free]
+        S = self.covariance(fit)
+        out = []
+        for mask in folds:
+            te = np.asarray(mask, bool)[self.idx]
+            tr = ~te
+            if te.sum() == 0 or tr.sum() == 0:
+                out.append(0.0)
+                continue
+            cf = cho_factor(S[np.ix_(tr, tr)], lower=True)
+            e = r.copy()
+            if nfree:
+                L = np.tril(cf[0])
+                from scipy.linalg import solve_triangular
+
+                A = solve_triangular(L, Jf[tr], lower=True)
+                b = -solve_triangular(L, r[tr], lower=True)
+                x = lsq_linear(A, b, bounds=(lo, hi), method="bvls").x if A.shape[1] else np.zeros(0)
+                e = r + Jf @ x
+            Smo = S[np.ix_(te, tr)]
+            mu = Smo @ cho_solve(cf, e[tr])
+            C = S[np.ix_(te, te)] - Smo @ cho_solve(cf, Smo.T)
+            dev = e[te] - mu
+            sign, logdet = np.linalg.slogdet(C)
+            out.append(float(-0.5 * (dev @ np.linalg.solve(C, dev) + logdet + te.sum() * np.log(2 * np.pi))))
+        return np.array(out)
+
     def residual_level(self, fit: Fit) -> float:
-        """RMS of the gap the error model expects without any effect: sqrt(s_d^2 + s_n^2)."""
-        return float(np.hypot(fit.sigma_d, self.sigma_n))
+        """RMS of the gap the error model expects without any effect: noise and both scales of
+        the discrepancy."""
+        return float(np.hypot(fit.discrepancy_mm, self.sigma_n))

@@ -96,16 +96,17 @@ MOVED_SEGMENTS = ("maxilla", "mandible", "chin")
 
 # Bounds are the plausible ranges of the effects' published values (see docs/diagnosis.md):
 # resting perioral tone up to a third of maximal activation; tissue stiffness within a factor
-# three of the generic values; residual swelling up to 30 % volumetric growth at the operated
-# bone (the parameter is the curve's peak; it stays within this range although the effect
-# library allows more, because soft tissue thicker than the generic model fills the face out
-# as swelling does, and a wider range lets swelling absorb that model-form error); the posture change from supine to upright up to 1.5 times gravity's full effect.
+# three of the generic values; swelling as the peak volumetric growth ratio up to 3 (the
+# residual 0.5-2 mm of skin at 3-12 months asks for peaks up to about 3, `facemodel.effects`);
+# the posture change from supine to upright up to 1.5 times gravity's full effect. A face
+# fuller than the generic model over a whole region is the discrepancy's long scale, not
+# swelling (`planner.diagnosis.discrepancy`).
 EFFECT_LIBRARY: tuple[Effect, ...] = (
     Effect("sliding", choices=(), shared=False,
            description="soft tissue slides on the moved bone instead of being tied to it"),
     Effect("muscle_tone", (Parameter("muscle_tone", 0.0, 0.0, 0.35, 0.05, unit="activation"),),
            shared=False, description="resting activation of the perioral muscles"),
-    Effect("swelling", (Parameter("swelling", 1.0, 1.0, 1.3, 0.03, unit="volume ratio"),),
+    Effect("swelling", (Parameter("swelling", 1.0, 1.0, 3.0, 0.1, unit="volume ratio"),),
            shared=False, description="residual post-operative oedema (volumetric growth)"),
     Effect("gravity", (Parameter("gravity", 0.0, 0.0, 1.5, 0.25, unit="posture factor"),),
            shared=True, description="supine CT versus upright scan"),

@@ -82,9 +82,11 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
         (tmp / "diagnosis.json").write_text(json.dumps(record, indent=2, allow_nan=False))
         tables = {"Effects, best first (held-out shrinkage of the RMS gap)": (
             ["effect", "params", "identifiable", "RMS after (mm)", "shrink %", "held-out shrink %",
-             "spread %", "probability", "significant"],
+             "spread %", "held-out log density gain", "probability", "significant"],
             [[e["name"], json.dumps(e["params"]), e["identifiable"], e["rms_after_mm"], e["shrink_pct"],
-              e["heldout_shrink_pct"], e["heldout_shrink_spread_pct"], e["probability"], e["significant"]]
+              e["heldout_shrink_pct"], e["heldout_shrink_spread_pct"],
+              None if e.get("heldout_lpd_gain") is None else f"{e['heldout_lpd_gain']} ± {e['heldout_lpd_gain_se']}",
+              e["probability"], e["significant"]]
              for e in record["effects"]]),
             "Where the prediction misses (RMS gap per region)": (
             ["region", "RMS (mm)", "beyond noise + discrepancy", "above noise", "covered"],
@@ -94,8 +96,10 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
         em = record.get("error_model") or {}
         if "level_mm" in em:
             tables["Error model of the baseline gap (noise + model-form discrepancy)"] = (
-                ["noise (mm)", "discrepancy (mm)", "correlation length (mm)", "level (mm)"],
-                [[em["noise_mm"], em["discrepancy_mm"], em["correlation_length_mm"], em["level_mm"]]])
+                ["noise (mm)", "short scale (mm)", "correlation length (mm)", "long scale (mm)",
+                 "discrepancy (mm)", "level (mm)"],
+                [[em["noise_mm"], em.get("short_scale_mm"), em["correlation_length_mm"], em.get("long_scale_mm"),
+                  em["discrepancy_mm"], em["level_mm"]]])
         if shrink and "attributable_shrink_pct" in shrink.get("overall", {}):
             o = shrink["overall"]
             tables["Held-out shrinkage: the whole gap and the gap beyond noise + discrepancy"] = (

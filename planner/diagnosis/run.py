@@ -127,7 +127,10 @@ def _effect_entry(s: analysis.Scored) -> dict:
         "heldout_shrink_spread_pct": _r(s.spread_pct, 2),
         "bic": _r(s.gp_bic, 3),
         "bic_noise_only": _r(s.bic, 3),
-        "discrepancy_mm": _r(float(np.sqrt(np.mean([f.sigma_d ** 2 for f in s.gp]))) if s.gp else None),
+        "discrepancy_mm": _r(float(np.sqrt(np.mean([f.discrepancy_mm ** 2 for f in s.gp]))) if s.gp else None),
+        "heldout_lpd_gain": _r(s.lpd_gain, 2),
+        "heldout_lpd_gain_se": _r(s.lpd_gain_se, 2),
+        "wins_heldout": s.wins_heldout,
         "probability": _r(s.probability, 4),
         "shared": c.shared,
         "sensitivity": c.sensitivity,
@@ -191,8 +194,12 @@ def build_record(data: list, result: dict, effects) -> dict:
             "heldout": "spatial cross-validation over regions" if single else
                        "leave one case out (shared parameters); spatial cross-validation per case (case-specific)",
             "significance": {"bic_strong_evidence": 6.0,
-                             "bic": "-2 log L + k ln(n_eff) under noise + model-form discrepancy "
-                                    "(Gaussian process, amplitude and correlation length by maximum likelihood per model)",
+                             "bic": "-2 log L + k ln(n_eff) under noise + two-scale model-form discrepancy "
+                                    "(a Matern-3/2 Gaussian process and a linear polynomial field with Gaussian "
+                                    "coefficients; amplitudes and length by maximum likelihood per model)",
+                             "heldout": "log predictive density of each region given the others, effect fitted "
+                                        "without it; an effect must beat the discrepancy alone by twice the "
+                                        "standard error of the difference",
                              "min_heldout_shrink_pct": analysis.MIN_HELDOUT_SHRINK_PCT,
                              "heldout_shrink_vs_spread": 2.0},
             "shrinkage": {
@@ -217,8 +224,10 @@ def build_record(data: list, result: dict, effects) -> dict:
 
 
 def _error_entry(d, f) -> dict:
-    return {"noise_mm": _r(d.gap.noise_floor_mm), "discrepancy_mm": _r(f.sigma_d),
-            "correlation_length_mm": _r(f.ell, 1), "level_mm": _r(float(np.hypot(f.sigma_d, d.gap.noise_floor_mm))),
+    return {"noise_mm": _r(d.gap.noise_floor_mm), "discrepancy_mm": _r(f.discrepancy_mm),
+            "short_scale_mm": _r(f.sigma_d), "correlation_length_mm": _r(f.ell, 1),
+            "long_scale_mm": _r(f.long_mm), "long_scale_basis": "offset and tilts of the whole face (linear polynomial)",
+            "level_mm": _r(float(np.hypot(f.discrepancy_mm, d.gap.noise_floor_mm))),
             "points": int(len(d.error.idx))}
 
 
@@ -236,7 +245,7 @@ def _shrinkage(d, r0, fitted, heldout, gp=None) -> dict:
                        "heldout_shrink_pct": _r(100 * (1 - g.rms(heldout) / max(g.rms(r0), 1e-12)), 2)},
            "regions": {}}
     if gp is not None:
-        level = float(np.hypot(gp.sigma_d, g.noise_floor_mm))
+        level = float(np.hypot(gp.discrepancy_mm, g.noise_floor_mm))
         b, a, pct = attributable(g.rms(r0), g.rms(heldout), level)
         out["overall"].update({"error_level_mm": _r(level), "attributable_before_mm": _r(b),
                                "attributable_heldout_after_mm": _r(a), "attributable_shrink_pct": _r(pct, 2)})
@@ -253,7 +262,7 @@ def _pooled_shrinkage(data, r0s, winner) -> dict:
     b = analysis._pooled_rms(data, r0s)
     h = analysis._pooled_rms(data, winner.heldout)
     W = [float(d.gap.weights.sum()) for d in data]
-    level = float(np.sqrt(np.average([f.sigma_d ** 2 + d.gap.noise_floor_mm ** 2 for d, f in zip(data, winner.gp)],
+    level = float(np.sqrt(np.average([f.discrepancy_mm ** 2 + d.gap.noise_floor_mm ** 2 for d, f in zip(data, winner.gp)],
                                      weights=W)))
     ab, aa, pct = attributable(b, h, level)
     return {"overall": {"before_mm": _r(b), "after_mm": _r(analysis._pooled_rms(data, winner.fitted)),

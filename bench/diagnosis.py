@@ -193,6 +193,7 @@ def main_bench(argv=None) -> int:
                          "discrepancy0": d["error_model"]["discrepancy_mm"],
                          "effects": [(e["name"], e["heldout_shrink_pct"],
                                       None if e["bic"] is None else round(d["method"]["baseline_bic"] - e["bic"], 1),
+                                      e.get("heldout_lpd_gain"), e.get("heldout_lpd_gain_se"),
                                       e["significant"]) for e in d["effects"]],
                          "fitted": fitted, "time_s": time.perf_counter() - t,
                          "solves": d["solves"]["count"], "sensitivity": d["method"]["sensitivity"]})
@@ -202,8 +203,8 @@ def main_bench(argv=None) -> int:
                   f"{r['heldout_shrink']}% (attributable {r['attributable']}%); discrepancy "
                   f"{r['discrepancy0']} mm; fitted {json.dumps(fitted)}; {r['solves']} solves, "
                   f"{r['time_s']:.0f} s", flush=True)
-            print("    held-out %, BIC gain: " + "; ".join(f"{n} {h}% {b}{' *' if sig else ''}"
-                                                         for n, h, b, sig in r["effects"]),
+            print("    held-out %, BIC gain, held-out log density gain: "
+                  + "; ".join(f"{n} {h}% {b} {g}±{se}{' *' if sig else ''}" for n, h, b, g, se, sig in r["effects"]),
                   flush=True)
     finally:
         for obj in closing:

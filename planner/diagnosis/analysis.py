@@ -395,8 +395,12 @@ class Scored:
 
     @property
     def wins_heldout(self) -> bool:
-        """Predicts the held-out regions better than the discrepancy alone (see `_judge`)."""
-        return bool(np.isfinite(self.lpd_gain) and self.lpd_gain > max(0.0, 2.0 * self.lpd_gain_se))
+        """Predicts the held-out regions better than the discrepancy alone: a log predictive
+        density gain of at least half the strong-evidence BIC difference (a pseudo Bayes factor
+        of e^3, Geisser & Eddy 1979, on Kass & Raftery's scale) and of twice its standard error
+        over the folds (Vehtari, Gelman & Gabry 2017)."""
+        return bool(np.isfinite(self.lpd_gain)
+                    and self.lpd_gain >= max(fit.STRONG_EVIDENCE / 2.0, 2.0 * self.lpd_gain_se))
 
 
 def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> Scored:
@@ -576,9 +580,8 @@ def probabilities(gp0: float, scored: list[Scored]) -> dict[str, float]:
 
 def _judge(scored: list[Scored], gp0: float, lpd0: np.ndarray) -> None:
     """Significant: strong evidence against the baseline under noise + discrepancy, held-out
-    regions predicted better than by the discrepancy alone (log predictive density gain above
-    twice its standard error over the folds, Vehtari et al. 2017), and a held-out shrinkage of
-    at least `MIN_HELDOUT_SHRINK_PCT` and of twice its bootstrap spread."""
+    regions predicted better than by the discrepancy alone (`Scored.wins_heldout`), and a
+    held-out shrinkage of at least `MIN_HELDOUT_SHRINK_PCT` and of twice its bootstrap spread."""
     for s in scored:
         diff = np.asarray(s.lpd, float) - lpd0
         s.lpd_gain = float(diff.sum())

@@ -568,12 +568,13 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
 
 
 def probabilities(gp0: float, scored: list[Scored]) -> dict[str, float]:
-    """Model probabilities exp(-BIC / 2) normalised over the baseline and the models that
-    predict held-out regions better than the discrepancy alone; the others get 0: an effect
-    whose in-sample evidence does not carry over to unseen regions has fitted the
-    discrepancy, so no effect is given a probability above one half unless it wins on held-out
-    data."""
-    models = {"baseline": gp0, **{s.cand.name: s.gp_bic for s in scored if s.identifiable and s.wins_heldout}}
+    """Model probabilities exp(-BIC / 2) normalised over the baseline and the models with
+    strong evidence against it that also predict held-out regions better than the discrepancy
+    alone; the others get 0: an effect whose in-sample evidence is weak or does not carry over
+    to unseen regions has fitted the discrepancy, so no effect is given a probability above
+    one half unless it wins on held-out data."""
+    models = {"baseline": gp0, **{s.cand.name: s.gp_bic for s in scored if s.identifiable and s.wins_heldout
+                                  and gp0 - s.gp_bic >= fit.STRONG_EVIDENCE}}
     prob = fit.model_probabilities(models)
     return {"baseline": prob["baseline"], **{s.cand.name: prob.get(s.cand.name, 0.0) for s in scored}}
 

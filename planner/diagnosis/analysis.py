@@ -455,7 +455,7 @@ def heldout_lpd(cand: Candidate | None, data: list[CaseData], fits: list, heldou
             out.append(d.error.heldout_lpd(r, folds, f))
         else:
             out.append(d.error.heldout_lpd(cand.anchor_r[c], folds, f, cand.J[c], cand.theta[c],
-                                           cand.lower, cand.upper, cand.free))
+                                           cand.lower, cand.upper, cand.free, cand.origin))
     return np.concatenate(out)
 
 

@@ -253,10 +253,16 @@ def test_heldout_density_is_the_conditional_gaussian(sheet):
         want = logn(r, S) - logn(r[rest], S[np.ix_(rest, rest)])
         assert got == pytest.approx(want, rel=1e-6)
     # an effect whose pattern is in the gap predicts the held-out fold better than the
-    # discrepancy alone; the parameter is fitted without the fold
+    # discrepancy alone; the parameter (prior sd: half its range, 5) is learnt without the fold
     pat = _pattern(P, 20.0, 60.0, 20.0)
     r2 = r + 1.5 * pat
     f2 = em.fit(r2, -pat[:, None], np.zeros(1), [-5.0], [5.0], np.ones(1, bool))
     with_effect = em.heldout_lpd(r2, folds, f2, -pat[:, None], np.zeros(1), [-5.0], [5.0], np.ones(1, bool))
+    # with the parameter integrated out the joint is Gaussian with Sigma + J P J^T: the same
+    # conditional-density identity holds
+    Jp = -pat[:, None][em.idx]
+    SM = em.covariance(f2) + 25.0 * (Jp @ Jp.T)
+    rest = ~folds[0]
+    assert with_effect[0] == pytest.approx(logn(r2, SM) - logn(r2[rest], SM[np.ix_(rest, rest)]), rel=1e-6)
     without = em.heldout_lpd(r2, folds, em.fit(r2))
     assert with_effect[0] - without[0] >= 3.0

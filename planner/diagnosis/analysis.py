@@ -14,8 +14,9 @@ halved; the Jacobian follows by Broyden updates), at most `MAX_REFINEMENTS` solv
 
 The model is never exact: the gap carries a smooth model-form discrepancy besides the scan
 noise. Each effect is therefore judged against noise + discrepancy (`planner.diagnosis.
-discrepancy`: a Gaussian-process discrepancy whose amplitude and correlation length are
-estimated by maximum likelihood under each model, Kennedy & O'Hagan 2001), and its reported
+discrepancy`: a two-scale discrepancy, a short Gaussian process plus an offset and tilts of
+the face, whose amplitudes and length are estimated by maximum likelihood under each model,
+Kennedy & O'Hagan 2001), and its reported
 values are the generalised least-squares estimates under that error model about the refined
 fit (Brynjarsdottir & O'Hagan 2014: ordinary least squares lets the parameters absorb the
 discrepancy). Effects are ranked by held-out shrinkage of the RMS gap: with one case, spatial
@@ -24,7 +25,8 @@ all other regions); with several cases, parameters shared by every patient (stif
 are fitted leaving each case out in turn and case-specific ones per case with spatial
 cross-validation. The held-out prediction uses the local model about the refined fit,
 r(theta) = r* + J* (theta - theta*). An effect is `significant` when its BIC under noise +
-discrepancy beats the baseline's by strong evidence (`fit.STRONG_EVIDENCE`) and it removes at
+discrepancy beats the baseline's by strong evidence (`fit.STRONG_EVIDENCE`), it predicts
+held-out regions better than the discrepancy alone (`Scored.wins_heldout`), and it removes at
 least `MIN_HELDOUT_SHRINK_PCT` of the held-out gap and twice that shrinkage's bootstrap spread;
 a model-form gap may remain beside it (its regions are reported). Pairs with the effect of
 largest held-out shrinkage (significant or not: two effects can act together where neither

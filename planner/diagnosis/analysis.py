@@ -34,8 +34,9 @@ does alone) are tried when it leaves a gap above the noise. The verdict is the b
 effect (or pair, when the pair is itself significant and, if a single effect is, strongly
 better than it and shrinks the held-out gap further); else null when no region's gap stands
 out of noise + discrepancy, "unexplained" (with those regions) when some does. Its confidence
-is the total model probability (from the same BIC, among the baseline and every effect and pair
-compared) of the models that contain the named effect(s).
+is the total model probability (from the same BIC, among the baseline and the models that pass
+both the BIC and the held-out checks: `probabilities`) of the models that contain the named
+effect(s).
 """
 from __future__ import annotations
 

@@ -61,6 +61,14 @@ PRN_ARC_ABOVE_MM = 5.0
 # mm of profile either side of the most prominent point searched for the nose's tip: about
 # the nose's length along the profile
 NOSE_ARC_MM = 15.0
+# mm: the least a nose tip stands in front of the face's surface continued from beside it
+# (`_side_height`): noses stand 10-20 mm out by that measure, a lip or chin left below a nose cut
+# off by the scan stands level with it or behind it
+NOSE_MIN_PROMINENCE_MM = 5.0
+# the most prominent stretches of profile tried as the nose (nose, chin, lips)
+NOSE_CANDIDATES = 3
+# the deepest narrow grooves below the nose tried as the oral fissure
+MOUTH_CANDIDATES = 3
 # mm below pronasale where the fissure is sought: subnasale lies above the window's top on
 # every face the generic model describes (nose tip to subnasale 10-20 mm along the profile),
 # and the window reaches past the longest upper lip (nose tip to stomion ~45 mm at most)
@@ -169,26 +177,61 @@ def profile_features(skin: TargetSurface, generic: dict) -> tuple[dict | None, s
     prom = np.where(np.abs(t[:, 1]) > np.abs(t[:, 0]), p[:, 1] - side, np.nan)
     if not np.isfinite(prom).any():
         return None, "the patient skin's profile has no skin beside it: it does not look like a face"
-    i_nose = int(np.nanargmax(np.where(np.isfinite(prom), prom, np.nan)))
     # the tip: the most anterior point of the nose's stretch of profile (the prominence is
-    # largest where the skin beside the nose recedes most, which can be above the tip)
+    # largest where the skin beside the nose recedes most, which can be above the tip). The
+    # candidates are tried from the most prominent down (a broad chin can stand out of a
+    # tapering jaw as much as a small nose): a chin or lip is refused by the nose above it
     s_arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p[:, 1:], axis=0), axis=1))])
-    near = np.flatnonzero(np.abs(s_arc - s_arc[i_nose]) <= NOSE_ARC_MM)
-    i_prn = int(near[np.argmax(p[near, 1])])
-    above = p[:i_prn + 1]
-    arc_above = float(s_arc[i_prn])
-    if arc_above < PRN_ARC_ABOVE_MM or above[:, 1].max() > p[i_prn, 1] + PRN_ABOVE_TOL_MM:
-        return None, ("the patient skin's profile ends at or in front of the nose's most prominent "
-                      "point: the scan does not show the nose tip")
+    order = np.argsort(-np.where(np.isfinite(prom), prom, -np.inf))
+    tried: list[float] = []
+    i_prn = None
+    for i_nose in order[:len(order) - int(np.isnan(prom).sum())]:
+        if any(abs(s_arc[i_nose] - t) <= NOSE_ARC_MM for t in tried):
+            continue
+        if len(tried) == NOSE_CANDIDATES:
+            break
+        tried.append(float(s_arc[i_nose]))
+        near = np.flatnonzero(np.abs(s_arc - s_arc[i_nose]) <= NOSE_ARC_MM)
+        i_tip = int(near[np.argmax(p[near, 1])])
+        if (s_arc[i_tip] >= PRN_ARC_ABOVE_MM and p[:i_tip + 1, 1].max() <= p[i_tip, 1] + PRN_ABOVE_TOL_MM
+                and np.isfinite(prom[i_tip]) and prom[i_tip] >= NOSE_MIN_PROMINENCE_MM):
+            i_prn = i_tip
+            break
+    if i_prn is None:
+        return None, ("no point of the patient skin's profile stands out like a nose tip with the nasal "
+                      "dorsum above it: the scan does not show the nose tip")
     prn = most_anterior(p, max(0, i_prn - 20), min(len(p) - 1, i_prn + 20))
     lo, hi = prn[2] - MOUTH_BELOW_PRN_MM[0], prn[2] - MOUTH_BELOW_PRN_MM[1]
     band = np.flatnonzero((z < lo) & (z > hi) & (np.arange(len(p)) > i_prn))
     depth = _chord_depth(p, FISSURE_HALF_CHORD_MM)
     if len(band) < 3 or not np.isfinite(depth[band]).any():
         return None, "the patient skin's profile does not reach the mouth below the nose"
-    i_mouth = int(band[np.argmax(depth[band])])
-    if depth[i_mouth] <= 0:
+    # the fissure: the deepest narrow grooves of the band are candidates (the nasolabial or
+    # labiomental concavity can be as deep under the short chord on a blocky face); each gives
+    # a feature set, the caller keeps the one the generic features fit best
+    d = np.where(np.isfinite(depth[band]), depth[band], -np.inf)
+    peaks = [k for k in range(len(band)) if d[k] > 0 and d[k] >= d[max(k - 1, 0)] and d[k] >= d[min(k + 1, len(band) - 1)]]
+    peaks.sort(key=lambda k: -d[k])
+    chosen: list[int] = []
+    for k in peaks:
+        if all(abs(s_arc[band[k]] - s_arc[band[j]]) > 2 * FISSURE_HALF_CHORD_MM for j in chosen):
+            chosen.append(k)
+        if len(chosen) == MOUTH_CANDIDATES:
+            break
+    if not chosen:
         return None, "no oral fissure (a groove between the lips) on the patient skin's profile"
+    out, why = [], ""
+    for k in chosen:
+        f, why = _below_mouth(p, z, i_prn, int(band[k]), prn)
+        if f is not None:
+            f["nose_prominence_mm"] = float(prom[i_prn]) if np.isfinite(prom[i_prn]) else None
+            out.append(f)
+    return (out or None), why
+
+
+def _below_mouth(p, z, i_prn, i_mouth, prn):
+    """Subnasale, pogonion for the fissure at profile vertex i_mouth: the feature set, or
+    (None, reason)."""
     i_sn = deepest_under_bitangent(p, i_prn, i_mouth) if i_mouth - i_prn >= 3 else None
     below = np.flatnonzero((z < p[i_mouth, 2] - 3.0) & (z > p[i_mouth, 2] - CHIN_BELOW_MOUTH_MM)
                            & (np.arange(len(p)) > i_mouth))
@@ -230,16 +273,25 @@ def _one_pass(skin: TargetSurface, start: Similarity, generic: dict, seed: int):
     skin_g = skin.transformed(inv.scale, inv.rotation, inv.translation)
     frame, info = symmetry_frame(skin_g, seed)
     skin_s = skin_g.transformed(frame.scale, frame.rotation, frame.translation)
-    found, why = profile_features(skin_s, generic)
-    if found is None:
+    sets, why = profile_features(skin_s, generic)
+    if sets is None:
         info["refused"] = why
         return None, info
     src = np.array([generic[k] for k in FEATURES])
-    dst = np.array([found[k] for k in FEATURES])
-    if np.any(np.diff(dst[:, 2]) >= 0):
+    best = None
+    for found in sets:
+        dst = np.array([found[k] for k in FEATURES])
+        if np.any(np.diff(dst[:, 2]) >= 0):
+            continue
+        plane, rms = plane_similarity(src, dst)
+        if best is None or rms < best[1]:
+            best = (plane, rms, found)
+    if best is None:
         info["refused"] = "the features found on the profile are not in their top-to-bottom order"
         return None, info
-    plane, rms = plane_similarity(src, dst)
+    plane, rms, found = best
+    info["nose_prominence_mm"] = found.pop("nose_prominence_mm", None)
+    info["candidates"] = len(sets)
     pitch = float(np.degrees(np.arctan2(plane.rotation[2, 1], plane.rotation[1, 1])))
     back = start.compose(frame.inverse())
     info.update(features_rms_mm=rms, pitch_correction_deg=pitch, plane_scale=plane.scale,

@@ -102,3 +102,18 @@ def test_face_cut_below_the_eyes_registers_without_landmarks(generic, alt):
     assert "nasal_root" in rep["regions_not_fitted"]
     assert not rep["regions"]["nasal_root"]["fitted"]
     assert rep["regions"]["upper_lip"]["fitted"] and rep["regions"]["nose"]["fitted"]
+
+
+def test_landmark_free_placement_unchecked_by_the_profile_is_flagged():
+    """The quality gate: a landmark-free registration whose profile features could not be found
+    rests on the surfaces' bulk fit alone; the user is told why and given the remedy. A face
+    placed by its profile features is not flagged for the skull frame's refusal (the profile,
+    not the skull, gave the frame)."""
+    from planner.registration_gate import registration_notes
+
+    rep = {"alignment": {"method": "surfaces", "profile_pose": {"refused": "the scan does not show the nose tip"}}}
+    (note,) = registration_notes(rep)
+    assert "nose tip" in note and "landmarks" in note
+    placed = {"alignment": {"method": "surfaces", "pose": "profile", "profile_pose": {}},
+              "landmark_search": {"head_frame_refused": "the skull fit turns the head by 40 deg"}}
+    assert registration_notes(placed) == []

@@ -470,8 +470,10 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
             # a few mm of their features (the profile pose's own error); one found farther from
             # where it was carried is another feature of the profile (the labiomental fold taken
             # for the mouth slit on a foreign face): it is not used
-            far = sorted(k for k in found
-                         if np.linalg.norm(found[k] - carried[k]) > PROFILE_LOCATED_MAX_MOVE_MM)
+            # (menton excepted: the chin's lowest point is sought along the submental contour up
+            # to MENTON_REACH from where it was carried, no feature guides it)
+            far = sorted(k for k in found if k != "Me"
+                         and np.linalg.norm(found[k] - carried[k]) > PROFILE_LOCATED_MAX_MOVE_MM)
             for k in far:
                 del found[k]
             if far:

@@ -353,9 +353,13 @@ def test_located_landmarks_are_the_true_ones(generic, head, without_landmarks):
     # and the search (with the profile's features) is what brings them there: the registration from
     # the surfaces alone leaves the stomion superius on the facets between the lips, several mm off
     assert before["Stms"] > 3.0 and max(err.values()) < max(before.values())
-    # the landmark nodes sit on the located points, reported in the patient frame
+    # the landmark nodes sit on the located points, reported in the patient frame -- but for the
+    # stomia the lip separation released to make room where the lips still crossed (their
+    # distance to the truth is checked above)
+    released = set(report["lip_separation"]["landmark_nodes_released"])
     for k, v in located.items():
-        np.testing.assert_allclose(patient.nodes[generic.landmarks[k]], v["point"], atol=1e-6)
+        if generic.landmarks[k] not in released:
+            np.testing.assert_allclose(patient.nodes[generic.landmarks[k]], v["point"], atol=1e-6)
     assert report["quality"]["n_inverted"] == 0 and report["quality"]["min_scaled_jacobian"] >= 0.2
     assert report["fit"]["skin"]["mean_mm"] < 0.3 and report["fit"]["skin"]["p95_mm"] < 1.0
     lips = report["lip_separation"]["after"]

@@ -16,21 +16,25 @@ from the surface alignment:
    detection for 3D geometry", SIGGRAPH 2006, for symmetry by registration to the mirror);
    the pose is turned so that this plane is x = 0, which fixes yaw, roll and the lateral shift;
 2. the profile: the skin cut by that plane (`landmark_search.sagittal_profile`), on which the
-   anatomical features are found by their definitions (Farkas 1994), each within a window
-   relative to the previous one, so that a pitch of the starting pose of up to ~20 degrees
-   does not change which feature is found: pronasale (the most anterior point of the nose),
-   the oral fissure (the deepest narrow groove below it: the point farthest behind the chord
-   of the profile FISSURE_HALF_CHORD_MM either side, lips rolling out on both sides of it),
-   subnasale (the deepest concavity under the anterior hull between them) and soft pogonion
-   (the anterior hull vertex below the labiomental fold, the deepest concavity below the mouth);
+   anatomical features are found by their definitions (Farkas 1994) with measures that do not
+   depend on the starting pose's pitch: pronasale (the most anterior point of the stretch of
+   profile standing farthest in front of the face's surface continued from beside it, at
+   x = +-20 mm extrapolated from +-35 mm, height for height; with the nasal dorsum above it and
+   nothing above it standing farther forward), the oral fissure (a deep narrow groove 12-60 mm
+   below: the point farthest behind the chord of the profile FISSURE_HALF_CHORD_MM either side,
+   the lips rolling out on both sides of it), subnasale (the deepest concavity under the
+   anterior hull between them) and soft pogonion (the anterior hull vertex below the
+   labiomental fold, the deepest concavity below the mouth). Up to NOSE_CANDIDATES stretches
+   are tried as the nose and MOUTH_CANDIDATES grooves as the fissure (multi-hypothesis);
 3. the in-plane similarity (rotation about x, translation in y and z, one scale) taking the
    generic model's landmark nodes Prn, Sn, the stomion midpoint and Pog onto those features,
-   in closed form (Umeyama 1991 in the plane, with complex numbers); steps 1-3 are repeated
-   once from the corrected pose.
+   in closed form (Umeyama 1991 in the plane, with complex numbers); of the feature sets, the
+   one it fits best (lowest RMS) is kept; steps 1-3 are repeated once from the corrected pose.
 
-The pose is accepted only when every feature is found, in profile order, and the features fit
-a similarity to FEATURE_RMS_MAX_MM RMS; otherwise `profile_pose` returns None with the reason,
-and the caller refuses the registration or keeps the surface pose (`registration.mesh_match`).
+The pose is accepted only when every feature is found, in profile order, the features fit a
+similarity to FEATURE_RMS_MAX_MM RMS and the pose turns the face by at most MAX_PITCH_DEG from
+the surface alignment; otherwise `profile_pose` returns None with the reason, and the caller
+keeps the surface pose and says so (`registration.mesh_match`, `planner.registration_gate`).
 A skin that does not show the nose tip (a CBCT cut through the nose) has no pronasale: nothing
 on it fixes the face's height (the lips and chin are smooth along the profile).
 """

@@ -83,9 +83,7 @@ def test_convexified_surface_contact_tangent_is_a_psd_modification():
     rng = np.random.default_rng(3)
     lower = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
     upper = lower + [0.2, 0.3, -0.05]             # penetrating by 0.05 mm
-    x = np.vstack([lower, upper[:, ::-1] * [1, 1, 1]])
-    x[4:] = upper
-    x += 0.01 * rng.standard_normal(x.shape)
+    x = np.vstack([lower, upper]) + 0.01 * rng.standard_normal((8, 3))
     a = np.array([[0, 1, 2, 3]])                  # normal +z
     b = np.array([[7, 6, 5, 4]])                  # normal -z
     t = SurfaceContact(x, a, b, penalty=50.0, search_radius=1.0, max_depth=1.0,

@@ -22,6 +22,15 @@ from pathlib import Path
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
 
+class _Echo(dict):
+    """The stage times, each also printed to stderr as it is recorded."""
+
+    def __setitem__(self, key, value):
+        super().__setitem__(key, value)
+        if isinstance(value, float):
+            print(f"  {key}: {value:.1f} s (load {os.getloadavg()[0]:.1f})", file=sys.stderr, flush=True)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=3)
@@ -44,7 +53,7 @@ def main() -> int:
         head = synthetic_head(args.seed)
         write_case(folder, head, follow_up_months=fu)
         stages["head_and_case_s"] = time.perf_counter() - t0
-        timings = {}
+        timings = _Echo()
         record = make_postop(str(folder), args.seed, parse_withheld(args.effect), args.truth_resolution,
                              contact=not args.no_contact, timings=timings)
     total = time.perf_counter() - t_all

@@ -308,7 +308,8 @@ def prolonged_patient(generic, companion_generic, companion):
     companion's registered positions. The finer mesh's free nodes that the coarser elements'
     chords bring within the teeth clearance are pushed clear (`registration.teeth.
     clear_teeth`: the skin and the attached nodes held, the elements kept above the
-    registration's scaled-Jacobian threshold). Returns (patient model, location, report)."""
+    registration's scaled-Jacobian threshold, `registration.repair.repair_mesh` for any
+    element still below it). Returns (patient model, location, report)."""
     import dataclasses
     import time
 
@@ -316,6 +317,7 @@ def prolonged_patient(generic, companion_generic, companion):
     from registration.mesh_match import MatchOptions
     from registration.prolong import carry, locate_points
     from registration.quality import min_scaled_jacobian
+    from registration.repair import repair_mesh
     from registration.teeth import Arch, clear_teeth
 
     t0 = time.perf_counter()
@@ -327,11 +329,11 @@ def prolonged_patient(generic, companion_generic, companion):
               "outside_companion_mm": round(float(loc.outside_mm.max()), 4),
               "min_scaled_jacobian_carried": round(float(min_scaled_jacobian(x, H).min()), 4)}
     opt = MatchOptions()
+    held = np.concatenate([np.asarray(generic.node_sets["skin"], np.int64)]
+                          + [np.asarray(v, np.int64) for k, v in generic.node_sets.items()
+                             if k.startswith("attach_")])
     if companion.teeth:
         arches = [Arch(k, v, f, seg) for k, (v, f, seg) in companion.teeth.items()]
-        held = np.concatenate([np.asarray(generic.node_sets["skin"], np.int64)]
-                              + [np.asarray(v, np.int64) for k, v in generic.node_sets.items()
-                                 if k.startswith("attach_")])
         # a margin over the clearance: the repair after each push may take a node back a little
         for _ in range(3):
             x, rep = clear_teeth(x, H, arches, held, clearance=opt.teeth_clearance_mm + 0.05,
@@ -342,6 +344,11 @@ def prolonged_patient(generic, companion_generic, companion):
                            "nodes_pushed": int(rep.get("nodes_pushed", 0)),
                            "min_distance_after_mm": round(float(rep["min_signed_distance_after_mm"]), 4)}
     q = min_scaled_jacobian(x, H)
+    if q.min() < opt.threshold:
+        # a finer element across a kink between two coarser ones can fall below the
+        # registration's threshold: repaired as the registration repairs (skin and bone held)
+        x, _ = repair_mesh(x, H, threshold=opt.threshold, fixed=held)
+        q = min_scaled_jacobian(x, H)
     report["min_scaled_jacobian"] = round(float(q.min()), 4)
     if q.min() <= 0.0:
         raise SolveError(f"the {len(x)}-node model carried from the registered companion has "

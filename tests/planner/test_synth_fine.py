@@ -66,13 +66,13 @@ def test_a_registration_carried_to_the_finer_mesh_stays_on_the_patient(tmp_path)
     movable = np.setdiff1d(np.arange(len(x)), held)
     arches = [Arch(k, v, f, s) for k, (v, f, s) in patient.teeth.items()]
     assert union_distance(arches, x[movable], 2.0)[0].min() >= opt.teeth_clearance_mm - 1e-6
-    # the carried skin: where the coarse registered skin is (its facets are the coarse
-    # registration's fit, gated at skin_mean_gate_mm = 1 mm on average), so the finer skin
-    # nodes are on the patient skin as closely on average, and within the sag of a coarse
-    # facet (~8 mm wide on a >= 15 mm radius: h^2 / 8R < 0.6 mm) plus the fit at worst
+    # the carried skin is where the coarse registered skin is (its facets are the coarse
+    # registration's fit, gated at skin_mean_gate_mm = 1 mm on average; the synthetic skin is
+    # closed, so every skin node has skin under it): on average within that gate, and its
+    # median within the sag of a coarse facet (~8 mm wide on a >= 30 mm radius of the face:
+    # h^2 / 8R ~ 0.3 mm) of the coarse skin nodes' own median distance
     skin = TargetSurface(case.skin.vertices, case.skin.faces, "skin")
     d_fine = np.abs(skin.closest(x[np.asarray(standard.node_sets["skin"])]).distance)
     d_coarse = np.abs(skin.closest(np.asarray(patient_c.nodes)[np.asarray(coarse.node_sets["skin"])]).distance)
-    front = d_fine < 10.0          # the skin the head's surface covers (the back is open)
-    assert np.mean(d_fine[front]) <= opt.skin_mean_gate_mm
-    assert np.median(d_fine[front]) <= np.median(d_coarse[d_coarse < 10.0]) + 0.3
+    assert np.mean(d_fine) <= opt.skin_mean_gate_mm
+    assert np.median(d_fine) <= np.median(d_coarse) + 0.3

@@ -65,7 +65,8 @@ REDUCTION_MARGIN = 0.9      # of the load fraction reached: the last converged s
 MIN_REDUCTION = 0.25        # never below a quarter of the value in one reduction
 TRUTH_RESOLUTION = "standard"   # fine: beyond the 2-minute budget per case (docs/effects.md)
 # a fine truth is registered at the standard resolution and carried to the fine mesh (the same
-# generic tissue, `prolonged_patient`): a fine registration of its own costs minutes
+# generic tissue, `prolonged_patient`): a fine registration of its own costs minutes, and each
+# fine solve several standard ones, so the effect's value is set on the standard model
 REGISTERED_AT = {"fine": "standard"}
 
 
@@ -364,8 +365,9 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     folder; return the key record's post-op fields. contact: lip contact in the truth model
     (on for every case the command makes; off only to keep tests on coarse meshes short).
     A truth resolution listed in REGISTERED_AT is registered at its companion resolution and
-    carried to its own mesh (`prolonged_patient`). timings: a dict that receives the stages'
-    times (s) and the solves' Newton counts."""
+    carried to its own mesh (`prolonged_patient`); the effect's value is set and its skin
+    change measured on the companion, and the finer model solved once with that value.
+    timings: a dict that receives the stages' times (s) and the solves' Newton counts."""
     import dataclasses
     import time
 
@@ -411,10 +413,12 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     except (reg_errors.RegistrationInputError, reg_errors.RegistrationFailure) as exc:
         raise SolveError(f"{folder.name}: registration of the truth model failed: {exc}") from exc
     timings[f"register_{companion}_s"] = time.perf_counter() - clock
-    carried = None
+    finer = None
     if companion != truth_resolution:
+        # the value is set, and its skin change measured, on the registered model; the finer
+        # truth is solved once, with the value found (the scan is made from it)
         clock = time.perf_counter()
-        patient, _, carried = prolonged_patient(perturbed(truth_resolution), perturbed(companion), patient)
+        finer, _, _ = prolonged_patient(perturbed(truth_resolution), perturbed(companion), patient)
         timings[f"carry_to_{truth_resolution}_s"] = time.perf_counter() - clock
     clock = time.perf_counter()
     base = solve_plan(patient, truth_plan, case.bones, follow_up_months=fu)
@@ -493,6 +497,17 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                     corrections.append({"from": round(v0, 5), "to": round(v, 5),
                                         "max_mm_before": change["max_mm"]})
                     change = change1
+    if finer is not None:
+        clock = time.perf_counter()
+        try:
+            pred = solve_plan(finer, truth_plan, case.bones, effects=effects, plan_actual=plan_actual,
+                              follow_up_months=fu)
+        except SolveError as exc:
+            raise SolveError(f"{folder.name}: the {truth_resolution} truth solve failed "
+                             f"(effects {json.dumps(effects.as_dict())}): {exc}") from exc
+        finally:
+            timings[f"solve_{truth_resolution}_s"] = time.perf_counter() - clock
+        solves.append(_solve_record(truth_resolution, pred))
     # the post-op skin: the patient's skin moved with the truth model's skin, scanned
     clock = time.perf_counter()
     x_pre, tris, ids = skin_surface(pred.model)
@@ -509,6 +524,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
             "plan_actual": plan_actual is not None, "value_reductions": reductions,
             "value_corrections": corrections,
             "effect_skin_change_mm": {"regions": list(region) if region else "skin", **change,
+                                      "measured_at": companion,
                                       "target_max_mm": None if target is None else round(target, 4)}}
 
 

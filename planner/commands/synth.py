@@ -309,12 +309,15 @@ def prolonged_patient(generic, companion_generic, companion):
     companion's registered positions. The finer mesh's free nodes that the coarser elements'
     chords bring within the teeth clearance are pushed clear (`registration.teeth.
     clear_teeth`: the skin and the attached nodes held, the elements kept above the
-    registration's scaled-Jacobian threshold, `registration.repair.repair_mesh` for any
-    element still below it). Returns (patient model, location, report)."""
+    registration's scaled-Jacobian threshold, a lip node pushed only away from the other
+    lip), the lips separated where the pushes made them cross (`registration.lips.
+    separate_lips`, to the registration's gap) and any element still below the threshold
+    repaired (`registration.repair.repair_mesh`). Returns (patient model, location, report)."""
     import dataclasses
     import time
 
     from registration.face import reorient_fibres
+    from registration.lips import lip_overlap, quad_vertex_normals, separate_lips
     from registration.mesh_match import MatchOptions
     from registration.prolong import carry, locate_points
     from registration.quality import min_scaled_jacobian
@@ -333,17 +336,40 @@ def prolonged_patient(generic, companion_generic, companion):
     held = np.concatenate([np.asarray(generic.node_sets["skin"], np.int64)]
                           + [np.asarray(v, np.int64) for k, v in generic.node_sets.items()
                              if k.startswith("attach_")])
-    if companion.teeth:
-        arches = [Arch(k, v, f, seg) for k, (v, f, seg) in companion.teeth.items()]
+    attached = np.concatenate([np.asarray(v, np.int64) for k, v in generic.node_sets.items()
+                               if k.startswith("attach_")] or [np.zeros(0, np.int64)])
+    lips = None
+    if {"lip_upper_contact", "lip_lower_contact"} <= set(generic.facet_sets):
+        lips = (np.asarray(generic.facet_sets["lip_upper_contact"]),
+                np.asarray(generic.facet_sets["lip_lower_contact"]))
+    arches = [Arch(k, v, f, seg) for k, (v, f, seg) in (companion.teeth or {}).items()]
+    if arches:
+        away = None
+        if lips is not None:        # a lip node pushed off the teeth not into the other lip
+            away = -(quad_vertex_normals(x, lips[0]) + quad_vertex_normals(x, lips[1]))
+            away[np.intersect1d(np.unique(lips[0]), np.unique(lips[1]))] = 0.0
         # a margin over the clearance: the repair after each push may take a node back a little
+        pushes = []
         for _ in range(3):
             x, rep = clear_teeth(x, H, arches, held, clearance=opt.teeth_clearance_mm + 0.05,
-                                 threshold=opt.threshold)
+                                 threshold=opt.threshold, away=away)
+            pushes.append(rep)
             if rep["min_signed_distance_after_mm"] >= opt.teeth_clearance_mm:
                 break
-        report["teeth"] = {"nodes_inside_before": int(rep.get("nodes_inside_before", 0)),
-                           "nodes_pushed": int(rep.get("nodes_pushed", 0)),
+        report["teeth"] = {"nodes_inside_before": int(pushes[0].get("nodes_inside_before", 0)),
+                           "nodes_pushed": int(sum(r.get("nodes_pushed", 0) for r in pushes)),
                            "min_distance_after_mm": round(float(rep["min_signed_distance_after_mm"]), 4)}
+    if lips is not None:
+        # the lips apart across the slit as the registration leaves them (the pushes off the
+        # teeth move each lip's inner edge; `registration.lips.separate_lips`)
+        gap0 = lip_overlap(x, *lips)["min_gap_mm"]
+        if gap0 < opt.lip_gap_mm - 1e-3:
+            x, _ = separate_lips(x, H, lips[0], lips[1], attached,
+                                 skin_nodes=np.asarray(generic.node_sets["skin"], np.int64),
+                                 gap=opt.lip_gap_mm, threshold=opt.threshold, arches=arches or None,
+                                 teeth_clearance=opt.teeth_clearance_mm)
+        report["lips"] = {"min_gap_before_mm": round(float(gap0), 4),
+                          "min_gap_mm": round(float(lip_overlap(x, *lips)["min_gap_mm"]), 4)}
     q = min_scaled_jacobian(x, H)
     if q.min() < opt.threshold:
         # a finer element across a kink between two coarser ones can fall below the

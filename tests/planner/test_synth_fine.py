@@ -44,6 +44,7 @@ def test_a_registration_carried_to_the_finer_mesh_stays_on_the_patient(tmp_path)
     import registration
     from facemodel.synthetic import synthetic_head
     from planner.case import load_case
+    from registration.lips import lip_overlap
     from registration.mesh_match import MatchOptions
     from registration.surface import TargetSurface
     from registration.teeth import Arch, union_distance
@@ -66,6 +67,11 @@ def test_a_registration_carried_to_the_finer_mesh_stays_on_the_patient(tmp_path)
     movable = np.setdiff1d(np.arange(len(x)), held)
     arches = [Arch(k, v, f, s) for k, (v, f, s) in patient.teeth.items()]
     assert union_distance(arches, x[movable], 2.0)[0].min() >= opt.teeth_clearance_mm - 1e-6
+    # the lips apart across the slit, as the registration leaves them (gap 0.1 mm, worked to
+    # within separate_lips' 0.05 mm tolerance): lip contact cannot start from crossed lips
+    gap = lip_overlap(x, np.asarray(standard.facet_sets["lip_upper_contact"]),
+                      np.asarray(standard.facet_sets["lip_lower_contact"]))["min_gap_mm"]
+    assert gap >= opt.lip_gap_mm - 0.05
     # the carried skin is where the coarse registered skin is (its facets are the coarse
     # registration's fit, gated at skin_mean_gate_mm = 1 mm on average; the synthetic skin is
     # closed, so every skin node has skin under it): on average within that gate, and its

@@ -10,7 +10,9 @@ With `--withheld-effect NAME[=VALUE] | random | none` each case also gets postop
 plan's prediction WITH that effect (none: without any), made on a model that is not the one a
 diagnosis fits (the generic face at `--truth-resolution`, its dermis and deep layers 0.8-1.2
 times as thick, its moduli 0.85-1.15 times the generic ones per layer, its bulk modulus
-500-2000 times the shear modulus, registered onto the head), seen as a frontal surface scanner
+500-2000 times the shear modulus, registered onto the head; a fine truth is registered at the
+standard resolution and carried to the fine mesh, `prolonged_patient`, its effect value set on
+the standard model), seen as a frontal surface scanner
 sees it (`facemodel.synthetic.scan_like_surface`: a range image on a 0.6 mm grid, median edge
 ~0.8 mm, the front of the face only, holes at the mouth slit, nostrils and under the chin, 0.2 mm noise along the
 normals, a rigid offset up to 2 mm / 2 deg); case.yaml gets `follow_up_months` (3-12), and

@@ -301,6 +301,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             int(sum(len(c.nodes) for c in constraints)), "terms": list(terms),
             "activations": activations, "sliding": list(sliding),
             "cutbacks": res.cutbacks, "factorizations": res.factorizations,
+            "convexified_updates": res.convexified,
             "krylov_iterations": res.krylov_iterations, "timings": res.timings}
     if contact:
         info["penetration_mm"] = {k: float(t.penetration(x)) for k, t in terms.items()}

@@ -2,8 +2,10 @@
 
 `registration_notes(report)` reads the report of `registration.mesh_match_and_repair` and
 returns one sentence per figure far outside what a consistent case gives, naming the likely
-cause, and one when the landmarks were located on the skin without the head's frame (the skull
-fit refused: `registration.mesh_match._head_frame`). On consistent cases (the synthetic heads,
+cause, one when the landmarks were located on the skin without the head's frame (the skull
+fit refused: `registration.mesh_match._head_frame`) and the face not placed by its profile's
+features, and one when, without landmarks, the profile's features could not be found
+(`registration.profile_pose`): the placement then rests on the surfaces' bulk fit alone. On consistent cases (the synthetic heads,
 the demo head) the skin fit has a p95 below 1 mm and a maximum below 3 mm, the bone fit a mean
 below 0.5 mm and a maximum below ~10 mm (the chin's edge), and the repair touches 1-2 % of the
 elements; the limits below are two to three times those, so a note means that something in the
@@ -51,8 +53,14 @@ def registration_notes(report: dict) -> list[str]:
                      "inputs pull the mesh in contradicting directions (skin, bones and landmarks "
                      "disagree)")
     refused = _get(report, "landmark_search", "head_frame_refused")
-    if refused:
+    by_profile = _get(report, "alignment", "pose") == "profile"
+    if refused and not by_profile:
         notes.append(f"the landmarks were located on the skin without the head's own frame ({refused}): "
                      "on a face unlike the generic model they can be 10-20 mm off along the profile; "
                      "give at least four landmarks (landmarks.json)")
+    why = _get(report, "alignment", "profile_pose", "refused")
+    if why and _get(report, "alignment", "method") == "surfaces":
+        notes.append(f"the face was placed on the skin by its surfaces alone, its profile's features not "
+                     f"checked ({why}): on a face unlike the generic model the mouth and chin can be "
+                     "10-20 mm off; give at least four landmarks (landmarks.json)")
     return notes

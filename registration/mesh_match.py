@@ -36,6 +36,7 @@ from registration.errors import RegistrationFailure, RegistrationInputError
 from registration.landmark_fit import landmark_correction
 from registration.landmark_search import LOCATED, locate_landmarks, mirror_pairs
 from registration.lips import lip_overlap, quad_vertex_normals, separate_lips
+from registration.profile_pose import FEATURES, profile_pose
 from registration.quality import min_scaled_jacobian, quality_summary
 from registration.repair import SurfaceConstraint, repair_mesh
 from registration.surface import TargetSurface
@@ -89,6 +90,9 @@ class MatchOptions:
     # a lip's skin node at the slit's front edge may leave the patient skin by up to this much
     # where the skin takes its push back (lips touching or crossing as scanned); None: never
     lip_skin_release_mm: float | None = 1.0
+    # without landmarks, the pose corrected by the skin's symmetry plane and profile features
+    # (registration.profile_pose) where the surface alignment misplaces them
+    profile_pose: bool = True
     seed: int = 0
 
 
@@ -238,11 +242,49 @@ def initial_alignment(model: MatchInput, skin: TargetSurface, landmarks: dict | 
     sim = icp.similarity
     info.update(method="surfaces", trimmed_rms_mm=icp.rms_mm, inlier_fraction=icp.inliers,
                 scale=sim.scale, rotation_deg=sim.rotation_deg)
+    # the face's own features correct a bulk fit that puts them elsewhere (a face of other
+    # proportions than the generic one): the profile pose is used where it moves the generic
+    # nose, mouth or chin by more than PROFILE_POSE_AGREE_MM from where the surfaces put them
+    feats = profile_feature_nodes(model)
+    if feats is not None and options.profile_pose:
+        pose, pinfo = profile_pose(skin, sim, feats, seed=options.seed)
+        info["profile_pose"] = pinfo
+        if pose is not None:
+            src = np.array([feats[k] for k in FEATURES])
+            moved = float(np.linalg.norm(pose.apply(src) - sim.apply(src), axis=1).max())
+            pinfo["features_moved_mm"] = moved
+            if moved > PROFILE_POSE_AGREE_MM:
+                sim = pose
+                info.update(method="surfaces", pose="profile", scale=sim.scale, rotation_deg=sim.rotation_deg)
     if not 0.65 <= sim.scale <= 1.5:
         raise RegistrationInputError(
             f"the patient skin matches the face model only at scale {sim.scale:.3g}: it does not "
             f"look like a face in mm", field="skin")
     return sim, info
+
+
+# mm: the surface pose is kept where the profile pose places the generic features within this
+# of it: the elastic stage and the local landmark search (its reach about the mouth is 7 mm)
+# recover such a difference; beyond it the features decide
+PROFILE_POSE_AGREE_MM = 5.0
+
+
+# mm: how far a located landmark may lie from where the elastic stage, guided by the profile's
+# features, carried it: the profile pose places the features to 1-3 mm and the stomia lie within
+# 1-3 mm of the fissure point, while the nearest other feature a definition can latch onto (the
+# labiomental fold below the lips, the columella above) lies 10 mm or more away
+PROFILE_LOCATED_MAX_MOVE_MM = 8.0
+
+
+def profile_feature_nodes(model: MatchInput) -> dict | None:
+    """The generic model's positions of the profile features (`registration.profile_pose`):
+    its pronasale, subnasale, stomion midpoint and pogonion nodes; None without them."""
+    lm = model.landmark_nodes
+    if not all(k in lm for k in ("Prn", "Sn", "Stms", "Stmi", "Pog")):
+        return None
+    x = np.asarray(model.nodes, float)
+    return {"Prn": x[lm["Prn"]], "Sn": x[lm["Sn"]], "mouth": 0.5 * (x[lm["Stms"]] + x[lm["Stmi"]]),
+            "Pog": x[lm["Pog"]]}
 
 
 # deg: the largest tilt the skull may correct in the alignment of skin and bones (module
@@ -390,7 +432,18 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         if common:
             lm = (np.array([model.landmark_nodes[k] for k in common]),
                   inv.apply(np.array([landmarks[k] for k in common], dtype=float)))
-    x, elog = elastic_register(x, skin_group, skin_tris, groups, lm, opt.schedule, seed=opt.seed)
+    # without landmarks, the features the profile pose found on the skin guide the elastic
+    # stage as landmarks do (the stomion nodes both towards the fissure point, which lies
+    # between them): the bulk of a foreign face otherwise slides its mouth and chin along the
+    # smooth profile by up to 10-15 mm, beyond the reach of the landmark search that follows
+    guide = lm
+    feats = (align_info.get("profile_pose") or {}).get("features")
+    if lm is None and feats and "refused" not in align_info["profile_pose"]:
+        pairs = [(k, f) for k, f in (("Prn", "Prn"), ("Sn", "Sn"), ("Stms", "mouth"), ("Stmi", "mouth"),
+                                     ("Pog", "Pog")) if k in model.landmark_nodes]
+        guide = (np.array([model.landmark_nodes[k] for k, _ in pairs], np.int64),
+                 inv.apply(np.array([feats[f] for _, f in pairs], float)))
+    x, elog = elastic_register(x, skin_group, skin_tris, groups, guide, opt.schedule, seed=opt.seed)
     times["elastic_s"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
@@ -412,6 +465,20 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         found, search_report = locate_landmarks(skin_g, x, mirror_pairs(model.nodes, skin_ids), carried,
                                                 missing, frame=head_frame)
         search_report.update(frame_info)
+        if guide is not lm:
+            # the elastic stage followed the profile's features: the carried landmarks are within
+            # a few mm of their features (the profile pose's own error); one found farther from
+            # where it was carried is another feature of the profile (the labiomental fold taken
+            # for the mouth slit on a foreign face): it is not used
+            # (menton excepted: the chin's lowest point is sought along the submental contour up
+            # to MENTON_REACH from where it was carried, no feature guides it)
+            far = sorted(k for k in found if k != "Me"
+                         and np.linalg.norm(found[k] - carried[k]) > PROFILE_LOCATED_MAX_MOVE_MM)
+            for k in far:
+                del found[k]
+            if far:
+                search_report["not_used_far_from_profile_pose"] = far
+                search_report["not_found"] = sorted(set(search_report["not_found"]) | set(far))
         if found:
             add = list(found)
             located = add

@@ -67,6 +67,8 @@ class NewtonResult:
     predictor: str = "tangent"       # the load-step predictor used ("tangent" or "secant")
     predictor_rejections: int = 0    # steps restarted with the tangent predictor
     early_augmentations: int = 0     # solves stopped early for an augmentation
+    convexified: int = 0             # updates solved again with convexified term tangents
+                                     # (the exact one was not a descent direction)
     # forces the constraints exert on the body (residual at the constrained dofs), (n, 3), in
     # each node's local frame where a LocalFrame is given, zero at unconstrained components
     reactions: np.ndarray | None = None
@@ -293,6 +295,7 @@ class _Run:
         self.pardiso0 = dict(_linalg.TIMING)
         self._start_mixed = None
         self._term_states = []
+        self.convex = False              # the terms assemble convexified tangents
 
     # --- state of the three-field iteration --------------------------------------------------
     def mixed_state(self):
@@ -390,25 +393,16 @@ class _Run:
             return step.failed("invalid start state", ev)
         tiny = 1e-10 * max(1.0, float(np.abs(targets).max()) if len(targets) else 1.0)
         residuals = []
+        # every solve starts with the terms' exact tangents (`_descent_direction`)
+        self.convex = False
+        for t in system.terms:
+            t.convexify(False)
         for it in range(1, control.max_iterations + 1):
             gap = targets - self.uhat(x)[cons.dofs]
-            rhs = -r if cpl is None else -r - cpl
-            rhs[cons.dofs] = system.constraint_scale * gap
-            t0 = time.perf_counter()
-            try:
-                if isinstance(lin, LaggedFactorSolver):
-                    scale = max(ev.force_scale, 1e-300)
-                    eta = _forcing(lin, _norm(rhs), control.rtol * scale, scale)
-                    du_hat = lin.solve(A, rhs, rtol=eta)
-                else:
-                    du_hat = lin.solve(A, rhs)
-            except Exception as exc:        # a singular or failed factorisation: cut back
-                return step.failed(f"linear solver failed ({exc})", ev)
-            system.timing["solve"] += time.perf_counter() - t0
-            stats = getattr(lin, "last", None) or {"krylov_iterations": 0, "refactorized": True}
-            result.krylov_iterations += stats["krylov_iterations"]
-            if not np.all(np.isfinite(du_hat)):
-                return step.failed("linear solve gave NaN", ev)
+            out = self._descent_direction(x, target, targets, step_no, it, ev, r, A, cpl, gap)
+            if isinstance(out, str):        # a singular or failed factorisation: cut back
+                return step.failed(out, ev)
+            du_hat, rhs, stats, r, A, cpl = out
             du = cons.to_global(du_hat).reshape(-1, 3)
             # directional derivative of the potential along du (the coupling to the
             # constrained increments included): its magnitude is FEBio's energy norm
@@ -463,6 +457,67 @@ class _Run:
                 ev, r, A, cpl = system.evaluate(x, target, targets=targets)
         step.reason = f"no convergence in {control.max_iterations} iterations (|R| = {rn:.3e})"
         return step
+
+    def _linear_solve(self, A, rhs, ev):
+        """The Newton system A du = rhs (the lagged strategy's forcing term from the
+        residual); (du_hat, statistics) or the reason of a failure (str)."""
+        lin, control, system = self.lin, self.control, self.system
+        t0 = time.perf_counter()
+        try:
+            if isinstance(lin, LaggedFactorSolver):
+                scale = max(ev.force_scale, 1e-300)
+                eta = _forcing(lin, _norm(rhs), control.rtol * scale, scale)
+                du_hat = lin.solve(A, rhs, rtol=eta)
+            else:
+                du_hat = lin.solve(A, rhs)
+        except Exception as exc:
+            return f"linear solver failed ({exc})"
+        system.timing["solve"] += time.perf_counter() - t0
+        stats = getattr(lin, "last", None) or {"krylov_iterations": 0, "refactorized": True}
+        self.result.krylov_iterations += stats["krylov_iterations"]
+        if not np.all(np.isfinite(du_hat)):
+            return "linear solve gave NaN"
+        return du_hat, stats
+
+    def _descent_direction(self, x, target, targets, step_no, it, ev, r, A, cpl, gap):
+        """The Newton update at x: (du_hat, rhs, statistics, r, A, coupling), or the reason
+        of a failure (str).
+
+        With a positive definite tangent the update is a descent direction of the potential
+        (du . r = -du . A du < 0; an inexact CG solve started from zero keeps this: its
+        iterate is A-orthogonal to its residual). du . r >= 0 means the tangent is indefinite
+        along du (a contact term's curvature -p d2g/dx2 of a node pressed onto a convex
+        surface, a negative stiffness as large as the tissue's): Newton then heads for a
+        saddle and, the problem being smooth, cycles about it instead of converging. The
+        terms are then asked for a positive semi-definite modification of their tangents
+        (`Term.convexify`: the curvature parts projected, the residual unchanged, the
+        projected Newton method of Teran, Sifakis, Irving & Fedkiw 2005; a modified-Hessian
+        Newton method, Nocedal & Wright 2006, sec. 3.4) and the update is solved again with
+        it. The next iteration starts again from the exact tangent: where it gives a descent
+        direction Newton converges quadratically, where the projected curvature matters the
+        modified one converges only linearly.
+        """
+        system, cons, free = self.system, self.cons, self.cons.free
+        while True:
+            rhs = -r if cpl is None else -r - cpl
+            rhs[cons.dofs] = system.constraint_scale * gap
+            out = self._linear_solve(A, rhs, ev)
+            if isinstance(out, str):
+                return out
+            du_hat, stats = out
+            g0 = -_dot(du_hat[free], rhs[free])
+            if self.convex:
+                for t in system.terms:
+                    t.convexify(False)
+                self.convex = False
+                return du_hat, rhs, stats, r, A, cpl
+            if not g0 > 0.0 or not any([bool(t.convexify(True)) for t in system.terms]):
+                return du_hat, rhs, stats, r, A, cpl
+            self.convex = True
+            self.result.convexified += 1
+            log.info("step %d it %d: the update is not a descent direction (du.r = %.3e > 0): "
+                     "convexified contact tangents", step_no, it, g0)
+            _, r, A, cpl = system.evaluate(x, target, targets=targets)
 
     def _update(self, x, du, du_hat, g0, ev, r, target, targets, has_gap):
         """The accepted length s of the update du and the evaluation at x + s du: limited by

@@ -56,6 +56,14 @@ class Term(ABC):
         solver may then stop the solve early, `SolverControl.augmentation_rtol`)."""
         return False
 
+    def convexify(self, on: bool) -> bool:
+        """Assemble (on=True) a positive semi-definite modification of the term's tangent in
+        place of its exact one from now on, the force unchanged (the solver asks for it when
+        a Newton update is not a descent direction of the potential; on=False: back to the
+        exact tangent). Returns whether the term has an indefinite part it modifies; the
+        default has none."""
+        return False
+
     # attributes that never change during a solve (geometry, settings): not part of the
     # state `save_step` copies
     static_state: tuple = ()
@@ -81,7 +89,7 @@ class _Adapted(Term):
     def __init__(self, term):
         self.term = term
         for name in ("energy", "end_step", "coupling_pairs", "restart_step",
-                     "augmentation_due", "save_step", "restore_step"):
+                     "augmentation_due", "save_step", "restore_step", "convexify"):
             method = getattr(term, name, None)
             if callable(method):
                 setattr(self, name, method)

@@ -120,6 +120,16 @@ class RigidSurfaceContact(ContactTerm):
         self.last = None
         self._active = None
         self._face = None
+        self._convex = False
+
+    def convexify(self, on: bool) -> bool:
+        """With on=True the curvature part -p_i d2g/dx2 of the tangent is projected (its
+        negative eigenvalues clipped to zero, as with tangent="projected" before the status
+        is frozen) at every assembly until convexify(False); the forces are unchanged.
+        Returns True: a node pressed onto a convex part of the surface has a negative
+        tangential stiffness."""
+        self._convex = bool(on)
+        return True
 
     # ------------------------------------------------------------------ geometry
     def transform(self, load: float) -> np.ndarray:
@@ -215,7 +225,7 @@ class RigidSurfaceContact(ContactTerm):
         off = reg[active] != FACE
         if self.grid is not None:
             curvature = -pa[:, None, None] * self._hess[active]
-            if self.tangent == "projected" and not frozen:
+            if (self.tangent == "projected" and not frozen) or self._convex:
                 curvature = psd_projection(curvature)
             Kb += curvature
         elif np.any(off):
@@ -228,7 +238,8 @@ class RigidSurfaceContact(ContactTerm):
             P -= t[:, :, None] * t[:, None, :]
             go = ga[off]
             greg = np.where(go >= 0, 1.0, -1.0) * np.maximum(np.abs(go), 1e-4)
-            Kb[off] += (-pa[off] / greg)[:, None, None] * P
+            curvature = (-pa[off] / greg)[:, None, None] * P
+            Kb[off] += psd_projection(curvature) if self._convex else curvature
         if self.stick:
             fs, Ks = self._stick_terms(load, active, y, n)
             f += fs

@@ -26,7 +26,8 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from solver.contact._uzawa import AugmentedLagrangian, ContactTerm, deepest_penetration
-from solver.contact._geometry import facet_normals, nodal_areas, plane_gap, triangulate
+from solver.contact._geometry import (facet_normals, nodal_areas, plane_gap, psd_projection,
+                                      triangulate)
 
 __all__ = ["SurfaceContact"]
 
@@ -165,6 +166,7 @@ class SurfaceContact(ContactTerm):
         if two_pass:
             self.passes.append(_Pass(nodes, surface_b, surface_a, pair_hysteresis))
         self._resolve_load, self._resolved = None, []
+        self._convex = False
         self.initial_penetration = 0.0
         if ignore_initial_penetration:
             for ps in self.passes:
@@ -173,6 +175,14 @@ class SurfaceContact(ContactTerm):
                 ps.previous[:] = -1
                 self.initial_penetration = max(self.initial_penetration,
                                                float(ps.offset.max(initial=0.0)))
+
+    def convexify(self, on: bool) -> bool:
+        """With on=True the curvature part -p d2g/dx2 of each pair's tangent (the rotation
+        of the master plane, indefinite in the 12 coordinates of slave and master nodes) is
+        projected onto the positive semi-definite matrices (negative eigenvalues clipped to
+        zero) until convexify(False); the forces are unchanged."""
+        self._convex = bool(on)
+        return True
 
     def coupling_pairs(self, reach: float | None = None) -> np.ndarray:
         """(k, 2) node pairs this term may couple: each slave node with the nodes of the
@@ -220,7 +230,10 @@ class SurfaceContact(ContactTerm):
                 continue
             gr, hs, dd = grad[a], hess[a], dofs[a]
             np.add.at(f, dd.ravel(), (-p[a, None] * gr).ravel())
-            Ke = eps[a, None, None] * gr[:, :, None] * gr[:, None, :] - p[a, None, None] * hs
+            curvature = -p[a, None, None] * hs
+            if self._convex:
+                curvature = psd_projection(curvature)
+            Ke = eps[a, None, None] * gr[:, :, None] * gr[:, None, :] + curvature
             rows.append(np.repeat(dd, 12, axis=1).ravel())
             cols.append(np.tile(dd, (1, 12)).ravel())
             vals.append(Ke.ravel())

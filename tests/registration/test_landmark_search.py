@@ -330,8 +330,10 @@ def head():
 @pytest.fixture(scope="module")
 def without_landmarks(generic, head):
     searched = mesh_match_and_repair(generic, head.skin, head.bones, None, cache=False)
+    # the registration from the surfaces alone: neither the landmark search nor the profile's
+    # features (registration.profile_pose, which guide the elastic stage) place the landmarks
     carried = mesh_match_and_repair(generic, head.skin, head.bones, None, cache=False,
-                                    options=MatchOptions(locate_landmarks=False))
+                                    options=MatchOptions(locate_landmarks=False, profile_pose=False))
     return searched, carried
 
 
@@ -348,12 +350,16 @@ def test_located_landmarks_are_the_true_ones(generic, head, without_landmarks):
     # on the exact skin, picked on the scan: the search finds them on the scan's ~3 mm facets)
     for k in LOCATED_HERE:
         assert err[k] < 1.5, (k, err[k], before[k])
-    # and the search is what brings them there: the registration alone leaves the stomion
-    # superius on the facets between the lips, several mm off
+    # and the search (with the profile's features) is what brings them there: the registration from
+    # the surfaces alone leaves the stomion superius on the facets between the lips, several mm off
     assert before["Stms"] > 3.0 and max(err.values()) < max(before.values())
-    # the landmark nodes sit on the located points, reported in the patient frame
+    # the landmark nodes sit on the located points, reported in the patient frame -- but for the
+    # stomia the lip separation released to make room where the lips still crossed (their
+    # distance to the truth is checked above)
+    released = set(report["lip_separation"]["landmark_nodes_released"])
     for k, v in located.items():
-        np.testing.assert_allclose(patient.nodes[generic.landmarks[k]], v["point"], atol=1e-6)
+        if generic.landmarks[k] not in released:
+            np.testing.assert_allclose(patient.nodes[generic.landmarks[k]], v["point"], atol=1e-6)
     assert report["quality"]["n_inverted"] == 0 and report["quality"]["min_scaled_jacobian"] >= 0.2
     assert report["fit"]["skin"]["mean_mm"] < 0.3 and report["fit"]["skin"]["p95_mm"] < 1.0
     lips = report["lip_separation"]["after"]

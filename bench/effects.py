@@ -5,7 +5,9 @@ seeds from `--seed`), the generic face of `--resolution` is registered onto the 
 plan predicted without and with each effect at a mid-range value (`EFFECTS`); the skin change
 (node displacement difference on the skin) is summarised per region as RMS and max over the
 patients' skin nodes, next to the scan noise (0.2 mm, `faceplan synth`). An effect whose
-change stays below the noise in a region cannot be seen there. Also prints the time of one
+change stays below the noise in a region cannot be seen there. A row of `REFERENCE` is
+measured against another row's prediction (the head pitch against the level upright head);
+the mandible's execution error carries the chin segment (`facemodel.effects.executed_motions`). Also prints the time of one
 `skin_sensitivities` call for every continuous parameter. Prints one table; lip contact is
 off unless `--contact` (the coarse face with contact takes minutes per solve).
 """
@@ -22,19 +24,26 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__)
 
 import numpy as np  # noqa: E402
 
-# mid-range values (docs/effects.md gives the ranges): posture supine -> upright; a peak
-# swelling of 2 (residual 14 % at 6 months: growth 1.14 at the scan); the maxilla 1.25 mm and
+# mid-range values (docs/effects.md gives the ranges): posture supine -> upright, and the
+# upright head pitched 10 deg chin down; a peak swelling of 2 (residual 14 % at 6 months:
+# growth 1.14 at the scan); the maxilla, or the mandible carrying the chin segment, 1.25 mm and
 # 2 deg off; a light resting tone; the lips and chin sliding; one layer softer / stiffer
 EFFECTS = {
     "gravity": ["gravity=1"],
+    "gravity, pitch +10 deg": ["gravity=1", "gravity.pitch=10"],
+    "pitch +10 deg vs pitch 0": ["gravity=1", "gravity.pitch=10"],
     "swelling": ["swelling=2"],
     "bone_execution": ["bone_execution.maxilla=[0.72, 0.72, 0.72, 2, 0, 0]"],
+    "bone_execution.mandible+chin": ["bone_execution.mandible=[0.72, 0.72, 0.72, 2, 0, 0]"],
     "muscle_tone": ["muscle_tone=0.1"],
     "sliding": ["sliding=1"],
     "stiffness.hypodermis=0.6": ["stiffness.hypodermis=0.6"],
     "stiffness.dermis=2": ["stiffness.dermis=2"],
     "stiffness=2 (uniform)": ["stiffness=2"],
 }
+# rows measured against another row's prediction instead of the baseline: the pitch's own
+# share of the posture change
+REFERENCE = {"pitch +10 deg vs pitch 0": "gravity"}
 REGIONS = ("upper_lip", "lower_lip", "chin", "nose", "cheek_left", "cheek_right", "submental")
 NOISE_MM = 0.2
 FOLLOW_UP = 6.0
@@ -46,7 +55,12 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=100)
     parser.add_argument("--resolution", default="coarse", choices=("coarse", "standard", "fine"))
     parser.add_argument("--contact", action="store_true", help="lip contact on")
+    parser.add_argument("--rows", default=None, metavar="TEXT[,TEXT]",
+                        help="only the rows whose name contains one of these (default: all)")
     args = parser.parse_args()
+    rows = [k for k in EFFECTS if args.rows is None or any(t in k for t in args.rows.split(","))]
+    effects = {k: EFFECTS[k] for k in EFFECTS
+               if k in rows or any(REFERENCE.get(r) == k for r in rows)}
 
     from facemodel.synthetic import synthetic_head
     from planner.case import load_case
@@ -55,7 +69,7 @@ def main() -> int:
                                   skin_surface, solve_plan)
     from planner.plan import load_plan
 
-    changes = {k: {r: [] for r in REGIONS + ("all",)} for k in EFFECTS}
+    changes = {k: {r: [] for r in REGIONS + ("all",)} for k in effects}
     times = []
     with tempfile.TemporaryDirectory(prefix="faceplan-bench-effects-") as tmp:
         for i in range(args.count):
@@ -73,9 +87,13 @@ def main() -> int:
             names = effect_parameter_names(base)
             skin_sensitivities(base, names)
             times.append((time.perf_counter() - t0, len(names)))
-            for key, eff in EFFECTS.items():
-                pred = solve_plan(patient, plan, case.bones, effects=eff, follow_up_months=FOLLOW_UP)
-                d = np.linalg.norm(pred.displacement[ids] - base.displacement[ids], axis=1)
+            preds = {}
+            for key, eff in effects.items():
+                same = next((k for k in preds if effects[k] == eff), None)
+                preds[key] = preds[same] if same else solve_plan(patient, plan, case.bones, effects=eff,
+                                                                 follow_up_months=FOLLOW_UP)
+                ref = preds[REFERENCE[key]] if key in REFERENCE else base
+                d = np.linalg.norm(preds[key].displacement[ids] - ref.displacement[ids], axis=1)
                 changes[key]["all"].append(d)
                 for r in REGIONS:
                     mask = np.isin(ids, np.asarray(base.model.regions.get(r, ()), np.int64))
@@ -85,7 +103,7 @@ def main() -> int:
     print(f"skin change RMS / max (mm) per region, {args.count} patients, {args.resolution} face, "
           f"contact {'on' if args.contact else 'off'}; scan noise {NOISE_MM} mm; * = RMS above the noise")
     print(f"{'effect':28s}" + "".join(f"{c:>16s}" for c in cols))
-    for key in EFFECTS:
+    for key in rows:
         row = f"{key:28s}"
         for c in cols:
             d = np.concatenate(changes[key][c]) if changes[key][c] else np.zeros(0)

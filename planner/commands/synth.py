@@ -10,7 +10,9 @@ With `--withheld-effect NAME[=VALUE] | random | none` each case also gets postop
 plan's prediction WITH that effect (none: without any), made on a model that is not the one a
 diagnosis fits (the generic face at `--truth-resolution`, its dermis and deep layers 0.8-1.2
 times as thick, its moduli 0.85-1.15 times the generic ones per layer, its bulk modulus
-500-2000 times the shear modulus, registered onto the head), seen as a frontal surface scanner
+500-2000 times the shear modulus, registered onto the head; a fine truth is registered at the
+standard resolution and carried to the fine mesh, `prolonged_patient`, its effect value set on
+the standard model), seen as a frontal surface scanner
 sees it (`facemodel.synthetic.scan_like_surface`: a range image on a 0.6 mm grid, median edge
 ~0.8 mm, the front of the face only, holes at the mouth slit, nostrils and under the chin, 0.2 mm noise along the
 normals, a rigid offset up to 2 mm / 2 deg); case.yaml gets `follow_up_months` (3-12), and
@@ -64,6 +66,10 @@ MAX_REDUCTIONS = 2
 REDUCTION_MARGIN = 0.9      # of the load fraction reached: the last converged state had it
 MIN_REDUCTION = 0.25        # never below a quarter of the value in one reduction
 TRUTH_RESOLUTION = "standard"   # fine: beyond the 2-minute budget per case (docs/effects.md)
+# a fine truth is registered at the standard resolution and carried to the fine mesh (the same
+# generic tissue, `prolonged_patient`): a fine registration of its own costs minutes, and each
+# fine solve several standard ones, so the effect's value is set on the standard model
+REGISTERED_AT = {"fine": "standard"}
 
 
 def add_arguments(parser) -> None:
@@ -242,6 +248,14 @@ def _skin_change(pred, base, regions=None) -> dict:
     return {"rms_mm": round(float(np.sqrt(np.mean(d * d))), 4), "max_mm": round(float(d.max()), 4)}
 
 
+def _solve_record(kind: str, pred) -> dict:
+    """Newton counts of one truth solve (for the bench and the progress log)."""
+    info = pred.solver.get("info", {})
+    return {"solve": kind, "nodes": int(len(pred.model.nodes)), "steps": pred.solver.get("steps"),
+            "iterations": pred.solver.get("iterations"), "cutbacks": info.get("cutbacks"),
+            "factorizations": info.get("factorizations")}
+
+
 def solve_reducing(solve, effects, name: str | None, attempts: int = MAX_REDUCTIONS):
     """(prediction, effects used, reductions) of `solve(effects)`; when the solve fails and
     `name` is an effect whose value was set from a skin-change target (a value the truth model
@@ -274,12 +288,116 @@ def solve_reducing(solve, effects, name: str | None, attempts: int = MAX_REDUCTI
             effects = effects.with_value(name, v)
 
 
+def lip_groups(nodes, hexes=None):
+    """Side of the mouth slit of generic nodes (hexes None) or elements: 1 below the mouth
+    line (lower lip), 2 above, 0 on it (nodes outside the slit, where the lips join). The
+    generic meshes are built along rays of the mean head (`generic_mesh.builder`), so a
+    node's elevation in that frame is its chart row's; every resolution has a row on the
+    mouth line, so no element straddles it."""
+    from facemodel import head_geometry as hg
+
+    _, phi, _ = hg.from_cartesian(np.asarray(nodes, float), hg.GENERIC)
+    if hexes is not None:
+        return np.where(phi[np.asarray(hexes)].mean(axis=1) < hg.PHI_STOMION, 1, 2)
+    tol = 1e-7                  # deg: round-off of the ray frame, far below any row spacing
+    return np.where(phi < hg.PHI_STOMION - tol, 1, np.where(phi > hg.PHI_STOMION + tol, 2, 0))
+
+
+def prolonged_patient(generic, companion_generic, companion):
+    """The patient model of `generic` (a finer generic mesh, e.g. fine) from the registration
+    `companion` of `companion_generic` (e.g. standard) without registering it again: every
+    node of `generic` located in `companion_generic` (both are meshes of the same generic
+    tissue, `registration.prolong`; each lip's nodes in that lip's elements) and carried by the
+    companion's registered positions. The finer mesh's free nodes that the coarser elements'
+    chords bring within the teeth clearance are pushed clear (`registration.teeth.
+    clear_teeth`: the skin and the attached nodes held, the elements kept above the
+    registration's scaled-Jacobian threshold, a lip node pushed only away from the other
+    lip), the lips separated where the pushes made them cross (`registration.lips.
+    separate_lips`, to the registration's gap) and any element still below the threshold
+    repaired (`registration.repair.repair_mesh`). Returns (patient model, location, report)."""
+    import dataclasses
+    import time
+
+    from registration.face import reorient_fibres
+    from registration.lips import lip_overlap, quad_vertex_normals, separate_lips
+    from registration.mesh_match import MatchOptions
+    from registration.prolong import carry, locate_points
+    from registration.quality import min_scaled_jacobian
+    from registration.repair import repair_mesh
+    from registration.teeth import Arch, clear_teeth
+
+    t0 = time.perf_counter()
+    X, H = np.asarray(generic.nodes, float), np.asarray(generic.hexes, np.int64)
+    loc = locate_points(X, companion_generic.nodes, companion_generic.hexes, point_group=lip_groups(X),
+                        element_group=lip_groups(companion_generic.nodes, companion_generic.hexes))
+    x = carry(loc, companion_generic.hexes, companion.nodes)
+    report = {"companion_nodes": int(len(companion.nodes)), "nodes": int(len(x)),
+              "outside_companion_mm": round(float(loc.outside_mm.max()), 4),
+              "min_scaled_jacobian_carried": round(float(min_scaled_jacobian(x, H).min()), 4)}
+    opt = MatchOptions()
+    held = np.concatenate([np.asarray(generic.node_sets["skin"], np.int64)]
+                          + [np.asarray(v, np.int64) for k, v in generic.node_sets.items()
+                             if k.startswith("attach_")])
+    attached = np.concatenate([np.asarray(v, np.int64) for k, v in generic.node_sets.items()
+                               if k.startswith("attach_")] or [np.zeros(0, np.int64)])
+    lips = None
+    if {"lip_upper_contact", "lip_lower_contact"} <= set(generic.facet_sets):
+        lips = (np.asarray(generic.facet_sets["lip_upper_contact"]),
+                np.asarray(generic.facet_sets["lip_lower_contact"]))
+    arches = [Arch(k, v, f, seg) for k, (v, f, seg) in (companion.teeth or {}).items()]
+    if arches:
+        away = None
+        if lips is not None:        # a lip node pushed off the teeth not into the other lip
+            away = -(quad_vertex_normals(x, lips[0]) + quad_vertex_normals(x, lips[1]))
+            away[np.intersect1d(np.unique(lips[0]), np.unique(lips[1]))] = 0.0
+        # a margin over the clearance: the repair after each push may take a node back a little
+        pushes = []
+        for _ in range(3):
+            x, rep = clear_teeth(x, H, arches, held, clearance=opt.teeth_clearance_mm + 0.05,
+                                 threshold=opt.threshold, away=away)
+            pushes.append(rep)
+            if rep["min_signed_distance_after_mm"] >= opt.teeth_clearance_mm:
+                break
+        report["teeth"] = {"nodes_inside_before": int(pushes[0].get("nodes_inside_before", 0)),
+                           "nodes_pushed": int(sum(r.get("nodes_pushed", 0) for r in pushes)),
+                           "min_distance_after_mm": round(float(rep["min_signed_distance_after_mm"]), 4)}
+    if lips is not None:
+        # the lips apart across the slit as the registration leaves them (the pushes off the
+        # teeth move each lip's inner edge; `registration.lips.separate_lips`)
+        gap0 = lip_overlap(x, *lips)["min_gap_mm"]
+        if gap0 < opt.lip_gap_mm - 1e-3:
+            x, _ = separate_lips(x, H, lips[0], lips[1], attached,
+                                 skin_nodes=np.asarray(generic.node_sets["skin"], np.int64),
+                                 gap=opt.lip_gap_mm, threshold=opt.threshold, arches=arches or None,
+                                 teeth_clearance=opt.teeth_clearance_mm)
+        report["lips"] = {"min_gap_before_mm": round(float(gap0), 4),
+                          "min_gap_mm": round(float(lip_overlap(x, *lips)["min_gap_mm"]), 4)}
+    q = min_scaled_jacobian(x, H)
+    if q.min() < opt.threshold:
+        # a finer element across a kink between two coarser ones can fall below the
+        # registration's threshold: repaired as the registration repairs (skin and bone held)
+        x, _ = repair_mesh(x, H, threshold=opt.threshold, fixed=held)
+        q = min_scaled_jacobian(x, H)
+    report["min_scaled_jacobian"] = round(float(q.min()), 4)
+    if q.min() <= 0.0:
+        raise SolveError(f"the {len(x)}-node model carried from the registered companion has "
+                         f"{int(np.sum(q <= 0))} inverted element(s)")
+    fibres = reorient_fibres(X, x, H, generic.fibres)
+    report["time_s"] = round(time.perf_counter() - t0, 2)
+    return dataclasses.replace(generic, nodes=x, fibres=fibres, teeth=companion.teeth), loc, report
+
+
 def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
-                contact: bool = True) -> dict:
+                contact: bool = True, timings: dict | None = None) -> dict:
     """Predict and write `folder`/postop/skin.stl (and plan_actual.yaml) for an existing case
     folder; return the key record's post-op fields. contact: lip contact in the truth model
-    (on for every case the command makes; off only to keep tests on coarse meshes short)."""
+    (on for every case the command makes; off only to keep tests on coarse meshes short).
+    A truth resolution listed in REGISTERED_AT is registered at its companion resolution and
+    carried to its own mesh (`prolonged_patient`); the effect's value is set and its skin
+    change measured on the companion, and the finer model solved once with that value.
+    timings: a dict that receives the stages' times (s) and the solves' Newton counts."""
     import dataclasses
+    import time
 
     import trimesh
     import yaml
@@ -305,24 +423,43 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
         value = withheld[1]
     # the truth model: generic layers re-proportioned, moduli perturbed, registered
     dermis, deep = (float(rng.uniform(1 - sy.PERTURB_LAYER, 1 + sy.PERTURB_LAYER)) for _ in range(2))
-    generic = sy.perturb_layers(generic_mesh.load(truth_resolution), RESOLUTIONS[truth_resolution][3],
-                                dermis=dermis, deep=deep)
+
+    def perturbed(resolution):
+        return sy.perturb_layers(generic_mesh.load(resolution), RESOLUTIONS[resolution][3],
+                                 dermis=dermis, deep=deep)
+
     overrides, mat_record = sy.perturbed_materials(rng)
     truth_plan = dataclasses.replace(plan, model=dataclasses.replace(plan.model, materials=overrides,
                                                                      contact=bool(contact)))
+    timings = {} if timings is None else timings
+    companion = REGISTERED_AT.get(truth_resolution, truth_resolution)
+    clock = time.perf_counter()
     try:
         patient, _ = registration.mesh_match_and_repair(
-            generic, case.skin, case.bones, landmarks=case.landmarks or None,
+            perturbed(companion), case.skin, case.bones, landmarks=case.landmarks or None,
             teeth=case.teeth or None, cache=False)
     except (reg_errors.RegistrationInputError, reg_errors.RegistrationFailure) as exc:
         raise SolveError(f"{folder.name}: registration of the truth model failed: {exc}") from exc
+    timings[f"register_{companion}_s"] = time.perf_counter() - clock
+    finer = None
+    if companion != truth_resolution:
+        # the value is set, and its skin change measured, on the registered model; the finer
+        # truth is solved once, with the value found (the scan is made from it)
+        clock = time.perf_counter()
+        finer, _, _ = prolonged_patient(perturbed(truth_resolution), perturbed(companion), patient)
+        timings[f"carry_to_{truth_resolution}_s"] = time.perf_counter() - clock
+    clock = time.perf_counter()
     base = solve_plan(patient, truth_plan, case.bones, follow_up_months=fu)
+    timings["solve_base_s"] = time.perf_counter() - clock
+    solves = [_solve_record("base", base)]
     target = None
     if name is not None and value is None:
         # the value that changes the skin by a target drawn from the published range, from
         # the truth model's own sensitivity (linear estimate; the change reached is recorded)
         target = float(rng.uniform(*SKIN_CHANGE_MM[name]))
+        clock = time.perf_counter()
         ids, sens = skin_sensitivities(base, [name])
+        timings["sensitivity_s"] = time.perf_counter() - clock
         _, mask = _region_ids(base.model, SKIN_CHANGE_REGIONS[name])
         per_unit = float(np.linalg.norm(sens[name], axis=1)[mask].max())
         p = fe.parameters(name)[0]
@@ -344,8 +481,14 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
             effects = fe.parse_effects({"bone_execution": 1})
     pred = base
     def truth(eff):
-        return solve_plan(patient, truth_plan, case.bones, effects=eff, plan_actual=plan_actual,
-                          follow_up_months=fu)
+        clock = time.perf_counter()
+        try:
+            out = solve_plan(patient, truth_plan, case.bones, effects=eff, plan_actual=plan_actual,
+                             follow_up_months=fu)
+        finally:
+            timings["solve_effect_s"] = timings.get("solve_effect_s", 0.0) + time.perf_counter() - clock
+        solves.append(_solve_record("effect", out))
+        return out
 
     reductions = []
     if effects.active:
@@ -382,19 +525,34 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                     corrections.append({"from": round(v0, 5), "to": round(v, 5),
                                         "max_mm_before": change["max_mm"]})
                     change = change1
+    if finer is not None:
+        clock = time.perf_counter()
+        try:
+            pred = solve_plan(finer, truth_plan, case.bones, effects=effects, plan_actual=plan_actual,
+                              follow_up_months=fu)
+        except SolveError as exc:
+            raise SolveError(f"{folder.name}: the {truth_resolution} truth solve failed "
+                             f"(effects {json.dumps(effects.as_dict())}): {exc}") from exc
+        finally:
+            timings[f"solve_{truth_resolution}_s"] = time.perf_counter() - clock
+        solves.append(_solve_record(truth_resolution, pred))
     # the post-op skin: the patient's skin moved with the truth model's skin, scanned
+    clock = time.perf_counter()
     x_pre, tris, ids = skin_surface(pred.model)
     moved_skin = sy.displaced_surface(case.skin.vertices, x_pre, tris, pred.displacement[ids])
     V, F, scan = sy.scan_like_surface(moved_skin, case.skin.faces, case.landmarks, rng)
     (folder / "postop").mkdir(exist_ok=True)
     trimesh.Trimesh(V, F, process=False).export(folder / "postop" / "skin.stl")
+    timings["scan_s"] = time.perf_counter() - clock
+    timings["solves"] = solves
     return {"effect": name, "value": value if name else None,
-            "perturbation": {"truth_resolution": truth_resolution,
+            "perturbation": {"truth_resolution": truth_resolution, "registered_at": companion,
                              "layer_thickness_factors": {"dermis": round(dermis, 4), "deep": round(deep, 4)},
                              **mat_record, "scan": scan},
             "plan_actual": plan_actual is not None, "value_reductions": reductions,
             "value_corrections": corrections,
             "effect_skin_change_mm": {"regions": list(region) if region else "skin", **change,
+                                      "measured_at": companion,
                                       "target_max_mm": None if target is None else round(target, 4)}}
 
 

@@ -253,7 +253,7 @@ def initial_alignment(model: MatchInput, skin: TargetSurface, landmarks: dict | 
             src = np.array([feats[k] for k in FEATURES])
             moved = float(np.linalg.norm(pose.apply(src) - sim.apply(src), axis=1).max())
             pinfo["features_moved_mm"] = moved
-            if moved > PROFILE_POSE_AGREE_MM:
+            if moved > PROFILE_POSE_AGREE_MM + 2.0 * float(pinfo.get("features_rms_mm", 0.0)):
                 sim = pose
                 info.update(method="surfaces", pose="profile", scale=sim.scale, rotation_deg=sim.rotation_deg)
     if not 0.65 <= sim.scale <= 1.5:
@@ -264,8 +264,10 @@ def initial_alignment(model: MatchInput, skin: TargetSurface, landmarks: dict | 
 
 
 # mm: the surface pose is kept where the profile pose places the generic features within this
-# of it: the elastic stage and the local landmark search (its reach about the mouth is 7 mm)
-# recover such a difference; beyond it the features decide
+# of it, plus twice the features' own RMS misfit to the generic profile (their scatter: a
+# mouth slit found at the lower lip's edge under an overhanging upper lip is 4 mm from the
+# generic stomion midpoint): the elastic stage and the local landmark search (its reach about
+# the mouth is 7 mm) recover such a difference; beyond it the features decide
 PROFILE_POSE_AGREE_MM = 5.0
 
 
@@ -432,13 +434,17 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         if common:
             lm = (np.array([model.landmark_nodes[k] for k in common]),
                   inv.apply(np.array([landmarks[k] for k in common], dtype=float)))
-    # without landmarks, the features the profile pose found on the skin guide the elastic
-    # stage as landmarks do (the stomion nodes both towards the fissure point, which lies
-    # between them): the bulk of a foreign face otherwise slides its mouth and chin along the
-    # smooth profile by up to 10-15 mm, beyond the reach of the landmark search that follows
+    # without landmarks, where the profile pose replaced the surface pose (the bulk fit put the
+    # features elsewhere), the features it found on the skin guide the elastic stage as
+    # landmarks do (the stomion nodes both towards the fissure point, which lies between them):
+    # the bulk of such a face otherwise slides its mouth and chin along the smooth profile by up
+    # to 10-15 mm, beyond the reach of the landmark search that follows. Where the surfaces and
+    # the profile agree, the elastic stage and the landmark search need no guide, and a
+    # feature found to a few mm must not pull the lips off landmarks the search finds exactly.
     guide = lm
     feats = (align_info.get("profile_pose") or {}).get("features")
-    if lm is None and feats and "refused" not in align_info["profile_pose"]:
+    if lm is None and feats and align_info.get("pose") == "profile" \
+            and "refused" not in align_info["profile_pose"]:
         pairs = [(k, f) for k, f in (("Prn", "Prn"), ("Sn", "Sn"), ("Stms", "mouth"), ("Stmi", "mouth"),
                                      ("Pog", "Pog")) if k in model.landmark_nodes]
         guide = (np.array([model.landmark_nodes[k] for k, _ in pairs], np.int64),

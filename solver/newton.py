@@ -295,7 +295,6 @@ class _Run:
         self.pardiso0 = dict(_linalg.TIMING)
         self._start_mixed = None
         self._term_states = []
-        self.convex = False              # the terms assemble convexified tangents
 
     # --- state of the three-field iteration --------------------------------------------------
     def mixed_state(self):
@@ -393,10 +392,6 @@ class _Run:
             return step.failed("invalid start state", ev)
         tiny = 1e-10 * max(1.0, float(np.abs(targets).max()) if len(targets) else 1.0)
         residuals = []
-        # every solve starts with the terms' exact tangents (`_descent_direction`)
-        self.convex = False
-        for t in system.terms:
-            t.convexify(False)
         for it in range(1, control.max_iterations + 1):
             gap = targets - self.uhat(x)[cons.dofs]
             out = self._descent_direction(x, target, targets, step_no, it, ev, r, A, cpl, gap)
@@ -498,26 +493,30 @@ class _Run:
         modified one converges only linearly.
         """
         system, cons, free = self.system, self.cons, self.cons.free
-        while True:
+
+        def solve(r, cpl):
             rhs = -r if cpl is None else -r - cpl
             rhs[cons.dofs] = system.constraint_scale * gap
-            out = self._linear_solve(A, rhs, ev)
-            if isinstance(out, str):
-                return out
-            du_hat, stats = out
-            g0 = -_dot(du_hat[free], rhs[free])
-            if self.convex:
-                for t in system.terms:
-                    t.convexify(False)
-                self.convex = False
-                return du_hat, rhs, stats, r, A, cpl
-            if not g0 > 0.0 or not any([bool(t.convexify(True)) for t in system.terms]):
-                return du_hat, rhs, stats, r, A, cpl
-            self.convex = True
-            self.result.convexified += 1
-            log.info("step %d it %d: the update is not a descent direction (du.r = %.3e > 0): "
-                     "convexified contact tangents", step_no, it, g0)
+            return rhs, self._linear_solve(A, rhs, ev)
+
+        rhs, out = solve(r, cpl)
+        if isinstance(out, str):
+            return out
+        g0 = -_dot(out[0][free], rhs[free])
+        if not g0 > 0.0 or not any([bool(t.convexify(True)) for t in system.terms]):
+            return out[0], rhs, out[1], r, A, cpl
+        self.result.convexified += 1
+        log.info("step %d it %d: the update is not a descent direction (du.r = %.3e > 0): "
+                 "convexified contact tangents", step_no, it, g0)
+        try:
             _, r, A, cpl = system.evaluate(x, target, targets=targets)
+        finally:
+            for t in system.terms:
+                t.convexify(False)
+        rhs, out = solve(r, cpl)
+        if isinstance(out, str):
+            return out
+        return out[0], rhs, out[1], r, A, cpl
 
     def _update(self, x, du, du_hat, g0, ev, r, target, targets, has_gap):
         """The accepted length s of the update du and the evaluation at x + s du: limited by

@@ -141,6 +141,7 @@ def rotation_angle_deg(matrix: np.ndarray) -> float:
 def axis_angle_matrix(axis, angle_deg: float) -> np.ndarray:
     """Rotation matrix (Rodrigues) about a unit axis by an angle in degrees, right-hand rule."""
     a = np.asarray(axis, float)
+    a = a / np.abs(a).max()         # scaled first: the norm of a huge axis must not overflow
     a = a / np.linalg.norm(a)
     t = math.radians(angle_deg)
     k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])

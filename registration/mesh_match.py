@@ -692,6 +692,16 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
             f"the skin fixes where the face sits on it, so the registration and the landmarks "
             f"located on the skin cannot be trusted; give at least four landmarks "
             f"(landmarks.json)", report)
+    # the same cause seen on the profile: a skin cut at or just above the nose tip covers the
+    # model's nose region, but no point of its profile is a tip with the dorsum above it, so
+    # neither the profile pose nor anything else fixes the face's height on the lips and chin
+    pinfo = align_info.get("profile_pose") or {}
+    if align_info.get("method") == "surfaces" and pinfo.get("nose_tip_found") is False:
+        raise RegistrationFailure(
+            f"the patient skin's profile shows no nose tip ({pinfo.get('refused')}) and the case "
+            f"gives fewer than four landmarks: without the nose tip nothing on the skin fixes how "
+            f"high the face sits on it, so the registration and the landmarks located on the skin "
+            f"cannot be trusted; give at least four landmarks (landmarks.json)", report)
     if len(off):
         where = f" ({', '.join(off_regions)})" if off_regions else ""
         hint = ("the skin and bones alone did not place the face on the scan: give at least "

@@ -87,6 +87,9 @@ FEATURE_RMS_MAX_MM = 8.0
 MAX_PITCH_DEG = 25.0
 MIRROR = np.diag([-1.0, 1.0, 1.0])
 FEATURES = ("Prn", "Sn", "mouth", "Pog")
+# the refusal of a profile without a nose tip: the one that leaves the face's height unfixed
+NO_NOSE_TIP = ("no point of the patient skin's profile stands out like a nose tip with the nasal "
+               "dorsum above it: the scan does not show the nose tip")
 
 
 def mirrored(skin: TargetSurface) -> TargetSurface:
@@ -202,8 +205,7 @@ def profile_features(skin: TargetSurface, generic: dict) -> tuple[dict | None, s
             i_prn = i_tip
             break
     if i_prn is None:
-        return None, ("no point of the patient skin's profile stands out like a nose tip with the nasal "
-                      "dorsum above it: the scan does not show the nose tip")
+        return None, NO_NOSE_TIP
     prn = most_anterior(p, max(0, i_prn - 20), min(len(p) - 1, i_prn + 20))
     lo, hi = prn[2] - MOUTH_BELOW_PRN_MM[0], prn[2] - MOUTH_BELOW_PRN_MM[1]
     band = np.flatnonzero((z < lo) & (z > hi) & (np.arange(len(p)) > i_prn))
@@ -280,6 +282,7 @@ def _one_pass(skin: TargetSurface, start: Similarity, generic: dict, seed: int):
     sets, why = profile_features(skin_s, generic)
     if sets is None:
         info["refused"] = why
+        info["nose_tip_found"] = why != NO_NOSE_TIP
         return None, info
     src = np.array([generic[k] for k in FEATURES])
     best = None

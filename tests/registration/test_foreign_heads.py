@@ -129,6 +129,28 @@ def test_skin_cut_through_the_nose_without_landmarks_is_refused_naming_the_cause
     assert "nose" in rep["regions_not_fitted"] and rep["regions"]["nose"]["covered_fraction"] < 0.5
 
 
+def test_skin_cut_just_above_the_nose_tip_without_landmarks_is_refused(generic, alt):
+    """A CBCT field of view ending 3 mm above the nose tip (in the head's own frame) keeps the
+    tip and the model's nose region covered, so the uncovered-nose rule above does not apply;
+    but the profile has no nasal dorsum above the tip, so the tip cannot be told from a cut
+    edge and the profile pose is refused. Without landmarks nothing then fixes the face's
+    height: the registration must refuse (naming the nose tip and the remedy), not return a
+    face placed by its surfaces alone (on this family 10-30 mm off along the profile)."""
+    from registration.errors import RegistrationFailure
+
+    pose, centre = sa._pose(alt.shape), sa.CENTRE
+    prn_local = centre + (np.asarray(alt.landmarks["Prn"], float) - centre) @ pose
+    head = sa.crop_face(alt, str(prn_local[2] + 3.0))
+    prn = np.asarray(head.landmarks["Prn"], float)
+    assert np.linalg.norm(np.asarray(head.skin.vertices) - prn, axis=1).min() < 2.0  # the tip is on the skin
+    skin, bones = _arrays(head)
+    with pytest.raises(RegistrationFailure) as info:
+        mesh_match_and_repair(generic, skin, bones, None, cache=False)
+    msg = str(info.value)
+    assert "nose tip" in msg and "landmarks" in msg
+    assert info.value.report["alignment"]["profile_pose"]["nose_tip_found"] is False
+
+
 def _with_bone_quads(generic):
     mi = _match_input(generic)
     mi.bone_quads = np.asarray(generic.facet_sets["deep_bone"])

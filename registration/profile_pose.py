@@ -20,16 +20,18 @@ from the surface alignment:
    depend on the starting pose's pitch: pronasale (the most anterior point of the stretch of
    profile standing farthest in front of the face's surface continued from beside it, at
    x = +-20 mm extrapolated from +-35 mm, height for height; with the nasal dorsum above it and
-   nothing above it standing farther forward), the oral fissure (a deep narrow groove 12-60 mm
-   below: the point farthest behind the chord of the profile FISSURE_HALF_CHORD_MM either side,
-   the lips rolling out on both sides of it), subnasale (the deepest concavity under the
+   nothing above it standing farther forward), the oral fissure (a crease 12-60 mm below, where
+   the lips meet at an angle: the point farthest behind the chord of the profile
+   FISSURE_HALF_CHORD_MM either side beyond what the profile's curvature explains, which tells
+   it from the smooth nasolabial and labiomental concavities, `crease_depth`), subnasale (the deepest concavity under the
    anterior hull between them) and soft pogonion (the anterior hull vertex below the
    labiomental fold, the deepest concavity below the mouth). Up to NOSE_CANDIDATES stretches
-   are tried as the nose and MOUTH_CANDIDATES grooves as the fissure (multi-hypothesis);
+   are tried as the nose and MOUTH_CANDIDATES grooves as the fissure, most crease-like first;
 3. the in-plane similarity (rotation about x, translation in y and z, one scale) taking the
    generic model's landmark nodes Prn, Sn, the stomion midpoint and Pog onto those features,
-   in closed form (Umeyama 1991 in the plane, with complex numbers); of the feature sets, the
-   one it fits best (lowest RMS) is kept; steps 1-3 are repeated once from the corrected pose.
+   in closed form (Umeyama 1991 in the plane, with complex numbers), for the first feature set
+   in profile order (the generic proportions do not choose the fissure: on a face of other
+   proportions a fold fits them better than the mouth does); steps 1-3 are repeated once from the corrected pose.
 
 The pose is accepted only when every feature is found, in profile order, the features fit a
 similarity to FEATURE_RMS_MAX_MM RMS and the pose turns the face by at most MAX_PITCH_DEG from
@@ -71,7 +73,7 @@ NOSE_ARC_MM = 15.0
 NOSE_MIN_PROMINENCE_MM = 5.0
 # the most prominent stretches of profile tried as the nose (nose, chin, lips)
 NOSE_CANDIDATES = 3
-# the deepest narrow grooves below the nose tried as the oral fissure
+# the most crease-like grooves below the nose tried as the oral fissure
 MOUTH_CANDIDATES = 3
 # mm below pronasale where the fissure is sought: subnasale lies above the window's top on
 # every face the generic model describes (nose tip to subnasale 10-20 mm along the profile),
@@ -138,6 +140,19 @@ def _chord_depth(p: np.ndarray, half: float) -> np.ndarray:
             nrm = -nrm
         out[i] = float((p[i, 1:] - a) @ nrm)
     return out
+
+
+def crease_depth(p: np.ndarray, half: float) -> np.ndarray:
+    """Per profile point: the depth under the chord of half-length `half` beyond what the
+    profile's curvature there explains. A smooth concavity of curvature k lies k h^2 / 2 behind
+    a chord of half-length h, so its depth under 2h is four times that under h and
+    d(h) - d(2h) / 4 vanishes; a crease (two surfaces meeting at an angle, the lips at the
+    oral fissure) lies a h behind, linear in h, and keeps d(h) / 2. Where the arc does not
+    reach 2h either side the plain depth d(h) is used; -inf where it does not reach h."""
+    near, broad = _chord_depth(p, half), _chord_depth(p, 2.0 * half)
+    both = np.isfinite(broad)
+    near[both] -= 0.25 * broad[both]
+    return near
 
 
 def _front_height(skin: TargetSurface, x0: float, z: np.ndarray) -> np.ndarray:
@@ -209,12 +224,13 @@ def profile_features(skin: TargetSurface, generic: dict) -> tuple[dict | None, s
     prn = most_anterior(p, max(0, i_prn - 20), min(len(p) - 1, i_prn + 20))
     lo, hi = prn[2] - MOUTH_BELOW_PRN_MM[0], prn[2] - MOUTH_BELOW_PRN_MM[1]
     band = np.flatnonzero((z < lo) & (z > hi) & (np.arange(len(p)) > i_prn))
-    depth = _chord_depth(p, FISSURE_HALF_CHORD_MM)
+    depth = crease_depth(p, FISSURE_HALF_CHORD_MM)
     if len(band) < 3 or not np.isfinite(depth[band]).any():
         return None, "the patient skin's profile does not reach the mouth below the nose"
-    # the fissure: the deepest narrow grooves of the band are candidates (the nasolabial or
-    # labiomental concavity can be as deep under the short chord on a blocky face); each gives
-    # a feature set, the caller keeps the one the generic features fit best
+    # the fissure: the grooves of the band ranked by their crease depth (the nasolabial or
+    # labiomental concavity can be as deep under the short chord on a blocky face, but it is a
+    # smooth concavity: its crease depth is near zero); each gives a feature set, in that
+    # order, and the caller keeps the first whose features lie in profile order
     d = np.where(np.isfinite(depth[band]), depth[band], -np.inf)
     peaks = [k for k in range(len(band)) if d[k] > 0 and d[k] >= d[max(k - 1, 0)] and d[k] >= d[min(k + 1, len(band) - 1)]]
     peaks.sort(key=lambda k: -d[k])
@@ -286,13 +302,13 @@ def _one_pass(skin: TargetSurface, start: Similarity, generic: dict, seed: int):
         return None, info
     src = np.array([generic[k] for k in FEATURES])
     best = None
-    for found in sets:
+    for found in sets:      # the most crease-like fissure first
         dst = np.array([found[k] for k in FEATURES])
         if np.any(np.diff(dst[:, 2]) >= 0):
             continue
         plane, rms = plane_similarity(src, dst)
-        if best is None or rms < best[1]:
-            best = (plane, rms, found)
+        best = (plane, rms, found)
+        break
     if best is None:
         info["refused"] = "the features found on the profile are not in their top-to-bottom order"
         return None, info

@@ -42,8 +42,9 @@ def load_diagnosis_case(case_dir: Path, resolution: str | None, say):
     if case.postop_plan_path is not None:
         plan_actual = load_plan(case.postop_plan_path)
         check_against_bones(plan_actual, {k: np.asarray(v.vertices, float) for k, v in case.bones.items()})
+    skin = (np.asarray(case.skin.vertices, float), np.asarray(case.skin.faces, np.int64))
     return (prepare_case(case_dir.resolve().name, model, plan, case.bones, plan_actual,
-                         case.info.follow_up_months), scan, res)
+                         case.info.follow_up_months, preop_skin=skin), scan, res)
 
 
 def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runner: Runner | None = None,

@@ -224,7 +224,8 @@ def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -
 def _identify(cand: Candidate, data: list[CaseData]) -> None:
     """Standard errors and the free (identifiable) parameters: the least determined parameter
     (largest standard error relative to its range) is fixed at "none" until every remaining
-    one is pinned to `fit.IDENTIFIABLE_FRACTION` of its range. Under displacement-only loading
+    one is pinned to `fit.IDENTIFIABLE_FRACTION` of its range, under the scan noise over its own
+    independent samples (`ScanGap.noise_n_eff`). Under displacement-only loading
     this leaves out one stiffness layer (the uniform direction) and fits the others relative
     to it."""
     k = len(cand.params)
@@ -243,10 +244,10 @@ def _identify(cand: Candidate, data: list[CaseData]) -> None:
             J = np.concatenate([Jc[:, free] for Jc in cand.J])
             w = np.concatenate([d.gap.weights for d in data])
             sigma = max(d.gap.noise_floor_mm for d in data)
-            sub[free] = fit.standard_errors(J, w, sigma, sum(d.gap.n_eff() for d in data))
+            sub[free] = fit.standard_errors(J, w, sigma, sum(d.gap.noise_n_eff() for d in data))
         else:
             sub[free] = np.max([fit.standard_errors(cand.J[c][:, free], d.gap.weights, d.gap.noise_floor_mm,
-                                                    d.gap.n_eff()) for c, d in enumerate(data)], axis=0)
+                                                    d.gap.noise_n_eff()) for c, d in enumerate(data)], axis=0)
         return sub
 
     free = np.ones(k, bool)

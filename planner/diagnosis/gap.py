@@ -165,6 +165,18 @@ class ScanGap:
         n = len(w)
         return float(np.clip(w.sum() / (np.pi * self.correlation_mm ** 2), min(n, 1.0), n))
 
+    def noise_n_eff(self, mask: np.ndarray | None = None) -> float:
+        """Independent samples of the scan noise in the points `mask`: the noise floor is the
+        scan's roughness (white at the vertex spacing s, `scan_roughness`) or the pose
+        residual, so area / (pi s^2), s = sqrt(median point area). Not the gap's correlation
+        length (`n_eff`): a large smooth effect makes the gap smooth, and judging its own
+        identifiability on that length would make an effect the less identifiable the larger
+        it is."""
+        w = self.weights if mask is None else self.weights[mask]
+        n = len(w)
+        spacing2 = float(np.median(self.weights)) if len(self.weights) else 1.0
+        return float(np.clip(w.sum() / (np.pi * spacing2), min(n, 1.0), n))
+
     def rms(self, r: np.ndarray, mask: np.ndarray | None = None) -> float:
         w = self.weights if mask is None else self.weights[mask]
         r = r if mask is None else r[mask]

@@ -49,7 +49,7 @@ def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str):
 
 
 def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: str,
-                truth_resolution: str, workers: int, skip: tuple[int, ...] = ()) -> list[dict]:
+                truth_resolution: str, workers: int, skip: tuple[int, ...] = (), make: bool = True) -> list[dict]:
     """Case folders with post-op scans and their key, one `faceplan synth` per seed (`workers`
     at a time). A seed whose truth cannot be solved is reported and left out (its verdict
     would say nothing about the diagnosis). Cases already in `root` (an earlier run with
@@ -59,7 +59,7 @@ def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: s
         (root / kind).mkdir(parents=True, exist_ok=True)
         jobs += [(kind, s) for s in range(s0, s0 + count) if s not in skip]
     running: list = []
-    todo = [j for j in jobs if not (root / j[0] / f"key_{j[1]}.json").exists()]
+    todo = [j for j in jobs if not (root / j[0] / f"key_{j[1]}.json").exists()] if make else []
     while todo or running:
         while todo and len(running) < max(workers, 1):
             kind, s = todo.pop(0)
@@ -72,6 +72,9 @@ def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: s
     key = []
     for kind, s in jobs:
         kf = root / kind / f"key_{s}.json"
+        if not kf.exists() and not make:
+            print(f"seed {s} ({kind}): not made yet; left out of this run", file=sys.stderr)
+            continue
         if not kf.exists():
             print(f"seed {s} ({kind}): faceplan synth could not make the case (see {kind}/synth_{s}.log); "
                   "left out", file=sys.stderr)
@@ -129,6 +132,24 @@ def _relative_errors(fitted: dict, value: dict) -> list[float]:
     return out
 
 
+def _ceiling(r: dict):
+    """The largest whole-gap shrinkage the scan noise allows: 1 - noise / RMS0 (percent)."""
+    if not isinstance(r.get("noise"), (int, float)) or not r.get("rms0"):
+        return None
+    return 100.0 * (1.0 - min(r["noise"] / r["rms0"], 1.0))
+
+
+def _print_row(r: dict) -> None:
+    print(f"{r['case']}: withheld {r['truth']} {json.dumps(r['value'])} -> {r['verdict']} "
+          f"(confidence {r['confidence']:.2f}); RMS gap {r['rms0']:.2f} mm, held-out shrink "
+          f"{r['heldout_shrink']}% (attributable {r['attributable']}%); discrepancy "
+          f"{r['discrepancy0']} mm; fitted {json.dumps(r['fitted'])}; {r['solves']} solves, "
+          f"{r['time_s']:.0f} s", flush=True)
+    print("    held-out %, BIC gain, held-out log density gain: "
+          + "; ".join(f"{n} {h}% {b} {g}±{se}{' *' if sig else ''}" for n, h, b, g, se, sig in r["effects"]),
+          flush=True)
+
+
 def main_bench(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--random", type=int, default=3, help="random-effect cases (issue target: 12)")
@@ -141,6 +162,12 @@ def main_bench(argv=None) -> int:
     ap.add_argument("--keep", metavar="DIR", help="keep the cohort, its solves and the diagnoses in DIR "
                     "(a second run over DIR reuses the cohort and every solve)")
     ap.add_argument("--verbose", action="store_true", help="the diagnosis's progress on stderr")
+    ap.add_argument("--make-only", action="store_true", help="only make the cohort (with --keep: diagnose "
+                    "it later)")
+    ap.add_argument("--no-make", action="store_true", help="with --keep: diagnose only the cases DIR already "
+                    "holds (another run, e.g. with --make-only, is making the others)")
+    ap.add_argument("--resume", action="store_true", help="with --keep: a case whose figures a previous run "
+                    "over DIR stored (bench_row.json beside its diagnosis.json) is read back, not diagnosed again")
     ap.add_argument("--skip-seeds", default="", help="comma-separated seeds whose truth synth cannot solve "
                     "(left out, and said so)")
     args = ap.parse_args(argv)
@@ -156,10 +183,13 @@ def main_bench(argv=None) -> int:
     finer = {"coarse": "standard", "standard": "fine", "fine": "fine"}
     key = make_cohort(root, args.random, args.none, args.seed, args.resolution,
                       args.truth_resolution or finer[args.resolution], args.workers,
-                      tuple(int(x) for x in args.skip_seeds.split(",") if x.strip()))
+                      tuple(int(x) for x in args.skip_seeds.split(",") if x.strip()), make=not args.no_make)
     if args.skip_seeds:
         print(f"seeds left out (their truth could not be solved by synth): {args.skip_seeds}", flush=True)
     t_cohort = time.perf_counter() - t0
+    if args.make_only:
+        print(f"cohort of {len(key)} case(s) in {root} made in {t_cohort:.0f} s", flush=True)
+        return 0
     client, closing = None, []
     if args.workers > 0:
         import logging
@@ -174,6 +204,11 @@ def main_bench(argv=None) -> int:
     try:
         for rec in key:
             t = time.perf_counter()
+            stored = Path(rec["case"]) / "bench_row.json"
+            if args.resume and args.keep and stored.exists():
+                rows.append(json.loads(stored.read_text()))
+                _print_row(rows[-1])
+                continue
             say = (lambda m: print(m, file=sys.stderr, flush=True)) if args.verbose else (lambda m: None)
             patient, scan, res = load_diagnosis_case(Path(rec["case"]), args.resolution, say)
             fwd = _StoredForward([patient], Runner(client), say, root / "solves",
@@ -193,21 +228,16 @@ def main_bench(argv=None) -> int:
                          "attributable": (shrink.get("overall") or {}).get("attributable_shrink_pct"),
                          "level": (shrink.get("overall") or {}).get("error_level_mm"),
                          "discrepancy0": d["error_model"]["discrepancy_mm"],
+                         "noise": d["noise_floor_mm"],
                          "effects": [(e["name"], e["heldout_shrink_pct"],
                                       None if e["bic"] is None else round(d["method"]["baseline_bic"] - e["bic"], 1),
                                       e.get("heldout_lpd_gain"), e.get("heldout_lpd_gain_se"),
                                       e["significant"]) for e in d["effects"]],
                          "fitted": fitted, "time_s": time.perf_counter() - t,
                          "solves": d["solves"]["count"], "sensitivity": d["method"]["sensitivity"]})
-            r = rows[-1]
-            print(f"{r['case']}: withheld {r['truth']} {json.dumps(r['value'])} -> {r['verdict']} "
-                  f"(confidence {r['confidence']:.2f}); RMS gap {r['rms0']:.2f} mm, held-out shrink "
-                  f"{r['heldout_shrink']}% (attributable {r['attributable']}%); discrepancy "
-                  f"{r['discrepancy0']} mm; fitted {json.dumps(fitted)}; {r['solves']} solves, "
-                  f"{r['time_s']:.0f} s", flush=True)
-            print("    held-out %, BIC gain, held-out log density gain: "
-                  + "; ".join(f"{n} {h}% {b} {g}±{se}{' *' if sig else ''}" for n, h, b, g, se, sig in r["effects"]),
-                  flush=True)
+            if args.keep:
+                stored.write_text(json.dumps(rows[-1], default=str))
+            _print_row(rows[-1])
     finally:
         for obj in closing:
             obj.close()
@@ -221,8 +251,10 @@ def main_bench(argv=None) -> int:
                                         for c in labels))
     print("\nshrinkage table (held-out RMS gap with the named effect; total = of the whole gap, "
           "attributable = of the gap beyond noise + discrepancy, see diagnosis.json method.shrinkage)")
+    print("(noise mm: the noise floor; ceiling %: 1 - noise / RMS0, the most the whole gap can shrink when the "
+          "effect is found exactly, the scan noise staying)")
     print(f"{'case':<12}{'withheld':<16}{'verdict':<16}{'conf':>6}{'RMS0 mm':>9}{'held-out mm':>12}"
-          f"{'total %':>9}{'e mm':>7}{'attrib %':>9}")
+          f"{'total %':>9}{'noise mm':>9}{'ceiling %':>10}{'e mm':>7}{'attrib %':>9}")
 
     def _f(x, w, d=1):
         return f"{x:>{w}.{d}f}" if isinstance(x, (int, float)) else f"{'-':>{w}}"
@@ -230,7 +262,7 @@ def main_bench(argv=None) -> int:
     for r in rows:
         print(f"{r['case']:<12}{str(r['truth']):<16}{str(r['verdict']):<16}{_f(r['confidence'], 6, 2)}"
               f"{_f(r['rms0'], 9, 3)}{_f(r['heldout_after'], 12, 3)}{_f(r['heldout_shrink'], 9)}"
-              f"{_f(r['level'], 7, 2)}{_f(r['attributable'], 9)}")
+              f"{_f(r.get('noise'), 9, 3)}{_f(_ceiling(r), 10)}{_f(r['level'], 7, 2)}{_f(r['attributable'], 9)}")
     effect_rows = [r for r in rows if r["truth"] is not None]
     none_rows = [r for r in rows if r["truth"] is None]
     named = sum(r["verdict"] == r["truth"] for r in effect_rows)
@@ -248,7 +280,8 @@ def main_bench(argv=None) -> int:
           f"{sum(e <= 0.25 for e in errs)}/{len(errs)}")
     times = [r["time_s"] for r in rows]
     print(f"cohort made in {t_cohort:.0f} s; diagnosis per case median {np.median(times) if times else 0:.0f} s, "
-          f"max {max(times) if times else 0:.0f} s; total {time.perf_counter() - t_all:.0f} s on "
+          f"max {max(times) if times else 0:.0f} s, sum {sum(times):.0f} s (cases read back with --resume count "
+          f"their first run); total {time.perf_counter() - t_all:.0f} s on "
           f"{max(args.workers, 1)} worker(s), resolution {args.resolution}")
     if tmp is not None:
         tmp.cleanup()

@@ -27,7 +27,8 @@ cross-validation. The held-out prediction uses the local model about the refined
 r(theta) = r* + J* (theta - theta*). An effect is `significant` when its BIC under noise +
 discrepancy beats the baseline's by strong evidence (`fit.STRONG_EVIDENCE`), it predicts
 held-out regions better than the discrepancy alone (`Scored.wins_heldout`), and it removes at
-least `MIN_HELDOUT_SHRINK_PCT` of the held-out gap and twice that shrinkage's bootstrap spread;
+least `MIN_HELDOUT_SHRINK_PCT` of the held-out gap beyond the scan noise and twice that
+shrinkage's bootstrap spread;
 a model-form gap may remain beside it (its regions are reported). Pairs with the effect of
 largest held-out shrinkage (significant or not: two effects can act together where neither
 does alone) are tried when it leaves a gap above the noise. The verdict is the best significant
@@ -49,10 +50,11 @@ from planner.diagnosis.effects import Effect, Parameter, effect_strings
 
 __all__ = ["CaseData", "Candidate", "analyse", "MIN_HELDOUT_SHRINK_PCT", "MAX_REFINEMENTS"]
 
-# An effect must remove at least this share of the held-out RMS gap to be named (a tenth: on a
-# 1 mm gap, half the scan noise), and twice its bootstrap spread over the cross-validation
-# units. The share is of the whole gap, which keeps its model-form part: the evidence against
-# that part is the BIC under noise + discrepancy, not this threshold.
+# An effect must remove at least this share of the held-out RMS gap beyond the scan noise to be
+# named, and twice its bootstrap spread over the cross-validation units. The share is of the gap
+# beyond the noise, which keeps its model-form part (the evidence against that part is the BIC
+# under noise + discrepancy, not this threshold), not of the whole gap: no effect removes the
+# scan's noise, and a share of the whole gap would ask more of an effect the noisier the scan.
 MIN_HELDOUT_SHRINK_PCT = 10.0
 # A pair is named only if it removes this many more percentage points than its best member.
 MIN_PAIR_GAIN_PCT = 10.0
@@ -222,7 +224,8 @@ def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -
 def _identify(cand: Candidate, data: list[CaseData]) -> None:
     """Standard errors and the free (identifiable) parameters: the least determined parameter
     (largest standard error relative to its range) is fixed at "none" until every remaining
-    one is pinned to `fit.IDENTIFIABLE_FRACTION` of its range. Under displacement-only loading
+    one is pinned to `fit.IDENTIFIABLE_FRACTION` of its range, under the scan noise over its own
+    independent samples (`ScanGap.noise_n_eff`). Under displacement-only loading
     this leaves out one stiffness layer (the uniform direction) and fits the others relative
     to it."""
     k = len(cand.params)
@@ -241,10 +244,10 @@ def _identify(cand: Candidate, data: list[CaseData]) -> None:
             J = np.concatenate([Jc[:, free] for Jc in cand.J])
             w = np.concatenate([d.gap.weights for d in data])
             sigma = max(d.gap.noise_floor_mm for d in data)
-            sub[free] = fit.standard_errors(J, w, sigma, sum(d.gap.n_eff() for d in data))
+            sub[free] = fit.standard_errors(J, w, sigma, sum(d.gap.noise_n_eff() for d in data))
         else:
             sub[free] = np.max([fit.standard_errors(cand.J[c][:, free], d.gap.weights, d.gap.noise_floor_mm,
-                                                    d.gap.n_eff()) for c, d in enumerate(data)], axis=0)
+                                                    d.gap.noise_n_eff()) for c, d in enumerate(data)], axis=0)
         return sub
 
     free = np.ones(k, bool)
@@ -355,19 +358,47 @@ def _fold_units(data) -> list[tuple[int, np.ndarray]]:
     return units
 
 
-def shrink_spread(data, r0s, rhos, seed: int = 0) -> float:
-    """Bootstrap standard deviation (percentage points) of the held-out shrinkage over the
-    cross-validation units (regions of every case)."""
+def _beyond_noise(s0, s1, noise):
+    """Shrinkage (%) of the gap beyond the scan noise from weighted sums of squares before
+    (s0) and after (s1) and the noise's expected share (noise = sigma^2 x weight): 1 -
+    sqrt(max(s1 - noise, 0) / (s0 - noise)); NaN where the gap before is within the noise."""
+    s0, s1, noise = (np.asarray(x, float) for x in (s0, s1, noise))
+    excess = s0 - noise
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = 100.0 * (1.0 - np.sqrt(np.maximum(s1 - noise, 0.0) / excess))
+    return np.where(excess > 0, out, np.nan)
+
+
+def shrink_spread(data, r0s, rhos, seed: int = 0) -> tuple[float, float]:
+    """Bootstrap standard deviations (percentage points) over the cross-validation units
+    (regions of every case) of the held-out shrinkage of the whole gap and of the gap beyond
+    the scan noise (`beyond_noise_shrink`)."""
     units = _fold_units(data)
     if len(units) < 2:
-        return 0.0
+        return 0.0, 0.0
     num0 = np.array([_rss(data[c], r0s[c], m) for c, m in units])
     num1 = np.array([_rss(data[c], rhos[c], m) for c, m in units])
+    noise = np.array([data[c].gap.noise_floor_mm ** 2 * float(data[c].gap.weights[m].sum()) for c, m in units])
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, len(units), size=(N_BOOTSTRAP, len(units)))
-    s0, s1 = num0[idx].sum(axis=1), num1[idx].sum(axis=1)
+    s0, s1, sn = num0[idx].sum(axis=1), num1[idx].sum(axis=1), noise[idx].sum(axis=1)
     shrink = 100.0 * (1.0 - np.sqrt(s1 / np.maximum(s0, 1e-300)))
-    return float(np.std(shrink))
+    beyond = _beyond_noise(s0, s1, sn)
+    beyond = beyond[np.isfinite(beyond)]
+    return float(np.std(shrink)), (float(np.std(beyond)) if len(beyond) > 1 else np.inf)
+
+
+def beyond_noise_shrink(data, r0s, rhos) -> float:
+    """Held-out shrinkage (%) of the gap beyond the scan noise, pooled over the cases:
+    1 - sqrt(max(RMS_ho^2 - s_n^2, 0) / (RMS_0^2 - s_n^2)), s_n the noise floor. The scan's
+    noise is in every gap and no effect can remove it, so the share of the whole gap an effect
+    removes is capped at 1 - s_n / RMS_0 (a few tens of percent when the effect changes the
+    face by about the noise); this is the share of what an effect could remove. NaN when the
+    gap is within the noise."""
+    s0 = sum(_rss(d, r) for d, r in zip(data, r0s))
+    s1 = sum(_rss(d, r) for d, r in zip(data, rhos))
+    sn = sum(d.gap.noise_floor_mm ** 2 * float(d.gap.weights.sum()) for d in data)
+    return float(_beyond_noise(s0, s1, sn))
 
 
 # --------------------------------------------------------------------------- summary
@@ -392,6 +423,8 @@ class Scored:
     lpd: np.ndarray | None = None                # held-out log predictive density per fold
     lpd_gain: float = np.nan                     # sum over folds against the baseline
     lpd_gain_se: float = np.nan                  # its standard error over the folds
+    noise_shrink_pct: float = np.nan             # held-out shrinkage of the gap beyond the noise
+    noise_spread_pct: float = np.inf             # its bootstrap spread
 
     def values(self, c: int) -> dict:
         return self.cand.values(c, self.theta[c] if self.theta else None)
@@ -432,10 +465,12 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
         change = _pooled_rms(data, [a - d.r0 for a, d in zip(cand.anchor_r, data)])
         sigma = max(d.gap.noise_floor_mm for d in data)
         identifiable = bool(change * np.sqrt(n_eff) > 3.0 * sigma)
+    r0s = [d.r0 for d in data]
+    spread, noise_spread = shrink_spread(data, r0s, heldout)
     out = Scored(cand, rms_after, rms_ho, 100.0 * (1 - rms_after / max(rms0, 1e-12)),
-                 100.0 * (1 - rms_ho / max(rms0, 1e-12)),
-                 shrink_spread(data, [d.r0 for d in data], heldout),
+                 100.0 * (1 - rms_ho / max(rms0, 1e-12)), spread,
                  fit.bic(rss, W, n_eff, k), identifiable, heldout, fitted)
+    out.noise_shrink_pct, out.noise_spread_pct = beyond_noise_shrink(data, r0s, heldout), noise_spread
     out.gp, out.gp_bic, out.theta = gp, gp_bic, theta
     out.lpd = heldout_lpd(cand, data, gp, heldout)
     return out
@@ -585,13 +620,14 @@ def probabilities(gp0: float, scored: list[Scored]) -> dict[str, float]:
 def _judge(scored: list[Scored], gp0: float, lpd0: np.ndarray) -> None:
     """Significant: strong evidence against the baseline under noise + discrepancy, held-out
     regions predicted better than by the discrepancy alone (`Scored.wins_heldout`), and a
-    held-out shrinkage of at least `MIN_HELDOUT_SHRINK_PCT` and of twice its bootstrap spread."""
+    held-out shrinkage of the gap beyond the scan noise (`beyond_noise_shrink`) of at least
+    `MIN_HELDOUT_SHRINK_PCT` and of twice its bootstrap spread."""
     for s in scored:
         diff = np.asarray(s.lpd, float) - lpd0
         s.lpd_gain = float(diff.sum())
         s.lpd_gain_se = float(np.sqrt(len(diff)) * np.std(diff)) if len(diff) > 1 else 0.0
         s.significant = bool(s.identifiable and gp0 - s.gp_bic >= fit.STRONG_EVIDENCE and s.wins_heldout
-                             and s.heldout_shrink_pct >= max(MIN_HELDOUT_SHRINK_PCT, 2.0 * s.spread_pct))
+                             and bool(s.noise_shrink_pct >= max(MIN_HELDOUT_SHRINK_PCT, 2.0 * s.noise_spread_pct)))
 
 
 def _significant_regions(data: list[CaseData], rs: list[np.ndarray], noise_only: bool = False) -> list[str]:
@@ -615,15 +651,17 @@ def _explained_regions(data, before, after) -> list[str]:
 
 
 def _verdict(data, best, pairs, prob) -> dict:
-    """The winning effect when one is significant and the gap is above the noise somewhere;
-    else `null` when no region's gap exceeds noise + discrepancy (the model-form error the
-    baseline is expected to carry), `unexplained` (with those regions) when some does."""
+    """The winning effect when one is significant; else `null` when no region's gap exceeds
+    noise + discrepancy (the model-form error the baseline is expected to carry),
+    `unexplained` (with those regions) when some does. A significant effect beats the noise by
+    construction (strong evidence against noise + discrepancy, held-out gain, a share of the
+    gap beyond the noise): no region need hold a systematic gap as large as the noise itself
+    (the `above_noise` size rule of the localization), which an effect of about the noise's
+    size spread over the face does not reach."""
     r0s = [d.r0 for d in data]
     above_noise = _significant_regions(data, r0s, noise_only=True)
-    winner = best if above_noise else None
+    winner = best
     for p in sorted(pairs, key=lambda s: -s.heldout_shrink_pct):
-        if not above_noise:
-            break
         if p.significant and (best is None or (best.gp_bic - p.gp_bic >= fit.STRONG_EVIDENCE and p.heldout_shrink_pct
                                                >= best.heldout_shrink_pct + MIN_PAIR_GAIN_PCT)):
             winner = p

@@ -19,7 +19,7 @@ import numpy as np
 
 from planner.errors import InputError, SolveError
 
-__all__ = ["CaseModel", "Runner", "Forward", "solve_skin", "prepare_case"]
+__all__ = ["CaseModel", "PatientSurface", "Runner", "Forward", "solve_skin", "prepare_case", "patient_surface"]
 
 
 @dataclass
@@ -38,16 +38,82 @@ class CaseModel:
     landmark_ids: dict = field(default_factory=dict)   # name -> node id
     plan_actual: object = None      # the achieved movements (postop/plan_actual.yaml)
     follow_up_months: float | None = None
+    surface: "PatientSurface | None" = None   # the patient's own pre-op skin over the face
+
+    def predicted_surface(self, skin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(vertices, faces) of the predicted face for the model's skin positions `skin`: the
+        patient's pre-op skin carried by the model's displacement when it is known, else the
+        model's skin itself."""
+        if self.surface is None:
+            return np.asarray(skin, float), np.asarray(self.skin_faces)
+        return self.surface.carry(skin), self.surface.faces
 
     @property
     def moved_segments(self) -> tuple[str, ...]:
         return tuple(self.plan.motions())
 
 
+@dataclass
+class PatientSurface:
+    """The patient's pre-op skin over the modelled face, tied to the model's skin: each vertex
+    takes the model's displacement interpolated (barycentric) at its closest point on the
+    model's pre-op skin triangles. The prediction of the post-op face is then the patient's own
+    face moved as the model moves (the same construction as a post-op truth,
+    `facemodel.synthetic.displaced_surface`), so the gap to the post-op scan holds the error of
+    the predicted movement and not the registered model's misfit of the pre-op face (its
+    faceting and the registration residual, which no effect can change). Linear in the skin
+    positions: the derivative of the surface is `carry_velocity` of the skin's."""
+
+    vertices: np.ndarray            # (m, 3) pre-op positions
+    faces: np.ndarray               # (t, 3)
+    rows: np.ndarray                # (m, 3) skin vertex indices (into skin_ids) of the closest triangle
+    bary: np.ndarray                # (m, 3) barycentric weights
+    rest: np.ndarray                # (n_skin, 3) the model's pre-op skin positions
+    region: np.ndarray              # (m,) region index (that of the nearest model skin vertex)
+
+    def carry(self, skin: np.ndarray) -> np.ndarray:
+        return self.vertices + self.carry_velocity(np.asarray(skin, float) - self.rest)
+
+    def carry_velocity(self, dskin: np.ndarray) -> np.ndarray:
+        return np.einsum("mj,mjk->mk", self.bary, np.asarray(dskin, float)[self.rows])
+
+
+# patient skin vertices farther than this from the registered model's skin are not on the
+# modelled face (the registered skin fits the pre-op skin within a fraction of a mm there)
+SURFACE_GATE_MM = 3.0
+
+
+def patient_surface(skin_rest: np.ndarray, skin_faces: np.ndarray, region: np.ndarray,
+                    vertices: np.ndarray, faces: np.ndarray) -> PatientSurface | None:
+    """The patient's pre-op skin (vertices, faces) over the model's face regions, tied to the
+    model's skin triangles (see `PatientSurface`); None when it does not lie on the model."""
+    from planner.compare.distances import TriangleSurface
+
+    V = np.asarray(vertices, float)
+    F = np.asarray(faces, np.int64)
+    X = np.asarray(skin_rest, float)
+    T = np.asarray(skin_faces, np.int64)
+    cp = TriangleSurface(X, T).closest(V)
+    rows = T[cp.face]
+    bary = np.clip(np.asarray(cp.bary, float), 0.0, 1.0)
+    bary /= np.maximum(bary.sum(axis=1, keepdims=True), 1e-12)
+    reg = np.asarray(region)[rows[np.arange(len(V)), np.argmax(bary, axis=1)]]
+    keep = (np.abs(cp.signed) <= SURFACE_GATE_MM) & (reg >= 0)
+    fk = keep[F].all(axis=1)
+    if fk.sum() < 100:
+        return None
+    used = np.zeros(len(V), bool)
+    used[F[fk].ravel()] = True
+    new = -np.ones(len(V), np.int64)
+    new[used] = np.arange(int(used.sum()))
+    return PatientSurface(V[used], new[F[fk]], rows[used], bary[used], X, reg[used])
+
+
 def prepare_case(name: str, model, plan, bones: dict | None, plan_actual=None,
-                 follow_up_months: float | None = None) -> CaseModel:
+                 follow_up_months: float | None = None, preop_skin=None) -> CaseModel:
     """The patient model with its attachment sets assigned to the case's bones (kept as they
-    are without bones), and the skin."""
+    are without bones), and the skin; `preop_skin` (vertices, faces): the patient's own pre-op
+    skin, on which the predicted movement is carried (`PatientSurface`)."""
     from planner.pipeline import region_of_nodes, skin_surface
     from planner.segments import assign_segments, with_segments
 
@@ -57,10 +123,13 @@ def prepare_case(name: str, model, plan, bones: dict | None, plan_actual=None,
     region, names = region_of_nodes(model, ids)
     # plain arrays travel to the workers (an unpickled trimesh keeps stale caches)
     arrays = {k: (np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)) for k, m in (bones or {}).items()}
+    surface = None
+    if preop_skin is not None:
+        surface = patient_surface(np.asarray(model.nodes, float)[ids], faces, region, *preop_skin)
     return CaseModel(name, model, plan, arrays, ids, faces, region, tuple(names),
                      tuple(getattr(model, "unoperated_regions", ())),
                      {k: int(v) for k, v in getattr(model, "landmarks", {}).items()},
-                     plan_actual, follow_up_months)
+                     plan_actual, follow_up_months, surface)
 
 
 def _solve(case: CaseModel, strings: tuple[str, ...]):

@@ -38,6 +38,7 @@ __all__ = ["ScanGap", "measure_gap", "scan_roughness", "correlation_length", "MI
 MIN_FACE_MATCH = 0.5         # share of the scan within 2 mm of the face once superimposed
 MIN_COVERAGE = 0.20          # a scan covering less of the modelled face gets a warning
 REGION_COVERED = 0.25        # a region with less of its area covered is reported uncovered
+REALIGN_KEEP = 0.9           # unoperated points kept for the pose (compare's trimmed ICP keeps 0.9)
 
 
 @dataclass
@@ -61,6 +62,8 @@ class ScanGap:
     scan_valid: np.ndarray | None = None   # which scan vertices are the points
     scan_path: str = ""
     warnings: list[str] = field(default_factory=list)
+    unoperated: np.ndarray | None = None   # (n,) points on the unoperated regions (the pose)
+    surface: object = None        # forward.PatientSurface: the faces are the patient's skin's
     discrepancy_mm: float = 0.0   # model-form discrepancy amplitude (`discrepancy`), once estimated
     discrepancy_ell_mm: float = 0.0
     error_test: object = None     # (r, mask) -> p-value of the gap under noise + discrepancy
@@ -76,12 +79,12 @@ class ScanGap:
         out[self.scan_valid] = r
         return out
 
-    def linearised(self, skin: np.ndarray, dskin: np.ndarray) -> np.ndarray:
+    def linearised(self, skin: np.ndarray, dskin: np.ndarray, pose: bool = True) -> np.ndarray:
         """d(distances)/dp for skin vertex velocities `dskin` (n_skin, 3) about `skin`: the
         closest point moves with its triangle's barycentric combination of the vertices'."""
         key = id(skin)
         if getattr(self, "_lin_key", None) != key:
-            self._lin = TriangleSurface(np.asarray(skin, float), self.faces).closest(self.points)
+            self._lin = TriangleSurface(self.vertices(skin), self.faces).closest(self.points)
             self._lin_key = key
             cp = self._lin
             # the signed distance is s = u . (p - c) with u the unit direction from the closest
@@ -93,12 +96,64 @@ class ScanGap:
             self._lin_u = u
         cp = self._lin
         tri = self.faces[cp.face]                                  # (n, 3) vertex ids
-        dc = np.einsum("nj,njk->nk", cp.bary, np.asarray(dskin, float)[tri])
-        return -np.einsum("nk,nk->n", self._lin_u, dc)
+        dskin = np.asarray(dskin, float)
+        if self.surface is not None:
+            dskin = self.surface.carry_velocity(dskin)
+        dc = np.einsum("nj,njk->nk", cp.bary, dskin[tri])
+        out = -np.einsum("nk,nk->n", self._lin_u, dc)
+        return self.realign(out) if pose else out
 
-    def distances(self, skin: np.ndarray) -> np.ndarray:
-        """Signed distances (post-op minus prediction) of the fixed scan points to `skin`."""
-        return TriangleSurface(np.asarray(skin, float), self.faces).closest(self.points).signed
+    def distances(self, skin: np.ndarray, pose: bool = True) -> np.ndarray:
+        """Signed distances (post-op minus prediction) of the fixed scan points to `skin`, with
+        the scan superimposed on this prediction's unoperated regions (`realign`; `pose` False:
+        in the baseline's superimposition)."""
+        d = TriangleSurface(self.vertices(skin), self.faces).closest(self.points).signed
+        return self.realign(d) if pose else d
+
+    def vertices(self, skin: np.ndarray) -> np.ndarray:
+        """The predicted face's vertices (`faces`) for the model's skin positions `skin`."""
+        return np.asarray(skin, float) if self.surface is None else self.surface.carry(skin)
+
+    def fix_pose(self, skin: np.ndarray) -> None:
+        """Set up `realign` about the baseline prediction `skin`: the rigid basis of the scan's
+        pose (a small rotation omega about the unoperated points' centroid and a translation t
+        move the signed distance by u . (omega x q + t) = (q x u) . omega + u . t, u the unit
+        direction from the closest point, q the point about the centroid) and the trimmed
+        unoperated points that determine it (`REALIGN_KEEP` of them with the smallest baseline
+        gap, as compare's trimmed ICP keeps)."""
+        self._pose = None
+        if self.unoperated is None or self.unoperated.sum() < 12:
+            return
+        self.linearised(skin, np.zeros((len(skin), 3)))    # the closest points and u
+        u = self._lin_u
+        raw = TriangleSurface(self.vertices(skin), self.faces).closest(self.points).signed
+        q = self.points - np.average(self.points[self.unoperated], axis=0, weights=self.weights[self.unoperated])
+        R = np.concatenate([np.cross(q, u), u], axis=1)
+        idx = np.nonzero(self.unoperated)[0]
+        dev = np.abs(raw[idx] - np.median(raw[idx]))
+        idx = idx[dev <= np.quantile(dev, REALIGN_KEEP)]
+        sw = np.sqrt(self.weights[idx])
+        A = R[idx] * sw[:, None]
+        if np.linalg.matrix_rank(A) < 6:
+            return
+        # rho(r) = -M r[idx]: the weighted least-squares pose correction; realign(r) = r + R rho
+        M = np.linalg.pinv(A) * sw[None, :]
+        self._pose = (R, idx, M)
+
+    def realign(self, r: np.ndarray) -> np.ndarray:
+        """The gap `r` (n,) or its derivatives (n, k) after the scan's pose is corrected by the
+        rigid motion that best fits it on the unoperated regions (linearised point-to-plane,
+        about the baseline's superimposition): what `faceplan compare` does for a prediction
+        that moves the unoperated regions too (posture and swelling move the preauricular
+        skin). Without the correction the pose fitted to the baseline keeps part of such an
+        effect, and adding the effect cannot remove the tilt the pose took up. Linear in r, so
+        the gap stays linear in the effect's parameters."""
+        pose = getattr(self, "_pose", None)
+        if pose is None:
+            return r
+        R, idx, M = pose
+        r = np.asarray(r, float)
+        return r - R @ (M @ r[idx])
 
     @property
     def uncovered_regions(self) -> list[str]:
@@ -109,6 +164,18 @@ class ScanGap:
         w = self.weights if mask is None else self.weights[mask]
         n = len(w)
         return float(np.clip(w.sum() / (np.pi * self.correlation_mm ** 2), min(n, 1.0), n))
+
+    def noise_n_eff(self, mask: np.ndarray | None = None) -> float:
+        """Independent samples of the scan noise in the points `mask`: the noise floor is the
+        scan's roughness (white at the vertex spacing s, `scan_roughness`) or the pose
+        residual, so area / (pi s^2), s = sqrt(median point area). Not the gap's correlation
+        length (`n_eff`): a large smooth effect makes the gap smooth, and judging its own
+        identifiability on that length would make an effect the less identifiable the larger
+        it is."""
+        w = self.weights if mask is None else self.weights[mask]
+        n = len(w)
+        spacing2 = float(np.median(self.weights)) if len(self.weights) else 1.0
+        return float(np.clip(w.sum() / (np.pi * spacing2), min(n, 1.0), n))
 
     def rms(self, r: np.ndarray, mask: np.ndarray | None = None) -> float:
         w = self.weights if mask is None else self.weights[mask]
@@ -199,7 +266,9 @@ def baseline_prediction(case, skin: np.ndarray) -> ComparePrediction:
         hit = np.nonzero(case.skin_ids == node)[0]
         if hit.size:
             landmarks[name] = np.asarray(skin[hit[0]], float)
-    return ComparePrediction(np.asarray(skin, float), np.asarray(case.skin_faces), np.asarray(case.region),
+    vertices, faces = case.predicted_surface(skin)
+    region = case.region if case.surface is None else case.surface.region
+    return ComparePrediction(vertices, np.asarray(faces), np.asarray(region),
                              tuple(case.region_names), tuple(case.unoperated), landmarks,
                              Path(f"<baseline prediction of {case.name}>"))
 
@@ -245,9 +314,12 @@ def measure_gap(case, skin: np.ndarray, scan: Surface, max_residual_mm: float = 
     floor = float(np.nanmax([residual, rough]))
     ell = correlation_length(points, signed, weights)
     metrics = dict(comp.metrics)
-    gap = ScanGap(points, weights, region, tuple(pred.region_names), np.asarray(case.skin_faces),
+    unop = np.isin(region, [k for k, n in enumerate(pred.region_names) if n in pred.unoperated_regions])
+    gap = ScanGap(points, weights, region, tuple(pred.region_names), np.asarray(pred.faces),
                   comp.alignment.to_dict(), rough, floor, ell, coverage, region_coverage,
-                  metrics, comp.scan_vertices, comp.scan_faces, valid, str(scan.path), warnings)
+                  metrics, comp.scan_vertices, comp.scan_faces, valid, str(scan.path), warnings,
+                  unoperated=unop, surface=case.surface)
+    gap.fix_pose(skin)
     uncovered = gap.uncovered_regions
     if uncovered:
         gap.warnings.append("regions without scan coverage (not diagnosed): " + ", ".join(uncovered))

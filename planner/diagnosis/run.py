@@ -42,8 +42,9 @@ def load_diagnosis_case(case_dir: Path, resolution: str | None, say):
     if case.postop_plan_path is not None:
         plan_actual = load_plan(case.postop_plan_path)
         check_against_bones(plan_actual, {k: np.asarray(v.vertices, float) for k, v in case.bones.items()})
+    skin = (np.asarray(case.skin.vertices, float), np.asarray(case.skin.faces, np.int64))
     return (prepare_case(case_dir.resolve().name, model, plan, case.bones, plan_actual,
-                         case.info.follow_up_months), scan, res)
+                         case.info.follow_up_months, preop_skin=skin), scan, res)
 
 
 def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runner: Runner | None = None,
@@ -125,6 +126,8 @@ def _effect_entry(s: analysis.Scored) -> dict:
         "significant": s.significant,
         "heldout_rms_mm": _r(s.heldout_rms),
         "heldout_shrink_spread_pct": _r(s.spread_pct, 2),
+        "heldout_noise_shrink_pct": _r(s.noise_shrink_pct, 2),
+        "heldout_noise_shrink_spread_pct": _r(s.noise_spread_pct, 2),
         "bic": _r(s.gp_bic, 3),
         "bic_noise_only": _r(s.bic, 3),
         "discrepancy_mm": _r(float(np.sqrt(np.mean([f.discrepancy_mm ** 2 for f in s.gp]))) if s.gp else None),
@@ -200,10 +203,12 @@ def build_record(data: list, result: dict, effects) -> dict:
                              "heldout": "log predictive density of each region given the others, effect fitted "
                                         "without it; an effect must beat the discrepancy alone by twice the "
                                         "standard error of the difference",
-                             "min_heldout_shrink_pct": analysis.MIN_HELDOUT_SHRINK_PCT,
+                             "min_heldout_noise_shrink_pct": analysis.MIN_HELDOUT_SHRINK_PCT,
                              "heldout_shrink_vs_spread": 2.0},
             "shrinkage": {
                 "heldout_shrink_pct": "1 - RMS(held-out gap with the effect) / RMS(baseline gap): the total gap",
+                "heldout_noise_shrink_pct": "1 - sqrt(max(RMS_heldout^2 - noise^2, 0)) / sqrt(RMS_baseline^2 - noise^2): "
+                                            "the gap beyond the scan noise (noise_floor_mm), which no effect can remove",
                 "attributable_shrink_pct": "1 - sqrt(max(RMS_heldout^2 - e^2, 0)) / sqrt(max(RMS_baseline^2 - e^2, 0)), "
                                            "e^2 = noise^2 + discrepancy^2 with the effect (error_model): the part of "
                                            "the gap beyond what the model's form error and the scan noise explain"},
@@ -242,7 +247,9 @@ def _shrinkage(d, r0, fitted, heldout, gp=None) -> dict:
     g = d.gap
     out = {"overall": {"before_mm": _r(g.rms(r0)), "after_mm": _r(g.rms(fitted)),
                        "heldout_after_mm": _r(g.rms(heldout)),
-                       "heldout_shrink_pct": _r(100 * (1 - g.rms(heldout) / max(g.rms(r0), 1e-12)), 2)},
+                       "heldout_shrink_pct": _r(100 * (1 - g.rms(heldout) / max(g.rms(r0), 1e-12)), 2),
+                       "noise_mm": _r(g.noise_floor_mm),
+                       "heldout_noise_shrink_pct": _r(attributable(g.rms(r0), g.rms(heldout), g.noise_floor_mm)[2], 2)},
            "regions": {}}
     if gp is not None:
         level = float(np.hypot(gp.discrepancy_mm, g.noise_floor_mm))

@@ -205,11 +205,19 @@ def test_linearised_gap_matches_finite_differences(patient, forward):
     skin = forward.baseline(0)
     gap = measure_gap(patient, skin, scan)
     v = np.sin(skin / 20.0) * np.array([0.3, 1.0, 0.5])
-    lin = gap.linearised(skin, v)
+    lin = gap.linearised(skin, v, pose=False)
     h = 0.01
-    fd = (gap.distances(skin + h * v) - gap.distances(skin - h * v)) / (2 * h)
+    fd = (gap.distances(skin + h * v, pose=False) - gap.distances(skin - h * v, pose=False)) / (2 * h)
     assert np.median(np.abs(lin - fd)) < 1e-5
     assert np.mean(np.abs(lin - fd) < 2e-2) > 0.98
+    raw = np.sqrt(np.mean((lin - fd) ** 2))
+    # with the pose re-fitted on the unoperated regions (linear in the gap, so the derivative
+    # is corrected as the distances are): the kinks' few differences on the unoperated regions
+    # are spread by the six-parameter pose fit over the face, so the comparison is in RMS: the
+    # error stays of the order of the kinks' own (at most twice theirs)
+    lin = gap.linearised(skin, v)
+    fd = (gap.distances(skin + h * v) - gap.distances(skin - h * v)) / (2 * h)
+    assert np.sqrt(np.mean((lin - fd) ** 2)) < 2.0 * raw
 
 
 def test_linear_fit_recovers_parameters_within_bounds():

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from facemodel.effects import SWELLING_MAX
 from planner.errors import InputError
 
 __all__ = ["Parameter", "Effect", "EFFECT_LIBRARY", "available_effects", "effect_strings"]
@@ -96,8 +97,10 @@ MOVED_SEGMENTS = ("maxilla", "mandible", "chin")
 
 # Bounds are the plausible ranges of the effects' published values (see docs/diagnosis.md):
 # resting perioral tone up to a third of maximal activation; tissue stiffness within a factor
-# three of the generic values; swelling as the peak volumetric growth ratio up to 3 (the
-# residual 0.5-2 mm of skin at 3-12 months asks for peaks up to about 3, `facemodel.effects`);
+# three of the generic values; swelling as the peak volumetric growth ratio up to the model's
+# own bound (`facemodel.effects.SWELLING_MAX`: the residual 0.5-2 mm of skin at 3-12 months asks
+# for peaks up to about 3, a synthetic truth may hold up to that bound, and a fit stopped below
+# the value it needs leaves the rest of the gap to other effects);
 # the posture change from supine to upright up to 1.5 times gravity's full effect. A face
 # fuller than the generic model over a whole region is the discrepancy's long scale, not
 # swelling (`planner.diagnosis.discrepancy`).
@@ -106,7 +109,7 @@ EFFECT_LIBRARY: tuple[Effect, ...] = (
            description="soft tissue slides on the moved bone instead of being tied to it"),
     Effect("muscle_tone", (Parameter("muscle_tone", 0.0, 0.0, 0.35, 0.05, unit="activation"),),
            shared=False, description="resting activation of the perioral muscles"),
-    Effect("swelling", (Parameter("swelling", 1.0, 1.0, 3.0, 0.1, unit="volume ratio"),),
+    Effect("swelling", (Parameter("swelling", 1.0, 1.0, SWELLING_MAX, 0.1, unit="volume ratio"),),
            shared=False, description="residual post-operative oedema (volumetric growth)"),
     Effect("gravity", (Parameter("gravity", 0.0, 0.0, 1.5, 0.25, unit="posture factor"),),
            shared=True, description="supine CT versus upright scan"),

@@ -70,6 +70,12 @@ TRUTH_RESOLUTION = "standard"   # fine: beyond the 2-minute budget per case (doc
 # generic tissue, `prolonged_patient`): a fine registration of its own costs minutes, and each
 # fine solve several standard ones, so the effect's value is set on the standard model
 REGISTERED_AT = {"fine": "standard"}
+# carrying a registration to a finer mesh (`prolonged_patient`): push, separate and repair
+# rounds at most; the nodes within CLEARANCE_HOLD_MM beyond the teeth clearance are held in
+# the repair; the lip gap is reached to separate_lips' tolerance
+CARRY_PASSES = 4
+CLEARANCE_HOLD_MM = 0.1
+LIP_GAP_TOL = 0.05
 
 
 def add_arguments(parser) -> None:
@@ -314,7 +320,9 @@ def prolonged_patient(generic, companion_generic, companion):
     registration's scaled-Jacobian threshold, a lip node pushed only away from the other
     lip), the lips separated where the pushes made them cross (`registration.lips.
     separate_lips`, to the registration's gap) and any element still below the threshold
-    repaired (`registration.repair.repair_mesh`). Returns (patient model, location, report)."""
+    repaired (`registration.repair.repair_mesh`, the nodes at the teeth clearance held),
+    in rounds until the clearance, the gap and the quality hold together (CARRY_PASSES at
+    most). Returns (patient model, location, report)."""
     import dataclasses
     import time
 
@@ -324,7 +332,7 @@ def prolonged_patient(generic, companion_generic, companion):
     from registration.prolong import carry, locate_points
     from registration.quality import min_scaled_jacobian
     from registration.repair import repair_mesh
-    from registration.teeth import Arch, clear_teeth
+    from registration.teeth import Arch, clear_teeth, union_distance
 
     t0 = time.perf_counter()
     X, H = np.asarray(generic.nodes, float), np.asarray(generic.hexes, np.int64)
@@ -345,39 +353,54 @@ def prolonged_patient(generic, companion_generic, companion):
         lips = (np.asarray(generic.facet_sets["lip_upper_contact"]),
                 np.asarray(generic.facet_sets["lip_lower_contact"]))
     arches = [Arch(k, v, f, seg) for k, (v, f, seg) in (companion.teeth or {}).items()]
-    if arches:
-        away = None
-        if lips is not None:        # a lip node pushed off the teeth not into the other lip
-            away = -(quad_vertex_normals(x, lips[0]) + quad_vertex_normals(x, lips[1]))
-            away[np.intersect1d(np.unique(lips[0]), np.unique(lips[1]))] = 0.0
-        # a margin over the clearance: the repair after each push may take a node back a little
-        pushes = []
-        for _ in range(3):
-            x, rep = clear_teeth(x, H, arches, held, clearance=opt.teeth_clearance_mm + 0.05,
+    movable = np.setdiff1d(np.arange(len(x)), held)
+    away = None
+    if arches and lips is not None:     # a lip node pushed off the teeth not into the other lip
+        away = -(quad_vertex_normals(x, lips[0]) + quad_vertex_normals(x, lips[1]))
+        away[np.intersect1d(np.unique(lips[0]), np.unique(lips[1]))] = 0.0
+
+    def clearance(x):
+        return float(union_distance(arches, x[movable], opt.teeth_clearance_mm + 1.0)[0].min()) \
+            if arches else np.inf
+
+    def gap(x):
+        return float(lip_overlap(x, *lips)["min_gap_mm"]) if lips is not None else np.inf
+
+    # the three conditions hold together (the pushes, the separation and the repair each move
+    # nodes the others placed): push off the teeth, separate the lips, repair with the nodes at
+    # the teeth clearance held, and again until the teeth clearance, the lip gap (to
+    # separate_lips' tolerance) and the element quality all hold at once
+    pushes, gap0 = [], gap(x)
+    for _ in range(CARRY_PASSES):
+        if arches and clearance(x) < opt.teeth_clearance_mm:
+            x, rep = clear_teeth(x, H, arches, held, clearance=opt.teeth_clearance_mm,
                                  threshold=opt.threshold, away=away)
             pushes.append(rep)
-            if rep["min_signed_distance_after_mm"] >= opt.teeth_clearance_mm:
-                break
-        report["teeth"] = {"nodes_inside_before": int(pushes[0].get("nodes_inside_before", 0)),
-                           "nodes_pushed": int(sum(r.get("nodes_pushed", 0) for r in pushes)),
-                           "min_distance_after_mm": round(float(rep["min_signed_distance_after_mm"]), 4)}
-    if lips is not None:
-        # the lips apart across the slit as the registration leaves them (the pushes off the
-        # teeth move each lip's inner edge; `registration.lips.separate_lips`)
-        gap0 = lip_overlap(x, *lips)["min_gap_mm"]
-        if gap0 < opt.lip_gap_mm - 1e-3:
+        if lips is not None and gap(x) < opt.lip_gap_mm - 1e-3:
             x, _ = separate_lips(x, H, lips[0], lips[1], attached,
                                  skin_nodes=np.asarray(generic.node_sets["skin"], np.int64),
                                  gap=opt.lip_gap_mm, threshold=opt.threshold, arches=arches or None,
                                  teeth_clearance=opt.teeth_clearance_mm)
-        report["lips"] = {"min_gap_before_mm": round(float(gap0), 4),
-                          "min_gap_mm": round(float(lip_overlap(x, *lips)["min_gap_mm"]), 4)}
+        if min_scaled_jacobian(x, H).min() < opt.threshold:
+            # a finer element across a kink between two coarser ones, or one the pushes
+            # squeezed, is repaired as the registration repairs (skin and bone held), with the
+            # nodes within CLEARANCE_HOLD_MM of the teeth clearance held too: the repair does
+            # not take them back towards a tooth
+            near = movable[union_distance(arches, x[movable], opt.teeth_clearance_mm + 1.0)[0]
+                           < opt.teeth_clearance_mm + CLEARANCE_HOLD_MM] if arches else movable[:0]
+            x, rep = repair_mesh(x, H, threshold=opt.threshold, fixed=np.union1d(held, near))
+            if rep["elements_still_below_threshold"]:       # the held nodes leave no room
+                x, _ = repair_mesh(x, H, threshold=opt.threshold, fixed=held)
+        if (clearance(x) >= opt.teeth_clearance_mm and gap(x) >= opt.lip_gap_mm - LIP_GAP_TOL
+                and min_scaled_jacobian(x, H).min() >= opt.threshold):
+            break
+    if arches:
+        report["teeth"] = {"nodes_inside_before": int(pushes[0].get("nodes_inside_before", 0)) if pushes else 0,
+                           "nodes_pushed": int(sum(r.get("nodes_pushed", 0) for r in pushes)),
+                           "min_distance_after_mm": round(clearance(x), 4)}
+    if lips is not None:
+        report["lips"] = {"min_gap_before_mm": round(gap0, 4), "min_gap_mm": round(gap(x), 4)}
     q = min_scaled_jacobian(x, H)
-    if q.min() < opt.threshold:
-        # a finer element across a kink between two coarser ones can fall below the
-        # registration's threshold: repaired as the registration repairs (skin and bone held)
-        x, _ = repair_mesh(x, H, threshold=opt.threshold, fixed=held)
-        q = min_scaled_jacobian(x, H)
     report["min_scaled_jacobian"] = round(float(q.min()), 4)
     if q.min() <= 0.0:
         raise SolveError(f"the {len(x)}-node model carried from the registered companion has "

@@ -411,14 +411,16 @@ def prolonged_patient(generic, companion_generic, companion):
 
 
 def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
-                contact: bool = True, timings: dict | None = None) -> dict:
+                contact: bool = True, timings: dict | None = None, log=None) -> dict:
     """Predict and write `folder`/postop/skin.stl (and plan_actual.yaml) for an existing case
     folder; return the key record's post-op fields. contact: lip contact in the truth model
     (on for every case the command makes; off only to keep tests on coarse meshes short).
     A truth resolution listed in REGISTERED_AT is registered at its companion resolution and
     carried to its own mesh (`prolonged_patient`); the effect's value is set and its skin
     change measured on the companion, and the finer model solved once with that value.
-    timings: a dict that receives the stages' times (s) and the solves' Newton counts."""
+    timings: a dict that receives the stages' times (s) and the solves' Newton counts (kept
+    when a solve fails); log: a callable receiving the truth solves' progress lines (one per
+    Newton iteration)."""
     import dataclasses
     import time
 
@@ -432,8 +434,12 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     from facemodel import synthetic as sy
     from generic_mesh.builder import RESOLUTIONS
     from planner.case import load_case
-    from planner.pipeline import skin_sensitivities, skin_surface, solve_plan
+    from planner.pipeline import Progress, skin_sensitivities, skin_surface
+    from planner.pipeline import solve_plan as _solve_plan
     from planner.plan import load_plan, parse_plan
+
+    def solve_plan(*a, **kw):
+        return _solve_plan(*a, progress=None if log is None else Progress(echo=log), **kw)
 
     folder = Path(folder)
     rng = _rng(seed)
@@ -475,6 +481,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     base = solve_plan(patient, truth_plan, case.bones, follow_up_months=fu)
     timings["solve_base_s"] = time.perf_counter() - clock
     solves = [_solve_record("base", base)]
+    timings["solves"] = solves
     target = None
     if name is not None and value is None:
         # the value that changes the skin by a target drawn from the published range, from
@@ -567,7 +574,6 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     (folder / "postop").mkdir(exist_ok=True)
     trimesh.Trimesh(V, F, process=False).export(folder / "postop" / "skin.stl")
     timings["scan_s"] = time.perf_counter() - clock
-    timings["solves"] = solves
     return {"effect": name, "value": value if name else None,
             "perturbation": {"truth_resolution": truth_resolution, "registered_at": companion,
                              "layer_thickness_factors": {"dermis": round(dermis, 4), "deep": round(deep, 4)},

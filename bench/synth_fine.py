@@ -42,6 +42,14 @@ def _out_of_time(signum, frame):
     raise _OutOfTime()
 
 
+def _split(s) -> str:
+    """A solve's time split (assembly with contact, linear solves), when recorded."""
+    if s.get("newton_s") is None:
+        return ""
+    return (f"; Newton {s['newton_s']:.1f} s: assembly {s['assembly_s']:.1f} s, linear solves "
+            f"{s['linear_s']:.1f} s")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=3)
@@ -100,7 +108,8 @@ def main() -> int:
         print(f"  {'time until stopped':28s} {total:7.1f} s")
         for s in solves:
             print(f"  solve {s['solve']:7s} {s['nodes']} nodes: {s['steps']} steps, {s['iterations']} Newton "
-                  f"iterations, {s['cutbacks']} cut-backs, {s['factorizations']} factorisations")
+                  f"iterations, {s['cutbacks']} cut-backs, {s['factorizations']} factorisations"
+                  + _split(s))
         print(f"  last Newton iteration: {last[0]}")
         return 3
     print(f"one synthetic case, seed {args.seed}, withheld {args.effect} -> {record['effect']}="
@@ -113,7 +122,8 @@ def main() -> int:
     print(f"  {'total (end to end)':28s} {total:7.1f} s")
     for s in solves:
         print(f"  solve {s['solve']:7s} {s['nodes']} nodes: {s['steps']} steps, {s['iterations']} Newton "
-              f"iterations, {s['cutbacks']} cut-backs, {s['factorizations']} factorisations")
+              f"iterations, {s['cutbacks']} cut-backs, {s['factorizations']} factorisations"
+              + _split(s))
     print(f"  effect skin change (max, mm): {record['effect_skin_change_mm']['max_mm']}")
     return 0
 

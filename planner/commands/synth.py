@@ -257,9 +257,13 @@ def _skin_change(pred, base, regions=None) -> dict:
 def _solve_record(kind: str, pred) -> dict:
     """Newton counts of one truth solve (for the bench and the progress log)."""
     info = pred.solver.get("info", {})
+    t = info.get("timings") or {}
     return {"solve": kind, "nodes": int(len(pred.model.nodes)), "steps": pred.solver.get("steps"),
             "iterations": pred.solver.get("iterations"), "cutbacks": info.get("cutbacks"),
-            "factorizations": info.get("factorizations")}
+            "factorizations": info.get("factorizations"),
+            # where a solve's time goes: residual and tangent assembly (contact terms
+            # included), linear solves, the whole Newton run
+            "assembly_s": t.get("assembly"), "linear_s": t.get("solve"), "newton_s": t.get("total")}
 
 
 def solve_reducing(solve, effects, name: str | None, attempts: int = MAX_REDUCTIONS):

@@ -374,8 +374,8 @@ def prolonged_patient(generic, companion_generic, companion):
     # nodes the others placed): push off the teeth, separate the lips, repair with the nodes at
     # the teeth clearance held, and again until the teeth clearance, the lip gap (to
     # separate_lips' tolerance) and the element quality all hold at once
-    pushes, gap0 = [], gap(x)
-    for _ in range(CARRY_PASSES):
+    pushes, gap0, held_together = [], gap(x), False
+    for rounds in range(1, CARRY_PASSES + 1):
         if arches and clearance(x) < opt.teeth_clearance_mm:
             x, rep = clear_teeth(x, H, arches, held, clearance=opt.teeth_clearance_mm,
                                  threshold=opt.threshold, away=away)
@@ -397,7 +397,10 @@ def prolonged_patient(generic, companion_generic, companion):
                 x, _ = repair_mesh(x, H, threshold=opt.threshold, fixed=held)
         if (clearance(x) >= opt.teeth_clearance_mm and gap(x) >= opt.lip_gap_mm - LIP_GAP_TOL
                 and min_scaled_jacobian(x, H).min() >= opt.threshold):
+            held_together = True
             break
+    # False: the rounds ran out with one condition short (the report's figures say which)
+    report["start"] = {"rounds": rounds, "conditions_hold": held_together}
     if arches:
         report["teeth"] = {"nodes_inside_before": int(pushes[0].get("nodes_inside_before", 0)) if pushes else 0,
                            "nodes_pushed": int(sum(r.get("nodes_pushed", 0) for r in pushes)),

@@ -67,6 +67,7 @@ def test_a_registration_carried_to_the_finer_mesh_stays_on_the_patient(tmp_path)
         # as the registration leaves them (gap 0.1 mm, worked to within separate_lips' 0.05 mm
         # tolerance): contact cannot start from crossed lips or lips inside the teeth
         x = np.asarray(patient.nodes)
+        assert report["start"]["conditions_hold"]
         assert report["min_scaled_jacobian"] >= opt.threshold
         movable = np.setdiff1d(np.arange(len(x)), held)
         arches = [Arch(k, v, f, s) for k, (v, f, s) in patient.teeth.items()]

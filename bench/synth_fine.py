@@ -7,13 +7,16 @@ standard resolution and carried to the fine mesh, `planner.commands.synth.prolon
 Prints the time of every stage (head and case folder, registration, carrying to the finer
 mesh, each solve with its Newton steps, iterations, cut-backs and factorisations, the
 sensitivity of a target-set effect, the scan) and the load average of the machine before and
-after (the machine is shared: the seconds depend on it, the counts do not).
+after (the machine is shared: the seconds depend on it, the counts do not). A truth solve that
+fails, or a case still running after `--max-minutes`, is reported with the stages done and the
+last Newton iteration logged (its load step and load fraction) instead of the end-to-end line.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import signal
 import sys
 import tempfile
 import time
@@ -31,16 +34,35 @@ class _Echo(dict):
             print(f"  {key}: {value:.1f} s (load {os.getloadavg()[0]:.1f})", file=sys.stderr, flush=True)
 
 
+class _OutOfTime(BaseException):
+    """--max-minutes reached (a BaseException: no solver's error handling takes it)."""
+
+
+def _out_of_time(signum, frame):
+    raise _OutOfTime()
+
+
+def _split(s) -> str:
+    """A solve's time split (assembly with contact, linear solves), when recorded."""
+    if s.get("newton_s") is None:
+        return ""
+    return (f"; Newton {s['newton_s']:.1f} s: assembly {s['assembly_s']:.1f} s, linear solves "
+            f"{s['linear_s']:.1f} s")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=3)
     parser.add_argument("--effect", default="gravity", help="withheld effect (default gravity)")
     parser.add_argument("--truth-resolution", default="fine", choices=("coarse", "standard", "fine"))
     parser.add_argument("--no-contact", action="store_true", help="lip contact off in the truth model")
+    parser.add_argument("--max-minutes", type=float, default=None,
+                        help="stop the case after this many minutes and report how far it got")
     args = parser.parse_args()
 
     from facemodel.synthetic import synthetic_head
     from planner.commands.synth import FOLLOW_UP_MONTHS, _rng, make_postop, parse_withheld, write_case
+    from planner.errors import SolveError
 
     load0 = os.getloadavg()
     stages = {}
@@ -54,11 +76,42 @@ def main() -> int:
         write_case(folder, head, follow_up_months=fu)
         stages["head_and_case_s"] = time.perf_counter() - t0
         timings = _Echo()
-        record = make_postop(str(folder), args.seed, parse_withheld(args.effect), args.truth_resolution,
-                             contact=not args.no_contact, timings=timings)
+        last = [None]
+
+        def newton(line):
+            if " it " in line:
+                last[0] = line.split("] ", 1)[-1]
+                print("    " + last[0], file=sys.stderr, flush=True)
+
+        if args.max_minutes:
+            signal.signal(signal.SIGALRM, _out_of_time)
+            signal.alarm(max(1, int(round(60 * args.max_minutes))))
+        record, failure = None, None
+        try:
+            record = make_postop(str(folder), args.seed, parse_withheld(args.effect), args.truth_resolution,
+                                 contact=not args.no_contact, timings=timings, log=newton)
+        except SolveError as exc:
+            failure = f"failed: {exc}"
+        except _OutOfTime:
+            failure = f"stopped after {args.max_minutes:g} min (--max-minutes)"
+        finally:
+            signal.alarm(0)
     total = time.perf_counter() - t_all
     solves = timings.pop("solves", [])
     stages.update(timings)
+    if record is None:
+        print(f"one synthetic case, seed {args.seed}, withheld {args.effect}, truth {args.truth_resolution}, "
+              f"lip contact {'off' if args.no_contact else 'on'}: {failure}")
+        print(f"load average before {load0[0]:.1f}, after {os.getloadavg()[0]:.1f} (2 cores)")
+        for k, v in stages.items():
+            print(f"  {k:28s} {v:7.1f} s")
+        print(f"  {'time until stopped':28s} {total:7.1f} s")
+        for s in solves:
+            print(f"  solve {s['solve']:7s} {s['nodes']} nodes: {s['steps']} steps, {s['iterations']} Newton "
+                  f"iterations, {s['cutbacks']} cut-backs, {s['factorizations']} factorisations"
+                  + _split(s))
+        print(f"  last Newton iteration: {last[0]}")
+        return 3
     print(f"one synthetic case, seed {args.seed}, withheld {args.effect} -> {record['effect']}="
           f"{json.dumps(record['value'])}, truth {args.truth_resolution} (registered at "
           f"{record['perturbation'].get('registered_at')}), lip contact "
@@ -69,7 +122,8 @@ def main() -> int:
     print(f"  {'total (end to end)':28s} {total:7.1f} s")
     for s in solves:
         print(f"  solve {s['solve']:7s} {s['nodes']} nodes: {s['steps']} steps, {s['iterations']} Newton "
-              f"iterations, {s['cutbacks']} cut-backs, {s['factorizations']} factorisations")
+              f"iterations, {s['cutbacks']} cut-backs, {s['factorizations']} factorisations"
+              + _split(s))
     print(f"  effect skin change (max, mm): {record['effect_skin_change_mm']['max_mm']}")
     return 0
 

@@ -70,6 +70,12 @@ TRUTH_RESOLUTION = "standard"   # fine: beyond the 2-minute budget per case (doc
 # generic tissue, `prolonged_patient`): a fine registration of its own costs minutes, and each
 # fine solve several standard ones, so the effect's value is set on the standard model
 REGISTERED_AT = {"fine": "standard"}
+# carrying a registration to a finer mesh (`prolonged_patient`): push, separate and repair
+# rounds at most; the nodes within CLEARANCE_HOLD_MM beyond the teeth clearance are held in
+# the repair; the lip gap is reached to separate_lips' tolerance
+CARRY_PASSES = 4
+CLEARANCE_HOLD_MM = 0.1
+LIP_GAP_TOL = 0.05
 
 
 def add_arguments(parser) -> None:
@@ -251,9 +257,13 @@ def _skin_change(pred, base, regions=None) -> dict:
 def _solve_record(kind: str, pred) -> dict:
     """Newton counts of one truth solve (for the bench and the progress log)."""
     info = pred.solver.get("info", {})
+    t = info.get("timings") or {}
     return {"solve": kind, "nodes": int(len(pred.model.nodes)), "steps": pred.solver.get("steps"),
             "iterations": pred.solver.get("iterations"), "cutbacks": info.get("cutbacks"),
-            "factorizations": info.get("factorizations")}
+            "factorizations": info.get("factorizations"),
+            # where a solve's time goes: residual and tangent assembly (contact terms
+            # included), linear solves, the whole Newton run
+            "assembly_s": t.get("assembly"), "linear_s": t.get("solve"), "newton_s": t.get("total")}
 
 
 def solve_reducing(solve, effects, name: str | None, attempts: int = MAX_REDUCTIONS):
@@ -314,7 +324,9 @@ def prolonged_patient(generic, companion_generic, companion):
     registration's scaled-Jacobian threshold, a lip node pushed only away from the other
     lip), the lips separated where the pushes made them cross (`registration.lips.
     separate_lips`, to the registration's gap) and any element still below the threshold
-    repaired (`registration.repair.repair_mesh`). Returns (patient model, location, report)."""
+    repaired (`registration.repair.repair_mesh`, the nodes at the teeth clearance held),
+    in rounds until the clearance, the gap and the quality hold together (CARRY_PASSES at
+    most). Returns (patient model, location, report)."""
     import dataclasses
     import time
 
@@ -324,7 +336,7 @@ def prolonged_patient(generic, companion_generic, companion):
     from registration.prolong import carry, locate_points
     from registration.quality import min_scaled_jacobian
     from registration.repair import repair_mesh
-    from registration.teeth import Arch, clear_teeth
+    from registration.teeth import Arch, clear_teeth, union_distance
 
     t0 = time.perf_counter()
     X, H = np.asarray(generic.nodes, float), np.asarray(generic.hexes, np.int64)
@@ -345,39 +357,57 @@ def prolonged_patient(generic, companion_generic, companion):
         lips = (np.asarray(generic.facet_sets["lip_upper_contact"]),
                 np.asarray(generic.facet_sets["lip_lower_contact"]))
     arches = [Arch(k, v, f, seg) for k, (v, f, seg) in (companion.teeth or {}).items()]
-    if arches:
-        away = None
-        if lips is not None:        # a lip node pushed off the teeth not into the other lip
-            away = -(quad_vertex_normals(x, lips[0]) + quad_vertex_normals(x, lips[1]))
-            away[np.intersect1d(np.unique(lips[0]), np.unique(lips[1]))] = 0.0
-        # a margin over the clearance: the repair after each push may take a node back a little
-        pushes = []
-        for _ in range(3):
-            x, rep = clear_teeth(x, H, arches, held, clearance=opt.teeth_clearance_mm + 0.05,
+    movable = np.setdiff1d(np.arange(len(x)), held)
+    away = None
+    if arches and lips is not None:     # a lip node pushed off the teeth not into the other lip
+        away = -(quad_vertex_normals(x, lips[0]) + quad_vertex_normals(x, lips[1]))
+        away[np.intersect1d(np.unique(lips[0]), np.unique(lips[1]))] = 0.0
+
+    def clearance(x):
+        return float(union_distance(arches, x[movable], opt.teeth_clearance_mm + 1.0)[0].min()) \
+            if arches else np.inf
+
+    def gap(x):
+        return float(lip_overlap(x, *lips)["min_gap_mm"]) if lips is not None else np.inf
+
+    # the three conditions hold together (the pushes, the separation and the repair each move
+    # nodes the others placed): push off the teeth, separate the lips, repair with the nodes at
+    # the teeth clearance held, and again until the teeth clearance, the lip gap (to
+    # separate_lips' tolerance) and the element quality all hold at once
+    pushes, gap0, held_together = [], gap(x), False
+    for rounds in range(1, CARRY_PASSES + 1):
+        if arches and clearance(x) < opt.teeth_clearance_mm:
+            x, rep = clear_teeth(x, H, arches, held, clearance=opt.teeth_clearance_mm,
                                  threshold=opt.threshold, away=away)
             pushes.append(rep)
-            if rep["min_signed_distance_after_mm"] >= opt.teeth_clearance_mm:
-                break
-        report["teeth"] = {"nodes_inside_before": int(pushes[0].get("nodes_inside_before", 0)),
-                           "nodes_pushed": int(sum(r.get("nodes_pushed", 0) for r in pushes)),
-                           "min_distance_after_mm": round(float(rep["min_signed_distance_after_mm"]), 4)}
-    if lips is not None:
-        # the lips apart across the slit as the registration leaves them (the pushes off the
-        # teeth move each lip's inner edge; `registration.lips.separate_lips`)
-        gap0 = lip_overlap(x, *lips)["min_gap_mm"]
-        if gap0 < opt.lip_gap_mm - 1e-3:
+        if lips is not None and gap(x) < opt.lip_gap_mm - 1e-3:
             x, _ = separate_lips(x, H, lips[0], lips[1], attached,
                                  skin_nodes=np.asarray(generic.node_sets["skin"], np.int64),
                                  gap=opt.lip_gap_mm, threshold=opt.threshold, arches=arches or None,
                                  teeth_clearance=opt.teeth_clearance_mm)
-        report["lips"] = {"min_gap_before_mm": round(float(gap0), 4),
-                          "min_gap_mm": round(float(lip_overlap(x, *lips)["min_gap_mm"]), 4)}
+        if min_scaled_jacobian(x, H).min() < opt.threshold:
+            # a finer element across a kink between two coarser ones, or one the pushes
+            # squeezed, is repaired as the registration repairs (skin and bone held), with the
+            # nodes within CLEARANCE_HOLD_MM of the teeth clearance held too: the repair does
+            # not take them back towards a tooth
+            near = movable[union_distance(arches, x[movable], opt.teeth_clearance_mm + 1.0)[0]
+                           < opt.teeth_clearance_mm + CLEARANCE_HOLD_MM] if arches else movable[:0]
+            x, rep = repair_mesh(x, H, threshold=opt.threshold, fixed=np.union1d(held, near))
+            if rep["elements_still_below_threshold"]:       # the held nodes leave no room
+                x, _ = repair_mesh(x, H, threshold=opt.threshold, fixed=held)
+        if (clearance(x) >= opt.teeth_clearance_mm and gap(x) >= opt.lip_gap_mm - LIP_GAP_TOL
+                and min_scaled_jacobian(x, H).min() >= opt.threshold):
+            held_together = True
+            break
+    # False: the rounds ran out with one condition short (the report's figures say which)
+    report["start"] = {"rounds": rounds, "conditions_hold": held_together}
+    if arches:
+        report["teeth"] = {"nodes_inside_before": int(pushes[0].get("nodes_inside_before", 0)) if pushes else 0,
+                           "nodes_pushed": int(sum(r.get("nodes_pushed", 0) for r in pushes)),
+                           "min_distance_after_mm": round(clearance(x), 4)}
+    if lips is not None:
+        report["lips"] = {"min_gap_before_mm": round(gap0, 4), "min_gap_mm": round(gap(x), 4)}
     q = min_scaled_jacobian(x, H)
-    if q.min() < opt.threshold:
-        # a finer element across a kink between two coarser ones can fall below the
-        # registration's threshold: repaired as the registration repairs (skin and bone held)
-        x, _ = repair_mesh(x, H, threshold=opt.threshold, fixed=held)
-        q = min_scaled_jacobian(x, H)
     report["min_scaled_jacobian"] = round(float(q.min()), 4)
     if q.min() <= 0.0:
         raise SolveError(f"the {len(x)}-node model carried from the registered companion has "
@@ -388,14 +418,16 @@ def prolonged_patient(generic, companion_generic, companion):
 
 
 def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
-                contact: bool = True, timings: dict | None = None) -> dict:
+                contact: bool = True, timings: dict | None = None, log=None) -> dict:
     """Predict and write `folder`/postop/skin.stl (and plan_actual.yaml) for an existing case
     folder; return the key record's post-op fields. contact: lip contact in the truth model
     (on for every case the command makes; off only to keep tests on coarse meshes short).
     A truth resolution listed in REGISTERED_AT is registered at its companion resolution and
     carried to its own mesh (`prolonged_patient`); the effect's value is set and its skin
     change measured on the companion, and the finer model solved once with that value.
-    timings: a dict that receives the stages' times (s) and the solves' Newton counts."""
+    timings: a dict that receives the stages' times (s) and the solves' Newton counts (kept
+    when a solve fails); log: a callable receiving the truth solves' progress lines (one per
+    Newton iteration)."""
     import dataclasses
     import time
 
@@ -409,8 +441,12 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     from facemodel import synthetic as sy
     from generic_mesh.builder import RESOLUTIONS
     from planner.case import load_case
-    from planner.pipeline import skin_sensitivities, skin_surface, solve_plan
+    from planner.pipeline import Progress, skin_sensitivities, skin_surface
+    from planner.pipeline import solve_plan as _solve_plan
     from planner.plan import load_plan, parse_plan
+
+    def solve_plan(*a, **kw):
+        return _solve_plan(*a, progress=None if log is None else Progress(echo=log), **kw)
 
     folder = Path(folder)
     rng = _rng(seed)
@@ -452,6 +488,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     base = solve_plan(patient, truth_plan, case.bones, follow_up_months=fu)
     timings["solve_base_s"] = time.perf_counter() - clock
     solves = [_solve_record("base", base)]
+    timings["solves"] = solves
     target = None
     if name is not None and value is None:
         # the value that changes the skin by a target drawn from the published range, from
@@ -544,7 +581,6 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     (folder / "postop").mkdir(exist_ok=True)
     trimesh.Trimesh(V, F, process=False).export(folder / "postop" / "skin.stl")
     timings["scan_s"] = time.perf_counter() - clock
-    timings["solves"] = solves
     return {"effect": name, "value": value if name else None,
             "perturbation": {"truth_resolution": truth_resolution, "registered_at": companion,
                              "layer_thickness_factors": {"dermis": round(dermis, 4), "deep": round(deep, 4)},

@@ -57,21 +57,34 @@ def test_a_registration_carried_to_the_finer_mesh_stays_on_the_patient(tmp_path)
     patient_c, _ = registration.mesh_match_and_repair(coarse, case.skin, case.bones,
                                                       landmarks=case.landmarks, teeth=case.teeth,
                                                       cache=False)
-    patient, _, report = synth.prolonged_patient(standard, coarse, patient_c)
-    x = np.asarray(patient.nodes)
-    assert report["min_scaled_jacobian"] > 0.0
-    # the registration's own teeth clearance (0.25 mm) for every node the push may move
     opt = MatchOptions()
     held = np.concatenate([np.asarray(v) for k, v in standard.node_sets.items()
                            if k == "skin" or k.startswith("attach_")])
-    movable = np.setdiff1d(np.arange(len(x)), held)
-    arches = [Arch(k, v, f, s) for k, (v, f, s) in patient.teeth.items()]
-    assert union_distance(arches, x[movable], 2.0)[0].min() >= opt.teeth_clearance_mm - 1e-6
-    # the lips apart across the slit, as the registration leaves them (gap 0.1 mm, worked to
-    # within separate_lips' 0.05 mm tolerance): lip contact cannot start from crossed lips
-    gap = lip_overlap(x, np.asarray(standard.facet_sets["lip_upper_contact"]),
-                      np.asarray(standard.facet_sets["lip_lower_contact"]))["min_gap_mm"]
-    assert gap >= opt.lip_gap_mm - 0.05
+
+    def check_start(patient, report):
+        # no element below the registration's scaled-Jacobian threshold (0.2); its own teeth
+        # clearance (0.25 mm) for every node the push may move; the lips apart across the slit
+        # as the registration leaves them (gap 0.1 mm, worked to within separate_lips' 0.05 mm
+        # tolerance): contact cannot start from crossed lips or lips inside the teeth
+        x = np.asarray(patient.nodes)
+        assert report["start"]["conditions_hold"]
+        assert report["min_scaled_jacobian"] >= opt.threshold
+        movable = np.setdiff1d(np.arange(len(x)), held)
+        arches = [Arch(k, v, f, s) for k, (v, f, s) in patient.teeth.items()]
+        assert union_distance(arches, x[movable], 2.0)[0].min() >= opt.teeth_clearance_mm - 1e-6
+        gap = lip_overlap(x, np.asarray(standard.facet_sets["lip_upper_contact"]),
+                          np.asarray(standard.facet_sets["lip_lower_contact"]))["min_gap_mm"]
+        assert gap >= opt.lip_gap_mm - 0.05
+        return x
+
+    patient, _, report = synth.prolonged_patient(standard, coarse, patient_c)
+    x = check_start(patient, report)
+    # the three hold together whatever the carried start: with the arches 0.6 mm further
+    # forward (into the lips: more nodes to push, more elements for the repair, which must not
+    # undo the pushes) they still hold
+    forward = {k: (np.asarray(v) + [0.0, 0.6, 0.0], f, s) for k, (v, f, s) in patient_c.teeth.items()}
+    check_start(*synth.prolonged_patient(standard, coarse,
+                                         dataclasses.replace(patient_c, teeth=forward))[::2])
     # the carried skin is where the coarse registered skin is (its facets are the coarse
     # registration's fit, gated at skin_mean_gate_mm = 1 mm on average; the synthetic skin is
     # closed, so every skin node has skin under it): on average within that gate, and its

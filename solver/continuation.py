@@ -50,14 +50,15 @@ class PseudoTransient:
 
         delta_k = delta_s * (|r_k| / |r_s|) * c_k,
 
-    r_s the residual the step's first solve started from (SER: the damping follows the
+    r_s the residual after the step's first iteration (which imposes the prescribed
+    increments) (SER: the damping follows the
     residual, and comes back when a re-solve after a multiplier update or a contact status
     change starts from a larger one), c_k a ramp: halved after an update taken at full length
     that went downhill (the pseudo-time step grows while the iteration makes progress, also
     where the residual rises on the way over a limit point), doubled after an update the
     step limit or an inverted element shortened, ten times after an update that was not a
     descent direction, within [c_min, 1 / c_min]. delta_s, the damping a step starts with:
-    delta0 after a failed step, a tenth of the last after a step that converged with every
+    delta0 after a failed step, `relax` times the last after a step that converged with every
     update downhill and at full length (the damping was not needed), unchanged after
     another; below `fade` delta0 continuation ends.
     A delta below `floor` counts as zero (Newton's matrix).
@@ -65,7 +66,7 @@ class PseudoTransient:
 
     def __init__(self, delta0: float, positions: np.ndarray, growth: float = 2.0,
                  c_min: float = 1e-3, ceiling: float = 1e8, floor: float = 1e-12,
-                 fade: float = 1e-3):
+                 fade: float = 1e-3, relax: float = 0.3):
         self.delta0 = float(delta0)
         self.positions = np.asarray(positions, dtype=np.int64)
         self.growth = float(growth)
@@ -73,15 +74,18 @@ class PseudoTransient:
         self.ceiling = float(ceiling)
         self.floor = float(floor)
         self.fade = float(fade)
+        self.relax = float(relax)
         self.needed = False         # an update of this step was shortened or uphill
         self.start_delta = self.delta0
         self.delta = self.delta0
         self.ramp = 1.0
         self._first = None
+        self._opening = False
 
     def start(self, residual: float, again: bool = False) -> None:
         """A new solve from a state of residual norm `residual`; `again`: a re-solve of the
         same load step (its reference residual and ramp are kept)."""
+        self._opening = not again
         if not again or not self._first or not np.isfinite(residual):
             self._first = max(float(residual), 1e-300)
             self.ramp = 1.0
@@ -100,6 +104,11 @@ class PseudoTransient:
         """The damping of the next iteration after one that left the residual norm
         `residual`; `full`: its update was taken at full length (not shortened by the step
         limit or for an inverted element). Returns the new delta."""
+        if self._opening and np.isfinite(residual):
+            # the first iteration of a step imposes the prescribed increments: the residual
+            # after it, not the one before, is the step's reference
+            self._first = max(self._first, float(residual))
+        self._opening = False
         self.ramp = self.ramp / self.growth if full else self.ramp * self.growth
         self.needed = self.needed or not full
         self.ramp = min(max(self.ramp, self.c_min), 1.0 / self.c_min)
@@ -125,11 +134,11 @@ class PseudoTransient:
         return B
 
     def step_converged(self) -> bool:
-        """A load step converged: the next one starts with a tenth of the damping if this
-        one did not need it; False once the damping has fallen below `fade` delta0
+        """A load step converged: the next one starts with `relax` times the damping if
+        this one did not need it; False once the damping has fallen below `fade` delta0
         (continuation is no longer needed)."""
         if not self.needed:
-            self.start_delta *= 0.1
+            self.start_delta *= self.relax
         return self.start_delta >= self.fade * self.delta0
 
     def step_failed(self) -> None:

@@ -101,7 +101,7 @@ def test_damping_schedule():
     until it fades out; a failed step starts the next from delta0."""
     A = sp.csr_matrix(np.array([[4.0, 1.0, 0.0], [0.0, -2.0, 1.0], [0.0, 0.0, 9.0]]))
     diag = np.array([0, 2, 4])                  # positions of the diagonal in A.data
-    ptc = PseudoTransient(1.0, diag[[0, 1]], fade=1e-3)
+    ptc = PseudoTransient(1.0, diag[[0, 1]], fade=1e-3, relax=0.1)
     ptc.start(10.0)
     B = ptc.damped(A)
     np.testing.assert_allclose(B.toarray() - A.toarray(), np.diag([4.0, 2.0, 0.0]))

@@ -32,7 +32,8 @@ the usual tolerance. Where the load path has a limit point it is the stable equi
 damped dynamics reaches (the one a slow loading of the real, slightly viscous tissue reaches).
 
 `solver.newton.newton_solve` switches PTC on for the rest of a run once `ptc_after`
-consecutive load steps failed (`SolverControl.ptc_after`, `ptc_damping`, `ptc_iterations`).
+consecutive load steps failed; the load step then grows after a step none of whose updates
+needed the damping (`SolverControl.ptc_after`, `ptc_damping`, `ptc_iterations`).
 """
 from __future__ import annotations
 
@@ -57,10 +58,11 @@ class PseudoTransient:
     that went downhill (the pseudo-time step grows while the iteration makes progress, also
     where the residual rises on the way over a limit point), doubled after an update the
     step limit or an inverted element shortened, ten times after an update that was not a
-    descent direction, within [c_min, 1 / c_min]. delta_s, the damping a step starts with:
+    descent direction, within [c_min, 1 / c_min], 1 at the start of every solve. delta_s, the damping a step starts with:
     delta0 after a failed step, `relax` times the last after a step that converged with every
     update downhill and at full length (the damping was not needed), unchanged after
-    another; below `fade` delta0 continuation ends.
+    another, at least `fade` delta0 (continuation stays on for the rest of the run: where a
+    load path once needed it, later steps meet the same contacts).
     A delta below `floor` counts as zero (Newton's matrix).
     """
 
@@ -84,16 +86,13 @@ class PseudoTransient:
 
     def start(self, residual: float, again: bool = False) -> None:
         """A new solve from a state of residual norm `residual`; `again`: a re-solve of the
-        same load step (its reference residual and ramp are kept)."""
+        same load step (its reference residual is kept: a re-solve from a larger residual
+        than the step's is damped more)."""
         self._opening = not again
         if not again or not self._first or not np.isfinite(residual):
             self._first = max(float(residual), 1e-300)
-            self.ramp = 1.0
             self.needed = False
-        else:
-            # a re-solve starts where the pseudo-time step was, at least at c = 1 again if
-            # it starts from a larger residual than the step did
-            self.ramp = max(self.ramp, 1.0) if residual > self._first else self.ramp
+        self.ramp = 1.0
         self._set(residual)
 
     def _set(self, residual):
@@ -135,11 +134,10 @@ class PseudoTransient:
 
     def step_converged(self) -> bool:
         """A load step converged: the next one starts with `relax` times the damping if
-        this one did not need it; False once the damping has fallen below `fade` delta0
-        (continuation is no longer needed)."""
+        this one did not need it (at least `fade` delta0)."""
         if not self.needed:
-            self.start_delta *= self.relax
-        return self.start_delta >= self.fade * self.delta0
+            self.start_delta = max(self.start_delta * self.relax, self.fade * self.delta0)
+        return True
 
     def step_failed(self) -> None:
         """A load step failed (it is cut back): the next one starts from delta0 again."""

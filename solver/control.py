@@ -136,6 +136,13 @@ class StepController:
         if self.shrink_iterations and first_iterations > self.shrink_iterations:
             self.dt = max(0.5 * self.dt, self.min_step)
 
+    def converged_damped(self, easy: bool) -> None:
+        """A step converged under continuation (`solver.continuation`); `easy`: no update
+        needed the damping. The step grows by `growth` after an easy one (the iteration
+        count of a damped solve does not measure the step's difficulty)."""
+        if self.grow and easy:
+            self.dt = min(self.dt_max, self.growth * self.dt)
+
     def cut_back(self, load: float, target: float) -> bool:
         """The step from `load` to `target` failed: halve it. False when it falls below the
         minimum step (the solve has failed)."""

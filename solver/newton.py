@@ -236,11 +236,14 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
                      step.iterations)
             if step_callback is not None:
                 step_callback(result)
-            stepper.converged(step.iterations, step.first_iterations)
             failures = 0
-            if run.ptc is not None and not run.ptc.step_converged():
-                run.ptc = None          # the damping has faded out: plain Newton again
-                log.info("pseudo-transient continuation off from load %.4g", load)
+            if run.ptc is None:
+                stepper.converged(step.iterations, step.first_iterations)
+            else:
+                # under continuation the iteration count of a damped solve does not measure
+                # the step's difficulty: the step grows when no update needed the damping
+                stepper.converged_damped(not run.ptc.needed)
+                run.ptc.step_converged()
         else:
             # the shorter step starts from the converged state, with the terms as they were
             # there: not from the failed solve's iterate (at the higher load) nor with the

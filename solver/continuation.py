@@ -57,7 +57,8 @@ class PseudoTransient:
     change starts from a larger one), c_k a ramp: halved after an update taken at full length
     that went downhill (the pseudo-time step grows while the iteration makes progress, also
     where the residual rises on the way over a limit point), doubled after an update the
-    step limit or an inverted element shortened, ten times after an update that was not a
+    step limit or an inverted element shortened or whose damped tangent was indefinite
+    along it (`indefinite`: it was solved again with convexified terms), ten times after an update that was not a
     descent direction, within [c_min, 1 / c_min], 1 at the start of every solve. delta_s, the damping a step starts with:
     delta0 after a failed step, `relax` times the last after a step that converged with every
     update downhill and at full length (the damping was not needed), unchanged after
@@ -78,6 +79,7 @@ class PseudoTransient:
         self.fade = float(fade)
         self.relax = float(relax)
         self.needed = False         # an update of this step was shortened or uphill
+        self.indefinite = False     # the last update met an indefinite tangent
         self.start_delta = self.delta0
         self.delta = self.delta0
         self.ramp = 1.0
@@ -108,6 +110,8 @@ class PseudoTransient:
             # after it, not the one before, is the step's reference
             self._first = max(self._first, float(residual))
         self._opening = False
+        full = full and not self.indefinite
+        self.indefinite = False
         self.ramp = self.ramp / self.growth if full else self.ramp * self.growth
         self.needed = self.needed or not full
         self.ramp = min(max(self.ramp, self.c_min), 1.0 / self.c_min)

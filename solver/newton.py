@@ -565,6 +565,8 @@ class _Run:
         g0 = -_dot(out[0][free], rhs[free])
         if g0 > 0.0 and any([bool(t.convexify(True)) for t in system.terms]):
             self.result.convexified += 1
+            if self.ptc is not None:
+                self.ptc.indefinite = True      # the damping grows instead of falling
             log.info("step %d it %d: the update is not a descent direction (du.r = %.3e > 0): "
                      "convexified contact tangents", step_no, it, g0)
             try:

@@ -54,10 +54,9 @@ class SolverControl:
     Pseudo-transient continuation (`solver.continuation`): ptc_after, the consecutive failed
     (cut-back) load steps after which the solves of the run add the damping delta D to the
     tangent (None: never); ptc_damping, the damping delta_0 each such solve starts with
-    (relative to the tangent's diagonal D); ptc_iterations, the iterations the damped solves
-    of one load step (re-solves after augmentations included) may take together before the
-    step is cut back (the stagnation test is off in them: a damped solve reduces the residual
-    slowly at first by design).
+    (relative to the tangent's diagonal D); ptc_iterations, the iteration limit of such a
+    solve (the stagnation test is off in it: a damped solve reduces the residual slowly at
+    first by design).
     """
 
     steps: int = 10

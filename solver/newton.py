@@ -339,7 +339,6 @@ class _Run:
         self._start_mixed = None
         self._term_states = []
         self.ptc = None             # the `PseudoTransient` damping once continuation is on
-        self._step_budget = 0       # iterations left to the load step under continuation
 
     def start_continuation(self, load):
         """Pseudo-transient continuation for the rest of the run (`solver.continuation`)."""
@@ -386,9 +385,6 @@ class _Run:
         x_pred = self.predictor.start(target)
         energy0, early = None, control.augmentation_rtol
         retries, first_iterations = 0, None
-        # under continuation the solves of one load step share `ptc_iterations` iterations
-        # (re-solves after augmentations included): a step that needs more is cut back
-        self._step_budget = control.ptc_iterations
         while True:
             step = self._solve(start, target, step_no, x_pred, energy0, early)
             x_pred, energy0 = None, step.energy0
@@ -451,11 +447,7 @@ class _Run:
         max_iterations = control.max_iterations
         if ptc is not None:
             ptc.start(_norm(r[free]), again=energy0 is not None)
-            max_iterations = self._step_budget
-            if max_iterations < 1:
-                step.reason = (f"continuation: no convergence within {control.ptc_iterations} "
-                               f"iterations in the step")
-                return step
+            max_iterations = max(max_iterations, control.ptc_iterations)
         for it in range(1, max_iterations + 1):
             gap = targets - self.uhat(x)[cons.dofs]
             out = self._descent_direction(x, target, targets, step_no, it, ev, r, A, cpl, gap)
@@ -486,7 +478,6 @@ class _Run:
             residuals.append(rn)
             if ptc is not None:
                 ptc.advance(rn, full=s == 1.0)
-                self._step_budget -= 1
                 result.continuation_iterations += 1
             step.iterations, step.residuals = it, list(residuals)
             step.worst_element, step.min_J = ev.worst_element, ev.min_J

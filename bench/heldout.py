@@ -155,6 +155,7 @@ def run_case(seed: int, resolution: str, root: Path, landmarks: bool) -> dict:
         rec["newton_iterations"] = solver.get("iterations")
         rec["load_steps"] = solver.get("steps")
         rec["cutbacks"] = info.get("cutbacks")
+        rec["continuation_from_load"] = info.get("continuation_from_load")
         rec["predict_stages_s"] = report.get("timings_s", {})
         rec["predicted_min_sj"] = _predicted_quality(out)
         mq = report.get("mesh_quality", {})
@@ -189,8 +190,12 @@ def summarise(records: list[dict], resolution: str) -> str:
         if not r["ok"]:
             print(f"  FAILED seed {r['seed']} in {r['failed_in']}: {r['error']} [{r.get('where', '')}] plan {r['plan']}")
     if its:
+        cont = [r for r in ok if r.get("continuation_from_load") is not None]
         print(f"  Newton iterations: median {_median(its):.0f}, max {max(its)}; cut-backs: total {sum(cut)}, "
-              f"cases with any {sum(c > 0 for c in cut)}")
+              f"cases with any {sum(c > 0 for c in cut)}; pseudo-transient continuation in "
+              f"{len(cont)} case(s)" + (" (seeds " + ", ".join(
+                  f"{r['seed']} from load {r['continuation_from_load']:.3g}" for r in cont) + ")"
+                                        if cont else ""))
     if sj:
         print(f"  minimum scaled Jacobian: registered {min(r['registered_min_sj'] for r in rs if 'registered_min_sj' in r):.3f}"
               + (f", predicted {min(r['predicted_min_sj'] for r in ok):.3f}" if ok else "")

@@ -302,6 +302,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             "activations": activations, "sliding": list(sliding),
             "cutbacks": res.cutbacks, "factorizations": res.factorizations,
             "convexified_updates": res.convexified,
+            "continuation_from_load": res.continuation_from,
+            "continuation_iterations": res.continuation_iterations,
             "krylov_iterations": res.krylov_iterations, "timings": res.timings}
     if contact:
         info["penetration_mm"] = {k: float(t.penetration(x)) for k, t in terms.items()}

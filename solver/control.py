@@ -51,6 +51,12 @@ class SolverControl:
     `solver.linalg.LaggedFactorSolver`) or "auto" ("lagged" from `lagged_min_dofs` unknowns);
     krylov_rtol, krylov_maxiter, krylov_forcing, krylov_refactor, krylov_precision as in
     `LaggedFactorSolver`.
+    Pseudo-transient continuation (`solver.continuation`): ptc_after, the consecutive failed
+    (cut-back) load steps after which the solves of the run add the damping delta D to the
+    tangent (None: never); ptc_damping, the damping delta_0 each such solve starts with
+    (relative to the tangent's diagonal D); ptc_iterations, the iteration limit of such a
+    solve (the stagnation test is off in it: a damped solve reduces the residual slowly at
+    first by design).
     """
 
     steps: int = 10
@@ -81,11 +87,18 @@ class SolverControl:
     lagged_min_dofs: int = 20000
     krylov_refactor: int = 8
     krylov_precision: str = "single"
+    ptc_after: int | None = 2
+    ptc_damping: float = 1.0
+    ptc_iterations: int = 60
 
     def __post_init__(self):
         if self.linear_strategy not in ("auto", "exact", "lagged"):
             raise ValueError(f"linear_strategy must be 'auto', 'exact' or 'lagged', "
                              f"got {self.linear_strategy!r}")
+        if self.ptc_after is not None and self.ptc_after < 1:
+            raise ValueError(f"ptc_after must be None or >= 1, got {self.ptc_after!r}")
+        if not self.ptc_damping > 0.0:
+            raise ValueError(f"ptc_damping must be > 0, got {self.ptc_damping!r}")
         if self.predictor not in ("auto", "tangent", "secant"):
             raise ValueError(f"predictor must be 'auto', 'tangent' or 'secant', "
                              f"got {self.predictor!r}")
@@ -122,6 +135,13 @@ class StepController:
             self.dt = min(self.dt_max, self.growth * self.dt)
         if self.shrink_iterations and first_iterations > self.shrink_iterations:
             self.dt = max(0.5 * self.dt, self.min_step)
+
+    def converged_damped(self, easy: bool) -> None:
+        """A step converged under continuation (`solver.continuation`); `easy`: no update
+        needed the damping. The step grows by `growth` after an easy one (the iteration
+        count of a damped solve does not measure the step's difficulty)."""
+        if self.grow and easy:
+            self.dt = min(self.dt_max, self.growth * self.dt)
 
     def cut_back(self, load: float, target: float) -> bool:
         """The step from `load` to `target` failed: halve it. False when it falls below the

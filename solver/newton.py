@@ -29,6 +29,7 @@ from solver.bc import ConstraintSet
 from solver.control import (ConvergenceCriterion, IncrementLimiter, Predictor, SolverControl,
                             StepController, StepResult)
 from solver.control import extrapolate as _extrapolate
+from solver.continuation import PseudoTransient
 from solver.errors import SolveFailed
 from solver import linalg as _linalg
 from solver.linalg import LaggedFactorSolver, SymmetricSolver, _dot, sym_matvec
@@ -69,6 +70,9 @@ class NewtonResult:
     early_augmentations: int = 0     # solves stopped early for an augmentation
     convexified: int = 0             # updates solved again with convexified term tangents
                                      # (the exact one was not a descent direction)
+    continuation_from: float | None = None   # load fraction from which pseudo-transient
+                                             # continuation was on (None: never)
+    continuation_iterations: int = 0         # iterations solved with the PTC damping
     # forces the constraints exert on the body (residual at the constrained dofs), (n, 3), in
     # each node's local frame where a LocalFrame is given, zero at unconstrained components
     reactions: np.ndarray | None = None
@@ -151,6 +155,28 @@ class _System:
         self.timing["assembly"] += time.perf_counter() - t0
         return ev, rhat, A, coupling
 
+    def retangent_terms(self, x, load, ev, targets=None):
+        """(A, coupling) at x with the terms' tangents assembled again and the body's
+        tangent of the evaluation `ev` at the same x reused: for a term that changed only
+        its tangent (`Term.convexify`), the residual and the body's part being unchanged."""
+        t0 = time.perf_counter()
+        Kt = []
+        for term in self.terms:
+            _, K = term.assemble(x, load)
+            if K is not None and K.nnz:
+                Kt.append(K)
+        gap = None
+        if targets is not None:
+            uh = self.cons.to_local((x - self.body.mesh.nodes).ravel())
+            g = targets - uh[self.cons.dofs]
+            if np.any(g != 0.0):
+                gap = np.zeros(len(uh))
+                gap[self.cons.dofs] = g
+        # `_matrix` works in place on a pattern-sized array: the body's data stays intact
+        A, coupling = self._matrix(np.array(ev.data, copy=True), Kt, gap)
+        self.timing["assembly"] += time.perf_counter() - t0
+        return A, coupling
+
     @staticmethod
     def _sym_matvec(Ku, v):
         if not Ku.has_sorted_indices:
@@ -195,6 +221,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
     run = _Run(body, constraints, terms, external, control, x0, callback)
     result, stepper, predictor = run.result, run.stepper, run.predictor
     x, load, step_no = run.x, 0.0, 0
+    failures = 0                # consecutive failed load steps
     while load < 1.0 - 1e-12:
         step_no += 1
         target = stepper.target(load)
@@ -209,7 +236,14 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
                      step.iterations)
             if step_callback is not None:
                 step_callback(result)
-            stepper.converged(step.iterations, step.first_iterations)
+            failures = 0
+            if run.ptc is None:
+                stepper.converged(step.iterations, step.first_iterations)
+            else:
+                # under continuation the iteration count of a damped solve does not measure
+                # the step's difficulty: the step grows when no update needed the damping
+                stepper.converged_damped(not run.ptc.needed)
+                run.ptc.step_converged()
         else:
             # the shorter step starts from the converged state, with the terms as they were
             # there: not from the failed solve's iterate (at the higher load) nor with the
@@ -221,6 +255,15 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
             ok = stepper.cut_back(load, target)
             log.warning("step %d failed at load %.4g (%s); cutting back to step %.4g",
                         step_no, target, step.reason, stepper.dt)
+            failures += 1
+            if run.ptc is not None:
+                run.ptc.step_failed()
+            elif (ok and control.ptc_after is not None
+                  and failures >= control.ptc_after):
+                # Newton failed on repeatedly shortened steps: a limit point or a jump of the
+                # residual (contact) rather than a too long step; from here on every solve is
+                # damped (`solver.continuation`) until the damping has faded over converged steps
+                run.start_continuation(load)
             if not ok:
                 run.finish(x, load, converged=False)
                 raise SolveFailed(
@@ -295,6 +338,14 @@ class _Run:
         self.pardiso0 = dict(_linalg.TIMING)
         self._start_mixed = None
         self._term_states = []
+        self.ptc = None             # the `PseudoTransient` damping once continuation is on
+
+    def start_continuation(self, load):
+        """Pseudo-transient continuation for the rest of the run (`solver.continuation`)."""
+        diag = self.system.pattern.diagonal[np.asarray(self.cons.free, dtype=np.int64)]
+        self.ptc = PseudoTransient(self.control.ptc_damping, diag)
+        self.result.continuation_from = load
+        log.warning("pseudo-transient continuation from load %.4g on", load)
 
     # --- state of the three-field iteration --------------------------------------------------
     def mixed_state(self):
@@ -392,7 +443,12 @@ class _Run:
             return step.failed("invalid start state", ev)
         tiny = 1e-10 * max(1.0, float(np.abs(targets).max()) if len(targets) else 1.0)
         residuals = []
-        for it in range(1, control.max_iterations + 1):
+        ptc = self.ptc
+        max_iterations = control.max_iterations
+        if ptc is not None:
+            ptc.start(_norm(r[free]), again=energy0 is not None)
+            max_iterations = max(max_iterations, control.ptc_iterations)
+        for it in range(1, max_iterations + 1):
             gap = targets - self.uhat(x)[cons.dofs]
             out = self._descent_direction(x, target, targets, step_no, it, ev, r, A, cpl, gap)
             if isinstance(out, str):        # a singular or failed factorisation: cut back
@@ -420,6 +476,9 @@ class _Run:
             self._log(step_no, target, it, rn, scale, energy, step.energy0, dn, s, gap_after,
                       ev, stats)
             residuals.append(rn)
+            if ptc is not None:
+                ptc.advance(rn, full=s == 1.0)
+                result.continuation_iterations += 1
             step.iterations, step.residuals = it, list(residuals)
             step.worst_element, step.min_J = ev.worst_element, ev.min_J
             if criterion.converged(it, rn, scale, energy, step.energy0, gap_after, tiny):
@@ -445,12 +504,12 @@ class _Run:
             if criterion.diverges(it, residuals):
                 step.reason = "residual diverges"
                 return step
-            if criterion.stalled(it, residuals):
+            if ptc is None and criterion.stalled(it, residuals):
                 step.reason = f"no progress in {it} iterations (|R| = {rn:.3e})"
                 return step
             if A is None:               # evaluated without the tangent and not converged
                 ev, r, A, cpl = system.evaluate(x, target, targets=targets)
-        step.reason = f"no convergence in {control.max_iterations} iterations (|R| = {rn:.3e})"
+        step.reason = f"no convergence in {max_iterations} iterations (|R| = {rn:.3e})"
         return step
 
     def _linear_solve(self, A, rhs, ev):
@@ -497,25 +556,42 @@ class _Run:
         def solve(r, cpl):
             rhs = -r if cpl is None else -r - cpl
             rhs[cons.dofs] = system.constraint_scale * gap
-            return rhs, self._linear_solve(A, rhs, ev)
+            M = A if self.ptc is None else self.ptc.damped(A)
+            return rhs, self._linear_solve(M, rhs, ev)
 
         rhs, out = solve(r, cpl)
         if isinstance(out, str):
             return out
         g0 = -_dot(out[0][free], rhs[free])
-        if not g0 > 0.0 or not any([bool(t.convexify(True)) for t in system.terms]):
-            return out[0], rhs, out[1], r, A, cpl
-        self.result.convexified += 1
-        log.info("step %d it %d: the update is not a descent direction (du.r = %.3e > 0): "
-                 "convexified contact tangents", step_no, it, g0)
-        try:
-            _, r, A, cpl = system.evaluate(x, target, targets=targets)
-        finally:
-            for t in system.terms:
-                t.convexify(False)
-        rhs, out = solve(r, cpl)
-        if isinstance(out, str):
-            return out
+        if g0 > 0.0 and any([bool(t.convexify(True)) for t in system.terms]):
+            self.result.convexified += 1
+            if self.ptc is not None:
+                self.ptc.indefinite = True      # the damping grows instead of falling
+            log.info("step %d it %d: the update is not a descent direction (du.r = %.3e > 0): "
+                     "convexified contact tangents", step_no, it, g0)
+            try:
+                # the forces are unchanged: only the terms' tangents are assembled again
+                A, cpl = system.retangent_terms(x, target, ev, targets=targets)
+            finally:
+                for t in system.terms:
+                    t.convexify(False)
+            rhs, out = solve(r, cpl)
+            if isinstance(out, str):
+                return out
+            g0 = -_dot(out[0][free], rhs[free])
+        # under continuation the damping is raised until the update goes downhill (the
+        # damped matrix is positive definite for a large enough damping); with prescribed
+        # increments to impose the update is not one of the potential at fixed constraints
+        tries = 0
+        while self.ptc is not None and g0 > 0.0 and tries < 6 and not np.any(gap != 0.0):
+            tries += 1
+            self.ptc.raise_damping()
+            log.info("step %d it %d: damped update not a descent direction: damping %.2e",
+                     step_no, it, self.ptc.delta)
+            rhs, out = solve(r, cpl)
+            if isinstance(out, str):
+                return out
+            g0 = -_dot(out[0][free], rhs[free])
         return out[0], rhs, out[1], r, A, cpl
 
     def _update(self, x, du, du_hat, g0, ev, r, target, targets, has_gap):
@@ -565,12 +641,14 @@ class _Run:
                "energy_ratio": energy / energy0, "displacement_norm": dn, "line_search": s,
                "constraint_gap": gap_after, "min_J": ev.min_J,
                "krylov_iterations": stats["krylov_iterations"],
-               "factorized": bool(stats["refactorized"])}
+               "factorized": bool(stats["refactorized"]),
+               "damping": self.ptc.delta if self.ptc is not None else 0.0}
         self.result.log.append(rec)
         self.result.iterations += 1
         log.info("step %3d load %.4f it %2d |R| %.3e (rel %.2e) E %.3e |du| %.3e s %.3g "
-                 "cg %d%s", step_no, target, it, rn, rn / scale, energy, dn, s,
-                 stats["krylov_iterations"], " fact" if stats["refactorized"] else "")
+                 "cg %d%s%s", step_no, target, it, rn, rn / scale, energy, dn, s,
+                 stats["krylov_iterations"], " fact" if stats["refactorized"] else "",
+                 f" ptc {self.ptc.delta:.2e}" if self.ptc is not None else "")
         if self.callback is not None:
             self.callback(rec)
 

@@ -102,30 +102,28 @@ def main() -> int:
     if record is None:
         print(f"one synthetic case, seed {args.seed}, withheld {args.effect}, truth {args.truth_resolution}, "
               f"lip contact {'off' if args.no_contact else 'on'}: {failure}")
-        print(f"load average before {load0[0]:.1f}, after {os.getloadavg()[0]:.1f} (2 cores)")
-        for k, v in stages.items():
-            print(f"  {k:28s} {v:7.1f} s")
-        print(f"  {'time until stopped':28s} {total:7.1f} s")
-        for s in solves:
-            print(f"  solve {s['solve']:7s} {s['nodes']} nodes: {s['steps']} steps, {s['iterations']} Newton "
-                  f"iterations, {s['cutbacks']} cut-backs, {s['factorizations']} factorisations"
-                  + _split(s))
+        _print_stages(load0, stages, "time until stopped", total, solves)
         print(f"  last Newton iteration: {last[0]}")
         return 3
     print(f"one synthetic case, seed {args.seed}, withheld {args.effect} -> {record['effect']}="
           f"{json.dumps(record['value'])}, truth {args.truth_resolution} (registered at "
           f"{record['perturbation'].get('registered_at')}), lip contact "
           f"{'off' if args.no_contact else 'on'}")
+    _print_stages(load0, stages, "total (end to end)", total, solves)
+    print(f"  effect skin change (max, mm): {record['effect_skin_change_mm']['max_mm']}")
+    return 0
+
+
+def _print_stages(load0, stages: dict, total_label: str, total: float, solves: list) -> None:
+    """The machine's load, the time of each stage, the total and each solve's Newton figures."""
     print(f"load average before {load0[0]:.1f}, after {os.getloadavg()[0]:.1f} (2 cores)")
     for k, v in stages.items():
         print(f"  {k:28s} {v:7.1f} s")
-    print(f"  {'total (end to end)':28s} {total:7.1f} s")
+    print(f"  {total_label:28s} {total:7.1f} s")
     for s in solves:
         print(f"  solve {s['solve']:7s} {s['nodes']} nodes: {s['steps']} steps, {s['iterations']} Newton "
               f"iterations, {s['cutbacks']} cut-backs, {s['factorizations']} factorisations"
               + _split(s))
-    print(f"  effect skin change (max, mm): {record['effect_skin_change_mm']['max_mm']}")
-    return 0
 
 
 if __name__ == "__main__":

@@ -144,16 +144,22 @@ class _System:
         A = None
         coupling = None
         if tangent:
-            gap = None
-            if targets is not None:
-                uh = self.cons.to_local((x - self.body.mesh.nodes).ravel())
-                g = targets - uh[self.cons.dofs]
-                if np.any(g != 0.0):
-                    gap = np.zeros(len(rhat))
-                    gap[self.cons.dofs] = g
-            A, coupling = self._matrix(ev.data, Kt, gap)
+            A, coupling = self._matrix(ev.data, Kt, self._gap(x, targets))
         self.timing["assembly"] += time.perf_counter() - t0
         return ev, rhat, A, coupling
+
+    def _gap(self, x, targets):
+        """The prescribed values still to impose at the constrained dofs (local frame), as a
+        full-length vector; None when there are none or all are met."""
+        if targets is None:
+            return None
+        uh = self.cons.to_local((x - self.body.mesh.nodes).ravel())
+        g = targets - uh[self.cons.dofs]
+        if not np.any(g != 0.0):
+            return None
+        gap = np.zeros(len(uh))
+        gap[self.cons.dofs] = g
+        return gap
 
     def retangent_terms(self, x, load, ev, targets=None):
         """(A, coupling) at x with the terms' tangents assembled again and the body's
@@ -165,15 +171,8 @@ class _System:
             _, K = term.assemble(x, load)
             if K is not None and K.nnz:
                 Kt.append(K)
-        gap = None
-        if targets is not None:
-            uh = self.cons.to_local((x - self.body.mesh.nodes).ravel())
-            g = targets - uh[self.cons.dofs]
-            if np.any(g != 0.0):
-                gap = np.zeros(len(uh))
-                gap[self.cons.dofs] = g
         # `_matrix` works in place on a pattern-sized array: the body's data stays intact
-        A, coupling = self._matrix(np.array(ev.data, copy=True), Kt, gap)
+        A, coupling = self._matrix(np.array(ev.data, copy=True), Kt, self._gap(x, targets))
         self.timing["assembly"] += time.perf_counter() - t0
         return A, coupling
 

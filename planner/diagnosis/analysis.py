@@ -32,12 +32,13 @@ shrinkage's bootstrap spread;
 a model-form gap may remain beside it (its regions are reported). Pairs with the effect of
 largest held-out shrinkage (significant or not: two effects can act together where neither
 does alone) are tried when it leaves a gap above the noise. The verdict is the best significant
-effect (or pair, when the pair is itself significant and, if a single effect is, strongly
-better than it and shrinks the held-out gap further); else null when no region's gap stands
+effect (or pair, when the pair is itself significant, shrinks the held-out gap further than
+each of its members and, if a single effect is significant, is strongly better than it); else null when no region's gap stands
 out of noise + discrepancy, "unexplained" (with those regions) when some does. Its confidence
-is the total model probability (from the same BIC, among the baseline and the models that pass
-both the BIC and the held-out checks: `probabilities`) of the models that contain the named
-effect(s).
+is the total probability of the models that contain the named effect(s), the probabilities
+being held-out ones (pseudo-BMA+ weights of the held-out log predictive densities, among the
+baseline and the models that pass both the BIC and the held-out checks: `probabilities`), like
+the ranking.
 """
 from __future__ import annotations
 
@@ -56,7 +57,8 @@ __all__ = ["CaseData", "Candidate", "analyse", "MIN_HELDOUT_SHRINK_PCT", "MAX_RE
 # under noise + discrepancy, not this threshold), not of the whole gap: no effect removes the
 # scan's noise, and a share of the whole gap would ask more of an effect the noisier the scan.
 MIN_HELDOUT_SHRINK_PCT = 10.0
-# A pair is named only if it removes this many more percentage points than its best member.
+# A pair is named only if it removes this many more percentage points of the held-out gap than
+# each of its members.
 MIN_PAIR_GAIN_PCT = 10.0
 MAX_REFINEMENTS = 2
 PAIR_PARTNERS = 2              # pairs are tried with the best effect and the next best two
@@ -596,24 +598,29 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
             refine(pair_cands, data, forward)
             pairs = [score(c, data, rms0, n_eff) for c in pair_cands]
             _judge(pairs, gp0, lpd0)
-    prob = probabilities(gp0, scored + pairs)
+    prob = probabilities(gp0, lpd0, scored + pairs)
     for s in scored + pairs:
         s.probability = prob[s.cand.name]
-    verdict = _verdict(data, best, pairs, prob)
+    verdict = _verdict(data, best, pairs, prob, scored)
     return {"rms0": rms0, "bic0": bic0, "gp_bic0": gp0, "baseline_error": base_fits, "n_eff": n_eff, "scored": scored, "pairs": pairs, "notes": notes,
             "failed": failed, "verdict": verdict, "probabilities": prob, "best": best,
             "winner": verdict.get("_scored")}
 
 
-def probabilities(gp0: float, scored: list[Scored]) -> dict[str, float]:
-    """Model probabilities exp(-BIC / 2) normalised over the baseline and the models with
-    strong evidence against it that also predict held-out regions better than the discrepancy
-    alone; the others get 0: an effect whose in-sample evidence is weak or does not carry over
-    to unseen regions has fitted the discrepancy, so no effect is given a probability above
-    one half unless it wins on held-out data."""
-    models = {"baseline": gp0, **{s.cand.name: s.gp_bic for s in scored if s.identifiable and s.wins_heldout
-                                  and gp0 - s.gp_bic >= fit.STRONG_EVIDENCE}}
-    prob = fit.model_probabilities(models)
+def probabilities(gp0: float, lpd0: np.ndarray, scored: list[Scored]) -> dict[str, float]:
+    """Model probabilities from held-out prediction: pseudo-BMA+ weights (`fit.
+    predictive_weights`) of the held-out log predictive densities per fold, over the baseline
+    and the models with strong evidence against it (BIC under noise + discrepancy) that also
+    predict held-out regions better than the discrepancy alone; the others get 0: an effect
+    whose in-sample evidence is weak or does not carry over to unseen regions has fitted the
+    discrepancy. The verdict ranks effects on held-out data, so its confidence is measured on
+    held-out data too: a model that wins in-sample (BIC) by fitting more freely does not take
+    the probability from one that predicts unseen regions as well."""
+    pool = {"baseline": np.asarray(lpd0, float)}
+    for s in scored:
+        if s.identifiable and s.wins_heldout and gp0 - s.gp_bic >= fit.STRONG_EVIDENCE:
+            pool[s.cand.name] = np.asarray(s.lpd, float)
+    prob = fit.predictive_weights(pool)
     return {"baseline": prob["baseline"], **{s.cand.name: prob.get(s.cand.name, 0.0) for s in scored}}
 
 
@@ -650,7 +657,7 @@ def _explained_regions(data, before, after) -> list[str]:
     return out
 
 
-def _verdict(data, best, pairs, prob) -> dict:
+def _verdict(data, best, pairs, prob, scored=()) -> dict:
     """The winning effect when one is significant; else `null` when no region's gap exceeds
     noise + discrepancy (the model-form error the baseline is expected to carry),
     `unexplained` (with those regions) when some does. A significant effect beats the noise by
@@ -661,9 +668,16 @@ def _verdict(data, best, pairs, prob) -> dict:
     r0s = [d.r0 for d in data]
     above_noise = _significant_regions(data, r0s, noise_only=True)
     winner = best
+    single = {s.cand.name: s for s in scored}
     for p in sorted(pairs, key=lambda s: -s.heldout_shrink_pct):
-        if p.significant and (best is None or (best.gp_bic - p.gp_bic >= fit.STRONG_EVIDENCE and p.heldout_shrink_pct
-                                               >= best.heldout_shrink_pct + MIN_PAIR_GAIN_PCT)):
+        # a pair must earn its second effect on held-out data against each member, significant
+        # or not: a member that explains the gap but is not named (its held-out density no
+        # better than the discrepancy's) does not let a partner that fits the model-form rest
+        # (bone execution's 18 parameters) be named with it
+        members = [single[m] for m in p.cand.name.split("+") if m in single]
+        if p.significant and all(p.heldout_shrink_pct >= m.heldout_shrink_pct + MIN_PAIR_GAIN_PCT
+                                 for m in members) \
+                and (best is None or best.gp_bic - p.gp_bic >= fit.STRONG_EVIDENCE):
             winner = p
             break
     if winner is None:

@@ -203,6 +203,9 @@ def build_record(data: list, result: dict, effects) -> dict:
                              "heldout": "log predictive density of each region given the others, effect fitted "
                                         "without it; an effect must beat the discrepancy alone by twice the "
                                         "standard error of the difference",
+                             "probability": "pseudo-BMA+ weights of the held-out log predictive densities "
+                                            "(Bayesian bootstrap over the folds) among the baseline and the "
+                                            "models passing both checks; 0 for the others",
                              "min_heldout_noise_shrink_pct": analysis.MIN_HELDOUT_SHRINK_PCT,
                              "heldout_shrink_vs_spread": 2.0},
             "shrinkage": {

@@ -125,7 +125,7 @@ def _diagnose(P, w, r, patterns, em):
     analysis._judge(scored, gp0, lpd0)
     ranked = sorted(scored, key=lambda s: -s.heldout_shrink_pct)
     best = next((s for s in ranked if s.significant), None)
-    prob = analysis.probabilities(gp0, scored)
+    prob = analysis.probabilities(gp0, lpd0, scored)
     for s in scored:
         s.probability = prob[s.cand.name]
     return analysis._verdict([d], best, [], prob), scored

@@ -117,13 +117,19 @@ class _StoredForward:
 
 def _relative_errors(fitted: dict, value: dict) -> list[float]:
     """|fitted - key| / |key - none| per identifiable value (factors: none = 1); a bone
-    correction's translation and rotation each as a vector norm."""
+    correction's translation and rotation each as a vector norm. When the diagnosis used the
+    achieved movements of `postop/plan_actual.yaml` (`bone_execution: 1`), which hold the key's
+    correction, its fitted correction is what remains on top of them: the truth is zero there,
+    and the error is that remainder against the key."""
     out = []
+    achieved = fitted.get("bone_execution") == 1
     for k, v in (value or {}).items():
         if k not in fitted or k == "sliding":
             continue
         if isinstance(v, list):
             f, t = np.asarray(fitted[k], float), np.asarray(v, float)
+            if achieved:
+                f = f + t
             for sl in (slice(0, 3), slice(3, 6)):
                 out.append(float(np.linalg.norm(f[sl] - t[sl]) / max(np.linalg.norm(t[sl]), 1e-9)))
         elif isinstance(v, (int, float)) and not isinstance(v, bool):

@@ -43,8 +43,8 @@ class FaceSolverSettings:
     of them has to move by their advance within the step; a limit that is a fraction of the
     lip facets alone shrinks with the mesh while the advance does not, and a finer mesh then
     creeps behind the teeth for more iterations, with the mucosa squeezed between the teeth
-    and the tissue still held back, until the step stalls. With this floor every resolution
-    lets the mucosa follow the teeth in the same number of capped iterations.
+    and the tissue still held back, until the step stalls. With the floor 0.5, two capped
+    iterations carry the mucosa over the teeth's advance at every resolution.
     pair_hysteresis: a lip node keeps its master triangle while its projection is within this
     barycentric distance outside it (a node over a crease otherwise flips between two planes).
     """

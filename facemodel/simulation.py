@@ -43,7 +43,7 @@ from solver.mesh import HexMesh
 from solver.newton import newton_solve
 
 __all__ = ["simulate", "build_problem", "moved_constraints", "SimulationResult", "MUSCLES",
-           "lip_penetrations", "rigid_motion_ok"]
+           "lip_penetrations", "rigid_motion_ok", "teeth_advance"]
 
 log = logging.getLogger("facemodel.simulation")
 
@@ -290,7 +290,11 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
                 f"|du| {rec['displacement_norm']:.3e} ls {rec['line_search']:.2g}")
 
     t0 = time.perf_counter()
-    control = FACE_SOLVER.control(n_steps, max_iterations, _contact_nodes(terms), lip_size)
+    # the increment limit of the contact nodes: not below a fraction of the teeth's advance in
+    # the first load step (`FaceSolverSettings.max_increment`), whatever the lip facets' size
+    teeth = any(isinstance(t, RigidSurfaceContact) for t in terms.values())
+    advance = teeth_advance(model, motions, 1.0 / max(int(n_steps), 1)) if teeth else 0.0
+    control = FACE_SOLVER.control(n_steps, max_iterations, _contact_nodes(terms), lip_size, advance)
     res = newton_solve(body, constraints, list(terms.values()) + extra, control=control,
                        callback=callback)
     elapsed = time.perf_counter() - t0
@@ -329,6 +333,19 @@ def _contact_nodes(terms):
         else:
             out.append(t.slaves)
     return np.unique(np.concatenate(out)) if out else None
+
+
+def teeth_advance(model, motions: dict | None, load: float) -> float:
+    """The largest displacement (mm) of a tooth vertex of `model.teeth` at load fraction
+    `load` under its segment's ramped rigid motion in `motions` (0 without teeth): how far
+    the teeth, rigid contact surfaces, advance into the lip mucosa over that load."""
+    out = 0.0
+    for V, _, seg in dict(getattr(model, "teeth", {}) or {}).values():
+        V = np.asarray(V, dtype=float)
+        T = ramped_rigid_motion(_segment_motion(dict(motions or {}), seg), load)
+        d = V @ T[:3, :3].T + T[:3, 3] - V
+        out = max(out, float(np.sqrt(np.einsum("ij,ij->i", d, d).max(initial=0.0))))
+    return out
 
 
 def _rigid_displacement(Xs, T):

@@ -37,6 +37,14 @@ class FaceSolverSettings:
     in one Newton iteration (contact switching on can make an undamped update overshoot); the
     other free nodes follow the bones by several mm per step and are not limited. Larger lets
     an update reach contact in one go but overshoots; smaller spends iterations creeping.
+    teeth_increment_fraction: the limit is never below this fraction of the teeth's advance in
+    one load step (the largest displacement of a tooth vertex over the first step). The teeth
+    are rigid surfaces at the step's target from its first iteration, so the mucosa in front
+    of them has to move by their advance within the step; a limit that is a fraction of the
+    lip facets alone shrinks with the mesh while the advance does not, and a finer mesh then
+    creeps behind the teeth for more iterations, with the mucosa squeezed between the teeth
+    and the tissue still held back, until the step stalls. With the floor 0.5, two capped
+    iterations carry the mucosa over the teeth's advance at every resolution.
     pair_hysteresis: a lip node keeps its master triangle while its projection is within this
     barycentric distance outside it (a node over a crease otherwise flips between two planes).
     """
@@ -48,18 +56,28 @@ class FaceSolverSettings:
     shrink_iterations: int = 7
     augmentation_rtol: float = 0.5
     increment_fraction: float = 0.35
+    teeth_increment_fraction: float = 0.5
     pair_hysteresis: float = 0.05
 
+    def max_increment(self, lip_size: float | None, teeth_advance: float = 0.0) -> float:
+        """The increment limit (mm) of a contact node: `increment_fraction` of the lip facets'
+        median edge `lip_size` (2 mm when None), at least `teeth_increment_fraction` of
+        `teeth_advance`, the teeth's largest advance in one load step (mm)."""
+        return max(self.increment_fraction * (lip_size or 2.0),
+                   self.teeth_increment_fraction * float(teeth_advance or 0.0))
+
     def control(self, steps: int, max_iterations: int, contact_nodes=None,
-                lip_size: float | None = None) -> SolverControl:
+                lip_size: float | None = None, teeth_advance: float = 0.0) -> SolverControl:
         """The `SolverControl` of one face solve; `contact_nodes` None without contact terms.
-        lip_size: the lip facets' median edge (mm; 2 mm when the lips have no contact)."""
+        lip_size: the lip facets' median edge (mm; 2 mm when the lips have no contact);
+        teeth_advance: the teeth's largest advance in the first load step (mm, 0 without
+        teeth contact)."""
         contact = contact_nodes is not None
         return SolverControl(
             steps=steps, max_iterations=max_iterations, rtol=self.rtol, etol=self.etol,
             max_retries=self.max_retries, shrink_iterations=self.shrink_iterations,
             stall_iterations=self.stall_iterations if contact else None,
-            max_increment=self.increment_fraction * (lip_size or 2.0) if contact else None,
+            max_increment=self.max_increment(lip_size, teeth_advance) if contact else None,
             increment_nodes=contact_nodes, augmentation_rtol=self.augmentation_rtol)
 
 

@@ -1,0 +1,75 @@
+"""The face's Newton step control (`facemodel.solver_settings`): the increment limit of the
+contact nodes does not shrink with the mesh below what the teeth's advance per load step asks."""
+import numpy as np
+import pytest
+
+import generic_mesh
+from facemodel.simulation import _typical_size, teeth_advance
+from facemodel.solver_settings import FACE_SOLVER
+
+
+def _seed7_plan():
+    """The plan of `faceplan synth --seed 7` (as in test_simulation): Le Fort I +4.4 mm with a
+    2 deg pitch, mandible and chin +8.86 mm forward."""
+    c = np.array([0.0, 81.56, -31.19])
+    a = np.deg2rad(-2.0)
+    R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    maxilla = np.eye(4)
+    maxilla[:3, :3] = R
+    maxilla[:3, 3] = c - R @ c + [0.0, 4.44, 1.0]
+    mandible = np.eye(4)
+    mandible[1, 3] = 8.86
+    return {"maxilla": maxilla, "mandible": mandible, "chin": mandible}
+
+
+def _lip_size(model):
+    fs = model.facet_sets
+    return _typical_size(np.asarray(model.nodes, float),
+                         np.vstack([fs["lip_upper_contact"], fs["lip_lower_contact"]]))
+
+
+def test_teeth_advance_of_a_translation_is_the_translation_times_the_load():
+    """A translated arch: every vertex moves by load * |t| (exact, rigid motion ramped
+    linearly in its translation); a segment without motion does not move its arch."""
+    model = generic_mesh.load("coarse")
+    t = np.eye(4)
+    t[:3, 3] = [0.0, 6.0, -8.0]                      # |t| = 10 mm
+    segs = {seg for _, _, seg in model.teeth.values()}
+    assert teeth_advance(model, {s: t for s in segs}, 0.25) == pytest.approx(2.5, abs=1e-12)
+    assert teeth_advance(model, {}, 0.25) == 0.0
+
+
+def test_increment_limit_follows_the_teeth_not_the_mesh():
+    """At coarse, standard and fine, with 4 load steps of the seed-7 plan (lower teeth
+    +2.2 mm per step): the limit is at least half the teeth's advance per step, so the mucosa
+    can follow the teeth in two limited iterations at every resolution (without the floor
+    the fine limit, 0.35 of a 1.7 mm lip facet, is 0.61 mm: more than three iterations);
+    where the lip facets alone give more (coarse) the limit is theirs, so a coarse solve is
+    unchanged. The advance is the teeth's, the same on every mesh."""
+    motions = _seed7_plan()
+    caps, advances, sizes = {}, {}, {}
+    for res in ("coarse", "standard", "fine"):
+        model = generic_mesh.load(res)
+        sizes[res] = _lip_size(model)
+        advances[res] = teeth_advance(model, motions, 1.0 / 4)
+        caps[res] = FACE_SOLVER.control(4, 25, np.arange(3), sizes[res], advances[res]).max_increment
+    # the lip facets refine (coarse > standard > fine) but the teeth's advance does not
+    assert sizes["coarse"] > sizes["standard"] > sizes["fine"]
+    assert max(advances.values()) - min(advances.values()) < 1e-9
+    adv = advances["fine"]
+    assert adv == pytest.approx(2.215, abs=0.01)      # 8.86 mm / 4 at the lower incisors
+    for res in caps:
+        # two limited iterations cover the step's advance (1e-12: round-off of the max)
+        assert 2.0 * caps[res] >= adv - 1e-12, res
+        assert caps[res] >= FACE_SOLVER.increment_fraction * sizes[res] - 1e-12
+    # the floor sets the limit at standard and fine alike: mesh-independent there
+    assert caps["fine"] == pytest.approx(caps["standard"], rel=1e-12)
+    # coarse: the lip facets' limit, as before the floor (its solves unchanged)
+    assert caps["coarse"] == pytest.approx(FACE_SOLVER.increment_fraction * sizes["coarse"], rel=1e-12)
+
+
+def test_no_contact_no_limit_and_no_teeth_no_floor():
+    """Without contact terms no limit; contact without teeth keeps the lip facets' limit."""
+    assert FACE_SOLVER.control(4, 25, None, 1.0, 5.0).max_increment is None
+    assert FACE_SOLVER.control(4, 25, np.arange(3), 1.0, 0.0).max_increment == pytest.approx(
+        FACE_SOLVER.increment_fraction * 1.0)

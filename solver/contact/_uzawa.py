@@ -26,7 +26,11 @@ increment of the step that computed it: the jump shrinks with the step like the 
 load, so that a step cut back after a failure starts closer to equilibrium (the premise of
 cutting back, which a full update of fixed size defeats near a limit point of the load path).
 The part not applied is not lost: the next carried update is computed afresh at the next
-converged state. This is the method of multipliers with a stepsize beta in (0, 1] on the
+converged state. (3) An intermediate step is re-solved for a wrong contact status at most
+`status_resolves` times (1), then accepted as it is: where a body is pinched between two
+surfaces the status can change at every re-solve (each one converged, each from a relative
+residual of 0.01-0.1 after the change), and the next load searches the status afresh anyway;
+the final load is re-solved until its status holds. This is the method of multipliers with a stepsize beta in (0, 1] on the
 multiplier iteration, lambda <- lambda + beta (<lambda - eps g> - lambda), which converges for
 any stepsize in (0, 2) on a convex problem (Bertsekas 1982, *Constrained Optimization and
 Lagrange Multiplier Methods*, ch. 2); the final load, where the penetration must reach the
@@ -57,7 +61,9 @@ class AugmentedLagrangian:
     looked at (mm); max_depth: how deep inside contact is detected (mm). freeze_after: number
     of evaluations at one load after which the contact status is frozen (None: never);
     freeze_resolves: a re-solve re-decides the status at its first two evaluations only.
-    uzawa_schedule: which load steps are augmented (`UzawaLoop`).
+    uzawa_schedule: which load steps are augmented (`UzawaLoop`). status_resolves: re-solves
+    of an intermediate load step for a wrong contact status ("carried" schedule; None: up to
+    max_augmentations); the final load is re-solved until its status holds.
     """
 
     penalty: float = 100.0
@@ -69,6 +75,7 @@ class AugmentedLagrangian:
     freeze_after: int | None = 4
     freeze_resolves: bool = True
     uzawa_schedule: str = "carried"
+    status_resolves: int | None = 1
 
     def __post_init__(self):
         if not self.penalty > 0:
@@ -97,12 +104,14 @@ class UzawaLoop:
 
     SCHEDULES = ("carried", "every_step", "final_only")
 
-    def __init__(self, max_augmentations: int, schedule: str = "carried"):
+    def __init__(self, max_augmentations: int, schedule: str = "carried",
+                 status_resolves: int | None = None):
         if schedule not in self.SCHEDULES:
             raise ValueError(f"schedule must be one of {', '.join(self.SCHEDULES)}, "
                              f"got {schedule!r}")
         self.max_augmentations = int(max_augmentations)
         self.schedule = schedule
+        self.status_resolves = status_resolves
         self.count = 0
         self.carry = False      # the last `another_solve` asks for an update without re-solve
         self.update = False     # ... asks for a multiplier update (re-solve or carried)
@@ -121,6 +130,10 @@ class UzawaLoop:
             self.count = 0
         intermediate = self._intermediate(load)
         self.carry = False
+        if (status_changed and intermediate and self.schedule == "carried"
+                and self.status_resolves is not None and self.count >= self.status_resolves):
+            # rule 3 (module docstring): the intermediate state is accepted with its status
+            status_changed = False
         if self.count >= self.max_augmentations or \
                 (not status_changed and (not augmented or error <= tolerance or intermediate)):
             self.count = 0
@@ -251,7 +264,8 @@ class ContactTerm(StatusFreezing, Term):
         self.penalty = float(settings.penalty)
         self.augmented = bool(settings.augmented)
         self.tolerance = float(settings.tolerance)
-        self.uzawa = UzawaLoop(settings.max_augmentations, settings.uzawa_schedule)
+        self.uzawa = UzawaLoop(settings.max_augmentations, settings.uzawa_schedule,
+                               settings.status_resolves)
         self.search_radius = float(settings.search_radius)
         self.max_depth = float(settings.max_depth)
         self.freeze_after = settings.freeze_after

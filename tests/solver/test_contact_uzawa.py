@@ -199,6 +199,22 @@ def test_update_flag_is_set_for_a_resolve_or_a_carried_update_with_augmentation_
     assert loop.another_solve(1.0, True, True, error=1.0, tolerance=0.1) and loop.update
 
 
+def test_an_intermediate_step_is_re_solved_for_its_status_a_bounded_number_of_times():
+    # with status_resolves=1 the second status change of an intermediate step is accepted
+    # (the next load searches the status afresh), with a carried update if it penetrates;
+    # the final load is re-solved for every status change up to max_augmentations
+    loop = UzawaLoop(max_augmentations=5, status_resolves=1)
+    assert loop.another_solve(0.5, True, True, error=1.0, tolerance=0.1)
+    assert not loop.another_solve(0.5, True, True, error=1.0, tolerance=0.1) and loop.carry
+    assert loop.another_solve(0.75, True, True, error=0.05, tolerance=0.1)     # a new step
+    for _ in range(5):
+        assert loop.another_solve(1.0, True, True, error=0.05, tolerance=0.1)
+    assert not loop.another_solve(1.0, True, True, error=0.05, tolerance=0.1)  # bounded
+    unbounded = UzawaLoop(max_augmentations=5)
+    for _ in range(5):
+        assert unbounded.another_solve(0.5, True, True, error=1.0, tolerance=0.1)
+
+
 def test_a_carried_correction_is_applied_in_proportion_to_the_next_step():
     # A node 0.2 mm inside a plane: the step 0.25 -> 0.5 takes the carried update
     # lambda = eps g A = 2; at the next load the correction (2 - 0) is applied in the

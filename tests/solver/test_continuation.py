@@ -110,6 +110,11 @@ def test_damping_schedule():
     assert ptc.advance(1.0) == pytest.approx(0.025)            # and residual / 10
     assert ptc.advance(1.0, full=False) == pytest.approx(0.05)  # shortened: doubled
     assert ptc.raise_damping() == pytest.approx(0.5)           # uphill: ten times
+    # a full update that raised the residual more than ten times: SER's factor (x 20) and
+    # ten times the ramp; the good update after it halves the ramp only (the memory stays)
+    assert ptc.advance(20.0) == pytest.approx(0.5 * 20 * 10)
+    assert ptc.advance(1.0) == pytest.approx(0.5 * 10 / 2)
+    ptc.advance(1.0)
     ptc.start(20.0, again=True)     # a re-solve from twice the step's residual
     assert ptc.delta == pytest.approx(2.0)
     assert ptc.step_converged()             # the damping was needed: kept

@@ -27,7 +27,7 @@ load, so that a step cut back after a failure starts closer to equilibrium (the 
 cutting back, which a full update of fixed size defeats near a limit point of the load path).
 The part not applied is not lost: the next carried update is computed afresh at the next
 converged state. (3) An intermediate step is re-solved for a wrong contact status at most
-`status_resolves` times (1), then accepted as it is: where a body is pinched between two
+`status_resolves` times (1) for each term, then accepted as it is: where a body is pinched between two
 surfaces the status can change at every re-solve (each one converged, each from a relative
 residual of 0.01-0.1 after the change), and the next load searches the status afresh anyway;
 the final load is re-solved until its status holds. This is the method of multipliers with a stepsize beta in (0, 1] on the

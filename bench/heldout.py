@@ -20,7 +20,9 @@ max, median stage times, and a summary line
 `heldout <res>: ok=<k>/<n> newton_median=.. newton_max=.. cutbacks=.. min_sj=.. inverted=.. folded=..
 lm_median_mm=.. lm_max_mm=.. registration_median_s=.. predict_median_s=..`.
 
-Flags: `--count N` patients (default 30), `--first-seed S` (default 1000), `--resolutions
+Flags: `--count N` patients (default 30), `--first-seed S` (default 1000), `--seeds A,B,..`
+(these seeds instead, e.g. the cohort's failures run again), `--log FILE` (the solver's
+per-step log, logger "solver.newton" at INFO, appended to FILE), `--resolutions
 coarse,standard`, `--given-landmarks` (the cases give their true landmarks; by default they
 give none and the registration locates them on the skin, so that the landmark errors measure
 the located landmarks' settings too), `--json FILE` (every record, rewritten after each case),
@@ -231,6 +233,8 @@ def main() -> int:
     parser.add_argument("--count", type=int, default=30, help="patients (default 30)")
     parser.add_argument("--first-seed", type=int, default=FIRST_SEED,
                         help=f"first patient seed (default {FIRST_SEED}; held out: used nowhere else)")
+    parser.add_argument("--seeds", help="comma-separated seeds to run instead of --first-seed/--count")
+    parser.add_argument("--log", help="append the solver's per-step log (INFO) to this file")
     parser.add_argument("--resolutions", default="coarse,standard",
                         help="comma-separated: coarse, standard, fine (default coarse,standard)")
     parser.add_argument("--given-landmarks", action="store_true",
@@ -254,7 +258,20 @@ def main() -> int:
     if bad or args.count < 1:
         parser.error(f"unknown resolution(s) {bad}" if bad else "--count must be at least 1")
     seeds = list(range(args.first_seed, args.first_seed + args.count))
-    print(f"held-out patients: seeds {seeds[0]}-{seeds[-1]}, resolutions {', '.join(resolutions)}, "
+    if args.seeds:
+        try:
+            seeds = [int(v) for v in args.seeds.split(",") if v.strip()]
+        except ValueError:
+            parser.error(f"--seeds must be comma-separated integers, got {args.seeds!r}")
+    if args.log:
+        import logging
+
+        handler = logging.FileHandler(args.log)
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+        newton_log = logging.getLogger("solver.newton")
+        newton_log.addHandler(handler)
+        newton_log.setLevel(logging.INFO)
+    print(f"held-out patients: seeds {', '.join(map(str, seeds)) if args.seeds else f'{seeds[0]}-{seeds[-1]}'}, resolutions {', '.join(resolutions)}, "
           f"landmarks {'given' if args.given_landmarks else 'located'}", flush=True)
     records: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="faceplan-heldout-") as tmp:

@@ -59,7 +59,12 @@ class PseudoTransient:
     where the residual rises on the way over a limit point), doubled after an update the
     step limit or an inverted element shortened or whose damped tangent was indefinite
     along it (`indefinite`: it was solved again with convexified terms), ten times after an update that was not a
-    descent direction, within [c_min, 1 / c_min], 1 at the start of every solve. delta_s, the damping a step starts with:
+    descent direction, `jump` times after an update that raised the residual more than
+    `jump` times (the pseudo-time step was far too long: with SER alone the damping falls back
+    as soon as the residual does, and near a contact kink the iteration then cycles between
+    a nearly converged state and a jump back to a relative residual of 0.1-1, tens of times
+    in one solve; the ramp keeps the memory of it and halves again with every good update),
+    within [c_min, 1 / c_min], 1 at the start of every solve. delta_s, the damping a step starts with:
     delta0 after a failed step, `relax` times the last after a step that converged with every
     update downhill and at full length (the damping was not needed), unchanged after
     another, at least `fade` delta0 (continuation stays on for the rest of the run: where a
@@ -69,7 +74,7 @@ class PseudoTransient:
 
     def __init__(self, delta0: float, positions: np.ndarray, growth: float = 2.0,
                  c_min: float = 1e-3, ceiling: float = 1e8, floor: float = 1e-12,
-                 fade: float = 1e-3, relax: float = 0.3):
+                 fade: float = 1e-3, relax: float = 0.3, jump: float = 10.0):
         self.delta0 = float(delta0)
         self.positions = np.asarray(positions, dtype=np.int64)
         self.growth = float(growth)
@@ -78,6 +83,8 @@ class PseudoTransient:
         self.floor = float(floor)
         self.fade = float(fade)
         self.relax = float(relax)
+        self.jump = float(jump)
+        self._last = None           # the residual before the last update
         self.needed = False         # an update of this step was shortened or uphill
         self.indefinite = False     # the last update met an indefinite tangent
         self.start_delta = self.delta0
@@ -95,6 +102,7 @@ class PseudoTransient:
             self._first = max(float(residual), 1e-300)
             self.needed = False
         self.ramp = 1.0
+        self._last = float(residual) if np.isfinite(residual) else None
         self._set(residual)
 
     def _set(self, residual):
@@ -105,6 +113,7 @@ class PseudoTransient:
         """The damping of the next iteration after one that left the residual norm
         `residual`; `full`: its update was taken at full length (not shortened by the step
         limit or for an inverted element). Returns the new delta."""
+        opening = self._opening
         if self._opening and np.isfinite(residual):
             # the first iteration of a step imposes the prescribed increments: the residual
             # after it, not the one before, is the step's reference
@@ -112,8 +121,14 @@ class PseudoTransient:
         self._opening = False
         full = full and not self.indefinite
         self.indefinite = False
-        self.ramp = self.ramp / self.growth if full else self.ramp * self.growth
-        self.needed = self.needed or not full
+        jumped = (not opening and self._last is not None and np.isfinite(residual)
+                  and residual > self.jump * self._last)
+        if jumped:
+            self.ramp *= self.jump
+        else:
+            self.ramp = self.ramp / self.growth if full else self.ramp * self.growth
+        self._last = float(residual) if np.isfinite(residual) else None
+        self.needed = self.needed or not full or jumped
         self.ramp = min(max(self.ramp, self.c_min), 1.0 / self.c_min)
         self._set(residual)
         return self.delta

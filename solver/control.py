@@ -55,8 +55,14 @@ class SolverControl:
     (cut-back) load steps after which the solves of the run add the damping delta D to the
     tangent (None: never); ptc_damping, the damping delta_0 each such solve starts with
     (relative to the tangent's diagonal D); ptc_iterations, the iteration limit of such a
-    solve (the stagnation test is off in it: a damped solve reduces the residual slowly at
-    first by design).
+    solve (the stagnation test `stall_iterations` is off in it: a damped solve reduces the
+    residual slowly at first by design). The budget of continuation, so that a run that
+    cannot pass ends soon with `SolveFailed` (a damped solve has no stagnation test: over a
+    limit point its residual rises for tens of iterations before it falls):
+    ptc_step_iterations, the damped iterations one load step may spend over all its solves
+    (re-solves for the contact status or augmentations included; None: no limit);
+    ptc_max_failures, the consecutive failed load steps under continuation after which the
+    run fails (None: only `min_step` ends it).
     """
 
     steps: int = 10
@@ -90,6 +96,8 @@ class SolverControl:
     ptc_after: int | None = 2
     ptc_damping: float = 1.0
     ptc_iterations: int = 60
+    ptc_step_iterations: int | None = 120
+    ptc_max_failures: int | None = 4
 
     def __post_init__(self):
         if self.linear_strategy not in ("auto", "exact", "lagged"):
@@ -97,6 +105,10 @@ class SolverControl:
                              f"got {self.linear_strategy!r}")
         if self.ptc_after is not None and self.ptc_after < 1:
             raise ValueError(f"ptc_after must be None or >= 1, got {self.ptc_after!r}")
+        for name in ("ptc_step_iterations", "ptc_max_failures"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise ValueError(f"{name} must be None or >= 1, got {value!r}")
         if not self.ptc_damping > 0.0:
             raise ValueError(f"ptc_damping must be > 0, got {self.ptc_damping!r}")
         if self.predictor not in ("auto", "tangent", "secant"):

@@ -221,6 +221,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
     result, stepper, predictor = run.result, run.stepper, run.predictor
     x, load, step_no = run.x, 0.0, 0
     failures = 0                # consecutive failed load steps
+    damped_failures = 0         # ... of them under continuation
     while load < 1.0 - 1e-12:
         step_no += 1
         target = stepper.target(load)
@@ -235,7 +236,7 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
                      step.iterations)
             if step_callback is not None:
                 step_callback(result)
-            failures = 0
+            failures = damped_failures = 0
             if run.ptc is None:
                 stepper.converged(step.iterations, step.first_iterations)
             else:
@@ -257,6 +258,21 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
             failures += 1
             if run.ptc is not None:
                 run.ptc.step_failed()
+                damped_failures += 1
+                if ok and control.ptc_max_failures and damped_failures >= control.ptc_max_failures:
+                    # continuation damps any step: shortening it further does not help where
+                    # so many damped steps in a row failed; fail now rather than halving down
+                    # to `min_step` at the cost of a budget of damped iterations per halving
+                    run.finish(x, load, converged=False)
+                    raise SolveFailed(
+                        f"Newton's method failed in step {step_no} at load fraction "
+                        f"{target:.4g} (last converged {load:.4g}): {step.reason}; worst "
+                        f"element {step.worst_element} (min J {step.min_J:.3g}); "
+                        f"{damped_failures} consecutive load steps failed under "
+                        f"pseudo-transient continuation (on from load "
+                        f"{result.continuation_from:.4g})",
+                        step=step_no, load=target, last_converged_load=load,
+                        worst_element=step.worst_element, state=result)
             elif (ok and control.ptc_after is not None
                   and failures >= control.ptc_after):
                 # Newton failed on repeatedly shortened steps: a limit point or a jump of the
@@ -384,8 +400,19 @@ class _Run:
         x_pred = self.predictor.start(target)
         energy0, early = None, control.augmentation_rtol
         retries, first_iterations = 0, None
+        damped = 0                  # iterations of the step's damped solves
         while True:
-            step = self._solve(start, target, step_no, x_pred, energy0, early)
+            budget = None
+            if self.ptc is not None and control.ptc_step_iterations:
+                budget = control.ptc_step_iterations - damped
+                if budget < 1:
+                    step.converged = False
+                    step.reason = (f"the step's {control.ptc_step_iterations} damped "
+                                   f"iterations spent over {retries + 1} solves")
+                    break
+            step = self._solve(start, target, step_no, x_pred, energy0, early, budget)
+            if self.ptc is not None:
+                damped += step.iterations
             x_pred, energy0 = None, step.energy0
             if not step.converged and step.predicted:
                 # the solve from the extrapolated start went astray: solve the step again
@@ -414,8 +441,10 @@ class _Run:
         return step
 
     # --- one Newton solve ----------------------------------------------------------------------
-    def _solve(self, x0, target, step_no, x_pred=None, energy0=None, early=None) -> StepResult:
-        """Newton iterations at load `target` from x0 (or the extrapolated x_pred)."""
+    def _solve(self, x0, target, step_no, x_pred=None, energy0=None, early=None,
+               budget=None) -> StepResult:
+        """Newton iterations at load `target` from x0 (or the extrapolated x_pred); under
+        continuation at most `budget` iterations (what is left of the step's budget)."""
         system, cons, lin, body = self.system, self.cons, self.lin, self.body
         criterion, control, result = self.criterion, self.control, self.result
         free = cons.free
@@ -447,6 +476,8 @@ class _Run:
         if ptc is not None:
             ptc.start(_norm(r[free]), again=energy0 is not None)
             max_iterations = max(max_iterations, control.ptc_iterations)
+            if budget is not None:
+                max_iterations = max(1, min(max_iterations, int(budget)))
         for it in range(1, max_iterations + 1):
             gap = targets - self.uhat(x)[cons.dofs]
             out = self._descent_direction(x, target, targets, step_no, it, ev, r, A, cpl, gap)
@@ -509,6 +540,9 @@ class _Run:
             if A is None:               # evaluated without the tangent and not converged
                 ev, r, A, cpl = system.evaluate(x, target, targets=targets)
         step.reason = f"no convergence in {max_iterations} iterations (|R| = {rn:.3e})"
+        if budget is not None and max_iterations >= budget:
+            step.reason += (f"; the step's {control.ptc_step_iterations} damped iterations "
+                            f"spent")
         return step
 
     def _linear_solve(self, A, rhs, ev):

@@ -12,6 +12,30 @@ then start the final step far from their values. "carried" (default) gives an in
 step one multiplier update without a re-solve and scales the multipliers to the next load (a
 predictor of the contact forces), so the Uzawa updates are spread over the load increments;
 "every_step" and "final_only" are kept for comparison (experimental: tests only).
+
+The multiplier updates are safeguarded so that none throws away the converged state it is
+taken at. A multiplier update at a converged state x* changes the contact forces there by
+Delta lambda (each node's force jumps by eps |g| at a penetration g): the next solve starts
+from that residual whatever the length of its load step. Two rules follow. (1) A re-solve of
+an intermediate step asked for a wrong contact status keeps the multipliers: the status is
+what it corrects, the intermediate penetration does not matter, and an update there would be
+one more jump per re-solve (up to `max_retries` of them in one step). (2) The carried update
+of an intermediate step is applied at the next load in proportion to its load increment,
+lambda <- lambda + beta Delta lambda with beta = min(1, dt_next / dt_taken), dt_taken the
+increment of the step that computed it: the jump shrinks with the step like the rest of the
+load, so that a step cut back after a failure starts closer to equilibrium (the premise of
+cutting back, which a full update of fixed size defeats near a limit point of the load path).
+The part not applied is not lost: the next carried update is computed afresh at the next
+converged state. (3) An intermediate step is re-solved for a wrong contact status at most
+`status_resolves` times (1) for each term, then accepted as it is: where a body is pinched between two
+surfaces the status can change at every re-solve (each one converged, each from a relative
+residual of 0.01-0.1 after the change), and the next load searches the status afresh anyway;
+the final load is re-solved until its status holds. This is the method of multipliers with a stepsize beta in (0, 1] on the
+multiplier iteration, lambda <- lambda + beta (<lambda - eps g> - lambda), which converges for
+any stepsize in (0, 2) on a convex problem (Bertsekas 1982, *Constrained Optimization and
+Lagrange Multiplier Methods*, ch. 2); the final load, where the penetration must reach the
+tolerance, takes full steps as before (Laursen 2002, ch. 5; FEBio's `laugon` augmentation
+likewise takes the full update lambda <- <lambda + eps g> at each converged time step).
 The settings every contact term shares are one `AugmentedLagrangian`; `ContactTerm` is the
 terms' common base.
 """
@@ -37,7 +61,9 @@ class AugmentedLagrangian:
     looked at (mm); max_depth: how deep inside contact is detected (mm). freeze_after: number
     of evaluations at one load after which the contact status is frozen (None: never);
     freeze_resolves: a re-solve re-decides the status at its first two evaluations only.
-    uzawa_schedule: which load steps are augmented (`UzawaLoop`).
+    uzawa_schedule: which load steps are augmented (`UzawaLoop`). status_resolves: re-solves
+    of an intermediate load step for a wrong contact status ("carried" schedule; None: up to
+    max_augmentations); the final load is re-solved until its status holds.
     """
 
     penalty: float = 100.0
@@ -49,6 +75,7 @@ class AugmentedLagrangian:
     freeze_after: int | None = 4
     freeze_resolves: bool = True
     uzawa_schedule: str = "carried"
+    status_resolves: int | None = 1
 
     def __post_init__(self):
         if not self.penalty > 0:
@@ -77,17 +104,21 @@ class UzawaLoop:
 
     SCHEDULES = ("carried", "every_step", "final_only")
 
-    def __init__(self, max_augmentations: int, schedule: str = "carried"):
+    def __init__(self, max_augmentations: int, schedule: str = "carried",
+                 status_resolves: int | None = None):
         if schedule not in self.SCHEDULES:
             raise ValueError(f"schedule must be one of {', '.join(self.SCHEDULES)}, "
                              f"got {schedule!r}")
         self.max_augmentations = int(max_augmentations)
         self.schedule = schedule
+        self.status_resolves = status_resolves
         self.count = 0
         self.carry = False      # the last `another_solve` asks for an update without re-solve
         self.update = False     # ... asks for a multiplier update (re-solve or carried)
         self._load = None
         self._multiplier_load = None
+        self._from = None       # the load the current step started from
+        self.carried_increment = None   # load increment of the step that took the carried update
 
     def another_solve(self, load: float, status_changed: bool, augmented: bool,
                       error: float, tolerance: float) -> bool:
@@ -99,16 +130,36 @@ class UzawaLoop:
             self.count = 0
         intermediate = self._intermediate(load)
         self.carry = False
+        if (status_changed and intermediate and self.schedule == "carried"
+                and self.status_resolves is not None and self.count >= self.status_resolves):
+            # rule 3 (module docstring): the intermediate state is accepted with its status
+            status_changed = False
         if self.count >= self.max_augmentations or \
                 (not status_changed and (not augmented or error <= tolerance or intermediate)):
             self.count = 0
             self.carry = (self.schedule == "carried" and intermediate and augmented
                           and error > tolerance)
             self.update = self.carry
+            if self.carry:
+                start = self._from if self._from is not None else 0.0
+                self.carried_increment = max(load - start, 0.0)
             return False
         self.count += 1
-        self.update = augmented
+        # a re-solve of an intermediate step is one for the status: it keeps the multipliers
+        # (module docstring, rule 1); "final_only" never re-solves an intermediate step with
+        # an update either
+        self.update = augmented and not (intermediate and self.schedule == "carried")
         return True
+
+    def carried_fraction(self, load: float, carried_at: float) -> float:
+        """The fraction beta = min(1, (load - carried_at) / increment) of a carried multiplier
+        correction, computed at the converged load `carried_at` on a step of `increment`
+        (`carried_increment`), applied at the first evaluation of the next load `load`
+        (module docstring, rule 2)."""
+        inc = self.carried_increment
+        if not inc or inc <= 0.0:
+            return 1.0
+        return float(min(1.0, max(0.0, (load - carried_at) / inc)))
 
     def augmentation_due(self, load: float, augmented: bool, error: float,
                          tolerance: float, margin: float = 1.5) -> bool:
@@ -133,6 +184,8 @@ class UzawaLoop:
         step after a converged one, or a cut-back step: the scaling is undone in proportion),
         else 1."""
         previous, self._multiplier_load = self._multiplier_load, load
+        if previous is not None and load != previous:
+            self._from = previous
         if self.schedule != "carried" or not previous or previous <= 0.0 or load == previous:
             return 1.0
         return load / previous
@@ -166,6 +219,14 @@ class StatusFreezing:
         first evaluation of a new load the carried multipliers are scaled to it
         (`UzawaLoop.load_factor`; the term defines `_scale_multipliers(factor)`)."""
         factor = self.uzawa.load_factor(load)
+        carried = getattr(self, "_carried", None)
+        if carried is not None and load != self._carried_at:
+            # the carried correction, in proportion to this step's load increment
+            beta = self.uzawa.carried_fraction(load, self._carried_at)
+            if beta < 1.0:
+                for (owner, name), d in zip(self._multiplier_fields(), carried):
+                    setattr(owner, name, getattr(owner, name) - (1.0 - beta) * d)
+            self._carried = None
         if factor != 1.0:
             self._scale_multipliers(factor)
         if load != self._evals_load:
@@ -203,13 +264,36 @@ class ContactTerm(StatusFreezing, Term):
         self.penalty = float(settings.penalty)
         self.augmented = bool(settings.augmented)
         self.tolerance = float(settings.tolerance)
-        self.uzawa = UzawaLoop(settings.max_augmentations, settings.uzawa_schedule)
+        self.uzawa = UzawaLoop(settings.max_augmentations, settings.uzawa_schedule,
+                               settings.status_resolves)
         self.search_radius = float(settings.search_radius)
         self.max_depth = float(settings.max_depth)
         self.freeze_after = settings.freeze_after
         self.freeze_resolves = bool(settings.freeze_resolves)
         self.last_error = 0.0
+        self._carried, self._carried_at = None, None
         self._unfreeze()
+
+    def _multiplier_fields(self) -> list:
+        """(owner, attribute name) of every multiplier array of the term."""
+        return [(self, "multipliers")]
+
+    def _multiplier_values(self) -> list:
+        """Copies of the multiplier arrays (before an update)."""
+        return [np.array(getattr(o, n), dtype=float, copy=True)
+                for o, n in self._multiplier_fields()]
+
+    def _note_carried(self, before: list, load: float) -> None:
+        """After `end_step`'s update: a carried update (`UzawaLoop.carry`) is remembered as
+        the correction it made, to be applied at the next load in proportion to its step
+        (`StatusFreezing._frozen`); at the first evaluation of the next load the multipliers
+        are before + beta (after - before)."""
+        if self.uzawa.carry:
+            self._carried = [np.asarray(getattr(o, n), dtype=float) - b
+                             for (o, n), b in zip(self._multiplier_fields(), before)]
+            self._carried_at = load
+        else:
+            self._carried, self._carried_at = None, None
 
     @abstractmethod
     def penetration(self, x, load: float = 1.0) -> float:

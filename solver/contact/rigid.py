@@ -310,6 +310,7 @@ class RigidSurfaceContact(ContactTerm):
         return self.uzawa.augmentation_due(load, self.augmented, err, self.tolerance)
 
     def end_step(self, x, load) -> bool:
+        before = self._multiplier_values()
         frozen_active = self._active.copy() if self._active is not None else None
         was_frozen = self._is_frozen(load)
         self._unfreeze()
@@ -332,6 +333,7 @@ class RigidSurfaceContact(ContactTerm):
         # and on an intermediate step the "carried" schedule takes to the next load)
         if self.uzawa.update:
             self.multipliers = p
+        self._note_carried(before, load)
         if again:
             self._freeze_resolve(load)
         return again

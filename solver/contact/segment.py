@@ -546,6 +546,7 @@ class SegmentContact(ContactTerm):
         return e
 
     def end_step(self, x, load) -> bool:
+        multipliers = self._multiplier_values()
         before = [ps.previous.copy() for ps in self.passes]
         before_active = [ps.active.copy() for ps in self.passes]
         was_frozen = self._is_frozen(load)
@@ -594,7 +595,12 @@ class SegmentContact(ContactTerm):
                     ps.node_multipliers = new
                     new = np.einsum("ka,ka->k", ps.N, new[ps.point_nodes])
                 ps.multipliers = new
+        self._note_carried(multipliers, load)
         return again
+
+    def _multiplier_fields(self) -> list:
+        return [(ps, "multipliers") for ps in self.passes] + (
+            [(ps, "node_multipliers") for ps in self.passes] if self.nodal_multipliers else [])
 
     def _scale_multipliers(self, factor: float) -> None:
         for ps in self.passes:

@@ -275,6 +275,7 @@ class SurfaceContact(ContactTerm):
         return self.uzawa.augmentation_due(load, self.augmented, err, self.tolerance)
 
     def end_step(self, x, load) -> bool:
+        multipliers = self._multiplier_values()
         before = [ps.previous.copy() for ps in self.passes]
         before_active = [ps.active.copy() for ps in self.passes]
         was_frozen = self._is_frozen(load)
@@ -320,7 +321,11 @@ class SurfaceContact(ContactTerm):
                 new = np.zeros_like(ps.multipliers)
                 new[s] = p
                 ps.multipliers = new
+        self._note_carried(multipliers, load)
         return again
+
+    def _multiplier_fields(self) -> list:
+        return [(ps, "multipliers") for ps in self.passes]
 
     @staticmethod
     def _active_penetration(ev) -> float:

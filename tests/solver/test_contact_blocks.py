@@ -127,3 +127,46 @@ def test_a_resolve_keeps_the_energy_reference_of_its_step():
     assert len(starts) == 1 + res.steps[-1].retries
     assert last[starts[0]]["energy_ratio"] == 1.0
     assert all(last[i]["energy_ratio"] < 1e-2 for i in starts[1:])
+
+
+def test_the_residual_a_step_starts_with_shrinks_with_the_step():
+    # The block of `_pressed` penetrates beyond the tolerance at the intermediate loads, which
+    # take a carried multiplier update. At the converged state of load 0.5, the residual of
+    # the next step at its start (before any iteration, the prescribed top not yet moved) is
+    # the change of the contact forces: the carried multipliers scaled to the new load and the
+    # carried correction. Both must be in proportion to the load increment, so that a step
+    # cut back after a failure starts nearer equilibrium (a correction of fixed size, the
+    # full Uzawa update lambda <- <lambda - eps g>, would leave it at the size of the
+    # update however short the step). Linear in dt: 16 times shorter, 16 times smaller; the
+    # bound 1/8 leaves a factor two for the nonlinearity.
+    import copy
+
+    nodes, hexes = box((3, 3, 3), (2.0, 2.0, 2.0))
+    body = SolidBody(HexMesh(nodes, hexes), Yeoh(2.5, 1.175, 0.0, K=2500.0))
+    V, F = plane(0.0)
+    contact = RigidSurfaceContact(nodes, V, F, slave_facets=facets_on(nodes, hexes, 2, 0.0),
+                                  penalty=50.0, tolerance=1e-3, search_radius=1.0)
+    top = np.nonzero(nodes[:, 2] > 2.0 - 1e-9)[0]
+    cons = [Prescribed(top, [0.0, 0.0, -0.4], (2,)),
+            fix(np.nonzero(nodes[:, 0] < 1e-9)[0], (0,)),
+            fix(np.nonzero(nodes[:, 1] < 1e-9)[0], (1,))]
+    saved = {}
+
+    def keep(result):
+        saved[round(result.load, 9)] = (result.x.copy(), copy.deepcopy(contact))
+
+    res = newton_solve(body, cons, [contact], steps=4, max_retries=20, step_callback=keep)
+    assert res.converged
+    x, term = saved[0.5]
+    assert term._carried is not None                  # load 0.5 took a carried update
+    dofs = 3 * term.slaves + 2                         # z at the contact nodes: free dofs
+    f_int = body.evaluate(x, 0.5, tangent=False).force[dofs]
+
+    def start_residual(dt):
+        t = copy.deepcopy(term)
+        f, _ = t.assemble(x, 0.5 + dt)
+        return np.linalg.norm(f_int + f[dofs])
+
+    long, short = start_residual(0.25), start_residual(0.25 / 16)
+    assert long > 1e-3 * np.linalg.norm(f_int)         # the update moves the forces
+    assert short <= long / 8

@@ -191,7 +191,53 @@ def test_update_flag_is_set_for_a_resolve_or_a_carried_update_with_augmentation_
     assert not loop.another_solve(0.5, False, True, error=0.05, tolerance=0.1)
     assert not loop.update
     assert loop.another_solve(0.75, True, False, error=0.05, tolerance=0.1) and not loop.update
+    # a status re-solve of an intermediate step keeps the multipliers even when augmented:
+    # its intermediate penetration does not matter, and an update would be one more jump of
+    # the contact forces per re-solve
+    assert loop.another_solve(0.8, True, True, error=1.0, tolerance=0.1) and not loop.update
     assert loop.another_solve(1.0, False, True, error=1.0, tolerance=0.1) and loop.update
+    assert loop.another_solve(1.0, True, True, error=1.0, tolerance=0.1) and loop.update
+
+
+def test_an_intermediate_step_is_re_solved_for_its_status_a_bounded_number_of_times():
+    # with status_resolves=1 the second status change of an intermediate step is accepted
+    # (the next load searches the status afresh), with a carried update if it penetrates;
+    # the final load is re-solved for every status change up to max_augmentations
+    loop = UzawaLoop(max_augmentations=5, status_resolves=1)
+    assert loop.another_solve(0.5, True, True, error=1.0, tolerance=0.1)
+    assert not loop.another_solve(0.5, True, True, error=1.0, tolerance=0.1) and loop.carry
+    assert loop.another_solve(0.75, True, True, error=0.05, tolerance=0.1)     # a new step
+    for _ in range(5):
+        assert loop.another_solve(1.0, True, True, error=0.05, tolerance=0.1)
+    assert not loop.another_solve(1.0, True, True, error=0.05, tolerance=0.1)  # bounded
+    unbounded = UzawaLoop(max_augmentations=5)
+    for _ in range(5):
+        assert unbounded.another_solve(0.5, True, True, error=1.0, tolerance=0.1)
+
+
+def test_a_carried_correction_is_applied_in_proportion_to_the_next_step():
+    # A node 0.2 mm inside a plane: the step 0.25 -> 0.5 takes the carried update
+    # lambda = eps g A = 2; at the next load the correction (2 - 0) is applied in the
+    # proportion of the next increment to 0.25 (rule 2), then scaled by the load ratio
+    from solver.contact import RigidSurfaceContact
+
+    V = np.array([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [5.0, 5.0, 0.0], [-5.0, 5.0, 0.0]])
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    nodes = np.array([[0.0, 0.0, -0.2]])
+    term = RigidSurfaceContact(nodes, V, F, slave_nodes=[0], slave_areas=[1.0], penalty=10.0,
+                               tolerance=0.05)
+    term.assemble(nodes, 0.25)
+    term.end_step(nodes, 0.25)               # the first carried update, from 0: lambda = 2
+    term.assemble(nodes, 0.5)                # a full step: the whole correction, x 2
+    assert term.multipliers[0] == pytest.approx(4.0)
+    assert term.end_step(nodes, 0.5) is False
+    assert term.multipliers[0] == pytest.approx(6.0)    # <lambda - eps g> = 4 + 2
+    state = term.save_step()
+    for dt, beta in ((0.25, 1.0), (0.0625, 0.25)):     # a full step, a quarter step
+        term.restore_step(state)
+        term.assemble(nodes, 0.5 + dt)
+        expected = (4.0 + beta * 2.0) * (0.5 + dt) / 0.5
+        assert term.multipliers[0] == pytest.approx(expected)
 
 
 def test_augmentation_is_due_only_on_an_augmented_step_beyond_the_margin():

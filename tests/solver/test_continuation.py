@@ -110,6 +110,11 @@ def test_damping_schedule():
     assert ptc.advance(1.0) == pytest.approx(0.025)            # and residual / 10
     assert ptc.advance(1.0, full=False) == pytest.approx(0.05)  # shortened: doubled
     assert ptc.raise_damping() == pytest.approx(0.5)           # uphill: ten times
+    # a full update that raised the residual more than ten times: SER's factor (x 20) and
+    # ten times the ramp; the good update after it halves the ramp only (the memory stays)
+    assert ptc.advance(20.0) == pytest.approx(0.5 * 20 * 10)
+    assert ptc.advance(1.0) == pytest.approx(0.5 * 10 / 2)
+    ptc.advance(1.0)
     ptc.start(20.0, again=True)     # a re-solve from twice the step's residual
     assert ptc.delta == pytest.approx(2.0)
     assert ptc.step_converged()             # the damping was needed: kept
@@ -123,3 +128,54 @@ def test_damping_schedule():
     ptc.step_failed()
     ptc.start(5.0)
     assert ptc.delta == 1.0
+
+
+class Saturating(Term):
+    """f_z = f_max tanh(u / a) at every node, f_x,y = k2 u: a spring whose force is bounded
+    by f_max (potential f_max a log cosh(u / a))."""
+
+    def __init__(self, X, f_max, a=0.1):
+        self.X, self.f_max, self.a = X, f_max, a
+
+    def assemble(self, x, load):
+        u = x - self.X
+        f = np.empty_like(u)
+        d = np.empty_like(u)
+        t = np.tanh(u[:, 2] / self.a)
+        f[:, 2] = self.f_max * t
+        d[:, 2] = self.f_max / self.a * (1.0 - t * t)
+        f[:, :2] = K_SIDE * u[:, :2]
+        d[:, :2] = K_SIDE
+        return f.ravel(), sp.diags(d.ravel()).tocoo()
+
+    def energy(self, x, load):
+        u = x - self.X
+        return float(np.sum(self.f_max * self.a * np.log(np.cosh(u[:, 2] / self.a)))
+                     + 0.5 * K_SIDE * np.sum(u[:, :2] ** 2))
+
+
+def _hopeless(**settings):
+    """The block of `_problem` on springs whose force saturates at half the dead load: a
+    uniform translation costs no elastic energy, so no equilibrium exists beyond load 0.5.
+    Returns the `SolveFailed` the run ends with."""
+    nodes, body, _, external = _problem()
+    term = Saturating(nodes, 0.5 * F_NODE)
+    with pytest.raises(SolveFailed) as failed:
+        solver.newton_solve(body, [], [term], external=external, **FACE_LIKE, **settings)
+    return failed.value
+
+
+def test_continuation_budget_ends_a_hopeless_solve():
+    # Without the budget every halving of the step down to `min_step` runs damped solves of
+    # `ptc_iterations` each; with it the run fails after `ptc_max_failures` consecutive damped
+    # steps, each within `ptc_step_iterations` iterations over all its solves, and says so
+    unbounded = _hopeless(ptc_step_iterations=None, ptc_max_failures=None)
+    budget = dict(ptc_step_iterations=40, ptc_max_failures=3)
+    bounded = _hopeless(**budget)
+    for failed in (unbounded, bounded):
+        assert failed.last_converged_load <= 0.5 + 1e-9        # no equilibrium beyond 0.5
+        assert failed.state.continuation_from is not None
+    assert "consecutive load steps failed under pseudo-transient continuation" in str(bounded)
+    assert bounded.state.continuation_iterations <= 3 * 40
+    # the unbounded run halves the step down to 1e-4 (about ten damped steps of 60)
+    assert unbounded.state.continuation_iterations > 3 * bounded.state.continuation_iterations

@@ -264,15 +264,10 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
                     # so many damped steps in a row failed; fail now rather than halving down
                     # to `min_step` at the cost of a budget of damped iterations per halving
                     run.finish(x, load, converged=False)
-                    raise SolveFailed(
-                        f"Newton's method failed in step {step_no} at load fraction "
-                        f"{target:.4g} (last converged {load:.4g}): {step.reason}; worst "
-                        f"element {step.worst_element} (min J {step.min_J:.3g}); "
-                        f"{damped_failures} consecutive load steps failed under "
-                        f"pseudo-transient continuation (on from load "
-                        f"{result.continuation_from:.4g})",
-                        step=step_no, load=target, last_converged_load=load,
-                        worst_element=step.worst_element, state=result)
+                    raise _failed(step_no, target, load, step, result,
+                                  f"{damped_failures} consecutive load steps failed under "
+                                  f"pseudo-transient continuation (on from load "
+                                  f"{result.continuation_from:.4g})")
             elif (ok and control.ptc_after is not None
                   and failures >= control.ptc_after):
                 # Newton failed on repeatedly shortened steps: a limit point or a jump of the
@@ -281,14 +276,20 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
                 run.start_continuation(load)
             if not ok:
                 run.finish(x, load, converged=False)
-                raise SolveFailed(
-                    f"Newton's method failed in step {step_no} at load fraction {target:.4g} "
-                    f"(last converged {load:.4g}): {step.reason}; worst element "
-                    f"{step.worst_element} (min J {step.min_J:.3g}); step size fell below "
-                    f"{control.min_step:g}",
-                    step=step_no, load=target, last_converged_load=load,
-                    worst_element=step.worst_element, state=result)
+                raise _failed(step_no, target, load, step, result,
+                              f"step size fell below {control.min_step:g}")
     return run.finish(x, load, converged=True)
+
+
+def _failed(step_no, target, load, step, result, why) -> SolveFailed:
+    """The error ending a run whose step `step_no` (to load `target`, from the converged
+    `load`) failed, with where, why and the run's state."""
+    return SolveFailed(
+        f"Newton's method failed in step {step_no} at load fraction {target:.4g} "
+        f"(last converged {load:.4g}): {step.reason}; worst element "
+        f"{step.worst_element} (min J {step.min_J:.3g}); {why}",
+        step=step_no, load=target, last_converged_load=load,
+        worst_element=step.worst_element, state=result)
 
 
 class _Run:

@@ -55,7 +55,7 @@ def test_orbicularis_oris_activation_purses_and_protrudes_the_lips(face):
     assert max(pen.values()) < 0.05
 
 
-def test_bimaxillary_advancement_with_lip_and_teeth_contact_converges(face):
+def test_bimaxillary_advancement_with_lip_and_teeth_contact_converges(face, seed7_motions):
     """The plan of `faceplan synth --seed 7` (Le Fort I +4.4 mm with a 2 deg pitch, mandible
     and chin +8.9 mm) on the coarse face with lip-lip and lip-teeth contact: the lower teeth
     push the lower lip forward. Before the smooth teeth distance and the frozen-status fixes
@@ -63,14 +63,7 @@ def test_bimaxillary_advancement_with_lip_and_teeth_contact_converges(face):
     from facemodel.teeth import clear_teeth
 
     model, _ = clear_teeth(face)
-    c = np.array([0.0, 81.56, -31.19])
-    a = np.deg2rad(-2.0)
-    R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-    maxilla = np.eye(4)
-    maxilla[:3, :3] = R
-    maxilla[:3, 3] = c - R @ c + [0.0, 4.44, 1.0]
-    mandible = _translation(dy=8.86)
-    motions = {"maxilla": maxilla, "mandible": mandible, "chin": mandible}
+    motions = seed7_motions
     res = simulate(model, motions, {})
     assert res.converged and res.load == 1.0
     # contact tolerance 0.05 mm on the smooth teeth distance; measured against the faceted

@@ -8,20 +8,6 @@ from facemodel.simulation import _typical_size, teeth_advance
 from facemodel.solver_settings import FACE_SOLVER
 
 
-def _seed7_plan():
-    """The plan of `faceplan synth --seed 7` (as in test_simulation): Le Fort I +4.4 mm with a
-    2 deg pitch, mandible and chin +8.86 mm forward."""
-    c = np.array([0.0, 81.56, -31.19])
-    a = np.deg2rad(-2.0)
-    R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-    maxilla = np.eye(4)
-    maxilla[:3, :3] = R
-    maxilla[:3, 3] = c - R @ c + [0.0, 4.44, 1.0]
-    mandible = np.eye(4)
-    mandible[1, 3] = 8.86
-    return {"maxilla": maxilla, "mandible": mandible, "chin": mandible}
-
-
 def _lip_size(model):
     fs = model.facet_sets
     return _typical_size(np.asarray(model.nodes, float),
@@ -39,14 +25,14 @@ def test_teeth_advance_of_a_translation_is_the_translation_times_the_load():
     assert teeth_advance(model, {}, 0.25) == 0.0
 
 
-def test_increment_limit_follows_the_teeth_not_the_mesh():
+def test_increment_limit_follows_the_teeth_not_the_mesh(seed7_motions):
     """At coarse, standard and fine, with 4 load steps of the seed-7 plan (lower teeth
     +2.2 mm per step): the limit is at least half the teeth's advance per step, so the mucosa
     can follow the teeth in two limited iterations at every resolution (without the floor
     the fine limit, 0.35 of a 1.7 mm lip facet, is 0.61 mm: more than three iterations);
     where the lip facets alone give more (coarse) the limit is theirs, so a coarse solve is
     unchanged. The advance is the teeth's, the same on every mesh."""
-    motions = _seed7_plan()
+    motions = seed7_motions
     caps, advances, sizes = {}, {}, {}
     for res in ("coarse", "standard", "fine"):
         model = generic_mesh.load(res)

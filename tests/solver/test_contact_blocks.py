@@ -82,9 +82,9 @@ def test_block_pressed_on_rigid_plane():
     assert applied / width ** 2 == pytest.approx(sigma, rel=1e-2)
 
 
-def _pressed(augmentation_rtol):
-    """The block of the test above pressed 0.4 mm onto the plane (contact tolerance 1e-3 mm:
-    the final step needs Uzawa re-solves)."""
+def _pressed_block():
+    """(body, contact, constraints): the block of the test above pressed 0.4 mm onto the
+    plane (contact tolerance 1e-3 mm: the final step needs Uzawa re-solves)."""
     nodes, hexes = box((3, 3, 3), (2.0, 2.0, 2.0))
     body = SolidBody(HexMesh(nodes, hexes), Yeoh(2.5, 1.175, 0.0, K=2500.0))
     V, F = plane(0.0)
@@ -94,6 +94,11 @@ def _pressed(augmentation_rtol):
     cons = [Prescribed(top, [0.0, 0.0, -0.4], (2,)),
             fix(np.nonzero(nodes[:, 0] < 1e-9)[0], (0,)),
             fix(np.nonzero(nodes[:, 1] < 1e-9)[0], (1,))]
+    return body, contact, cons
+
+
+def _pressed(augmentation_rtol):
+    body, contact, cons = _pressed_block()
     res = newton_solve(body, cons, [contact], steps=4, max_retries=20,
                        augmentation_rtol=augmentation_rtol)
     return res, -np.nanmin(contact.gaps(res.x, 1.0)[0])
@@ -141,15 +146,7 @@ def test_the_residual_a_step_starts_with_shrinks_with_the_step():
     # bound 1/8 leaves a factor two for the nonlinearity.
     import copy
 
-    nodes, hexes = box((3, 3, 3), (2.0, 2.0, 2.0))
-    body = SolidBody(HexMesh(nodes, hexes), Yeoh(2.5, 1.175, 0.0, K=2500.0))
-    V, F = plane(0.0)
-    contact = RigidSurfaceContact(nodes, V, F, slave_facets=facets_on(nodes, hexes, 2, 0.0),
-                                  penalty=50.0, tolerance=1e-3, search_radius=1.0)
-    top = np.nonzero(nodes[:, 2] > 2.0 - 1e-9)[0]
-    cons = [Prescribed(top, [0.0, 0.0, -0.4], (2,)),
-            fix(np.nonzero(nodes[:, 0] < 1e-9)[0], (0,)),
-            fix(np.nonzero(nodes[:, 1] < 1e-9)[0], (1,))]
+    body, contact, cons = _pressed_block()
     saved = {}
 
     def keep(result):

@@ -174,12 +174,15 @@ def main_bench(argv=None) -> int:
                     "holds (another run, e.g. with --make-only, is making the others)")
     ap.add_argument("--resume", action="store_true", help="with --keep: a case whose figures a previous run "
                     "over DIR stored (bench_row.json beside its diagnosis.json) is read back, not diagnosed again")
+    ap.add_argument("--mesh-reference", default="auto", choices=("auto", "none", "coarse", "standard", "fine"),
+                    help="second mesh whose baseline estimates the model mesh's discretisation error "
+                         "(as faceplan diagnose --mesh-reference; default auto: the next coarser, none at coarse)")
     ap.add_argument("--skip-seeds", default="", help="comma-separated seeds whose truth synth cannot solve "
                     "(left out, and said so)")
     args = ap.parse_args(argv)
 
     from planner.diagnosis.forward import Runner
-    from planner.diagnosis.run import diagnose_data, load_diagnosis_case
+    from planner.diagnosis.run import diagnose_data, load_diagnosis_case, mesh_reference
 
     t_all = time.perf_counter()
     tmp = None if args.keep else tempfile.TemporaryDirectory(prefix="faceplan-bench-diagnosis-")
@@ -216,10 +219,16 @@ def main_bench(argv=None) -> int:
                 _print_row(rows[-1])
                 continue
             say = (lambda m: print(m, file=sys.stderr, flush=True)) if args.verbose else (lambda m: None)
-            patient, scan, res = load_diagnosis_case(Path(rec["case"]), args.resolution, say)
+            patient, scan, res, ref = load_diagnosis_case(Path(rec["case"]), args.resolution, say,
+                                                          args.mesh_reference)
             fwd = _StoredForward([patient], Runner(client), say, root / "solves",
                                  f"{Path(rec['case']).resolve()}|{res}")
-            out = diagnose_data([patient], [scan], forward=fwd, say=say)
+            ref_name = mesh_reference(res, args.mesh_reference)
+            ref_fwd = None if ref is None else _StoredForward(
+                [ref], Runner(client), say, root / "solves", f"{Path(rec['case']).resolve()}|{ref_name}")
+            out = diagnose_data([patient], [scan], forward=fwd, say=say,
+                                references=None if ref is None else [ref], reference_name=ref_name,
+                                reference_forward=ref_fwd)
             d = out["record"]
             if args.keep:
                 (Path(rec["case"]) / "diagnosis.json").write_text(json.dumps(d, indent=1, default=str))

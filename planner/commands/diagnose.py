@@ -28,6 +28,9 @@ def add_arguments(p) -> None:
                    help="face model resolution (default: the plan's model.resolution, else standard)")
     p.add_argument("--effects", metavar="NAMES", help="comma-separated effects to test (default: every "
                    "effect the model can add)")
+    p.add_argument("--mesh-reference", default="auto", choices=("auto", "none") + tuple(RESOLUTIONS),
+                   help="second mesh whose baseline estimates the model mesh's own discretisation error "
+                        "(default auto: the next coarser resolution, none at coarse)")
     p.add_argument("--finite-differences", action="store_true",
                    help="sensitivities by finite differences of full solves instead of the model's "
                         "tangent (slower; a check of the tangent)")
@@ -93,7 +96,8 @@ def run(args) -> int:
     client, closing = _client(args)
     try:
         result = diagnose_cases(cases, resolution=args.resolution, runner=Runner(client), say=progress.say,
-                                effect_names=names, tangent=not args.finite_differences)
+                                effect_names=names, tangent=not args.finite_differences,
+                                reference=args.mesh_reference)
     finally:
         for obj in closing:
             obj.close()

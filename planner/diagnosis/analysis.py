@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from planner.diagnosis import discrepancy, fit
+from planner.diagnosis.gap import correlation_length
 from planner.diagnosis.effects import Effect, Parameter, effect_strings
 
 __all__ = ["CaseData", "Candidate", "analyse", "MIN_HELDOUT_SHRINK_PCT", "MAX_REFINEMENTS"]
@@ -72,6 +73,8 @@ class CaseData:
     r0: np.ndarray                # baseline gap on the fixed scan points
     _error: object = None
     gp_n_eff: float | None = None  # independent samples at the baseline's correlation length
+    mesh_error: np.ndarray | None = None   # change of the gap on a second mesh (`discrepancy`)
+    mesh_reference: str | None = None      # that mesh's resolution
 
     @property
     def folds(self) -> dict[str, np.ndarray]:
@@ -81,8 +84,29 @@ class CaseData:
     def error(self) -> discrepancy.ErrorModel:
         """The noise + discrepancy error model on this case's scan points."""
         if self._error is None:
-            self._error = discrepancy.ErrorModel(self.gap.points, self.gap.weights, self.gap.noise_floor_mm)
+            self._error = discrepancy.ErrorModel(self.gap.points, self.gap.weights, self.gap.noise_floor_mm,
+                                                 mesh_error=self.mesh_error)
         return self._error
+
+
+def remove_mesh_error(d: CaseData):
+    """Take the mesh's estimated discretisation error out of the case's gap (`discrepancy`,
+    "The mesh's own error"): its coefficient on the mesh-error direction is estimated on the
+    baseline gap under noise + discrepancy (generalised least squares, the other parts of the
+    error model integrated out) and the field is subtracted from every gap the diagnosis
+    measures (`ScanGap.mesh_offset`), so that effects are fitted, ranked and their shrinkage
+    measured on what the model's physics leaves. The direction stays in the error model: a
+    model may still move its coefficient, under its prior, about the estimate. Returns the fit
+    (None without a mesh-error direction)."""
+    if d.mesh_error is None or d.error.N.shape[1] == 0:
+        return None
+    f = d.error.fit(d.r0)
+    off = np.asarray(d.mesh_error, float).reshape(len(d.r0), -1) @ f.mesh_coef
+    d.gap.mesh_offset = off if d.gap.mesh_offset is None else d.gap.mesh_offset + off
+    d.gap.mesh_error_mm = f.mesh_mm
+    d.r0 = d.r0 - off
+    d.gap.correlation_mm = correlation_length(d.gap.points, d.r0, d.gap.weights)
+    return f
 
 
 @dataclass
@@ -557,7 +581,8 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
         d.gap.error_test = (lambda em, f: (lambda r, m: em.region_pvalue(r, m, f)))(d.error, f)
         say(f"  {d.case.name}: discrepancy {f.sigma_d:.2f} mm at correlation length {f.ell:.0f} mm and "
             f"{f.long_mm:.2f} mm smooth over the face, "
-            f"noise {d.gap.noise_floor_mm:.2f} mm")
+            + (f"mesh error {d.gap.mesh_error_mm:.2f} mm (removed), " if d.mesh_error is not None else "")
+            + f"noise {d.gap.noise_floor_mm:.2f} mm")
     gp0 = evidence(None, data)[1]
     lpd0 = heldout_lpd(None, data, base_fits)
     names = tuple(p.key for e in effects for p in e.parameters)

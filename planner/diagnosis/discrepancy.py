@@ -51,6 +51,19 @@ regions summed (Geisser & Eddy, *J. Am. Stat. Assoc.* 74:153, 1979; Vehtari, Gel
 compared with the baseline's: an effect that does not predict unseen regions better than the
 discrepancy alone does is not named.
 
+The mesh's own error. Part of the model-form error is computable: the finite-element mesh's
+discretisation error, a smooth pattern over the operated face (a coarse mesh is too stiff where
+the tissue bends most). When the baseline is also solved on a second mesh (`mesh_error`: the
+change d of the gap from this mesh's prediction to the other's, on the same scan points and
+pose), the discretisation error is a multiple of d: under asymptotic convergence of order p,
+e_h = (u - u_h) ~ d / (2^p - 1) from the next coarser mesh and d 2^p / (2^p - 1) from the next
+finer one (Richardson extrapolation; Roache, *Verification and validation in computational
+science and engineering*, 1998, ch. 5). Its coefficient a enters the error model as one more
+Gaussian column, a ~ N(0, MESH_ERROR_SD^2), integrated out like the long-scale coefficients:
+Sigma gains MESH_ERROR_SD^2 d d^T. Every model (the baseline and each effect) carries it, so
+the mesh error is neither charged to an effect nor absorbed by a discrepancy amplitude large
+enough to hide the effects as well.
+
 The likelihood is evaluated on an area-uniform subsample of the scan points (one per cube of
 side `spacing`, at most `MAX_POINTS`), small enough for a dense eigendecomposition of the
 correlation matrix per correlation length.
@@ -62,10 +75,17 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["ErrorModel", "Fit", "subsample", "matern32", "smooth_basis", "LENGTHS_MM", "MAX_POINTS",
-           "REGION_P"]
+           "REGION_P", "MESH_ERROR_SD"]
 
 MAX_POINTS = 900                      # subsample size of the likelihood
+# prior standard deviation of the mesh-error coefficient (module text): the error of a mesh is
+# 1/(2^p - 1) of the change to the next coarser one and 2^p/(2^p - 1) of the change to the next
+# finer one, p the order of convergence; 2 covers both for p >= 0.6
 REGION_P = 1e-3                       # a region's gap beyond noise + discrepancy at this p-value
+# prior standard deviation of the mesh-error coefficient (module text): a mesh's error is
+# 1/(2^p - 1) of its change to the next coarser mesh and 2^p/(2^p - 1) of its change to the next
+# finer one, p the order of convergence; 2 covers both for every p >= 0.6
+MESH_ERROR_SD = 2.0
 # correlation lengths of the short scale (mm): from a few scan spacings to the size of a region
 LENGTHS_MM = (4.0, 6.0, 9.0, 13.0, 19.0, 28.0, 40.0)
 # short-scale amplitudes tried, relative to the gap's RMS (log grid; the maximum is unimodal in it)
@@ -131,11 +151,14 @@ class Fit:
     k: int
     sigma_long: float = 0.0       # long-scale amplitude per unit-RMS basis function
     long_mm: float = 0.0          # RMS of the long-scale field over the points (s_L sqrt(m))
+    mesh_mm: float = 0.0          # RMS of the estimated mesh error over the points
+    mesh_coef: np.ndarray | None = None   # its coefficient(s) on the mesh-error direction(s)
 
     @property
     def discrepancy_mm(self) -> float:
-        """RMS of the whole discrepancy, both scales."""
-        return float(np.hypot(self.sigma_d, self.long_mm))
+        """RMS of the whole discrepancy: both scales and the mesh error."""
+        v = float(np.hypot(self.sigma_d, self.long_mm))
+        return float(np.hypot(v, self.mesh_mm)) if self.mesh_mm else v
 
     def bic(self, n_eff: float) -> float:
         return float(-2.0 * self.loglik + self.k * np.log(max(n_eff, 2.0)))
@@ -163,7 +186,7 @@ class ErrorModel:
 
     def __init__(self, points: np.ndarray, weights: np.ndarray, sigma_n: float,
                  lengths: tuple[float, ...] = LENGTHS_MM, max_points: int = MAX_POINTS,
-                 long_scale: bool = True):
+                 long_scale: bool = True, mesh_error: np.ndarray | None = None):
         self.idx = subsample(points, weights, max_points)
         self.points = np.asarray(points, float)[self.idx]
         self.area = float(np.sum(weights))
@@ -172,10 +195,19 @@ class ErrorModel:
         self.lengths = tuple(float(x) for x in lengths)
         self.B = smooth_basis(self.points) if long_scale else np.zeros((len(self.idx), 0))
         self.long_amplitudes = _LONG_AMPLITUDES if long_scale else np.zeros(1)
+        # the mesh-error direction (module text, "The mesh's own error"): one column on the
+        # subsample, its coefficient under a fixed Gaussian prior
+        self.N = np.zeros((len(self.idx), 0))
+        if mesh_error is not None:
+            m = np.asarray(mesh_error, float).reshape(len(points), -1)[self.idx]
+            if np.all(np.isfinite(m)) and np.sqrt(np.mean(m * m)) > 1e-9:
+                self.N = m
+        self._nsd2 = np.full(self.N.shape[1], MESH_ERROR_SD ** 2)
+        BN = np.concatenate([self.B, self.N], axis=1)
         self._eig = []
         for ell in self.lengths:
             lam, U = np.linalg.eigh(matern32(self._d, ell))
-            self._eig.append((np.clip(lam, 0.0, None), U, U.T @ self.B))
+            self._eig.append((np.clip(lam, 0.0, None), U, U.T @ BN))
 
     def n_eff(self, ell: float) -> float:
         """Independent samples of the face for correlation length ell: area / (pi l^2)."""
@@ -184,15 +216,16 @@ class ErrorModel:
     def covariance(self, fit: Fit, sel: np.ndarray | None = None) -> np.ndarray:
         """Sigma on the subsample (rows/columns `sel`) under the error model `fit`."""
         sel = np.ones(len(self.idx), bool) if sel is None else np.asarray(sel, bool)
-        d, B = self._d[np.ix_(sel, sel)], self.B[sel]
+        d, B, N = self._d[np.ix_(sel, sel)], self.B[sel], self.N[sel]
         return (fit.sigma_d ** 2 * matern32(d, fit.ell) + fit.sigma_long ** 2 * (B @ B.T)
-                + self.sigma_n ** 2 * np.eye(int(sel.sum())))
+                + (N * self._nsd2) @ N.T + self.sigma_n ** 2 * np.eye(int(sel.sum())))
 
     def _profiles(self, zr, zJ, C, v, longs, lo, hi):
-        """(log L, x, s_L) at the best long-scale amplitude among `longs`, for fixed s_d and
-        l: bounded GLS of theta (offset x from the anchor) with the long-scale coefficients
-        under their Gaussian prior, in the normal equations of the whitened system (module
-        text; the eigenbasis of K_l makes the whitening diagonal)."""
+        """(log L, x, s_L, mesh-error coefficients) at the best long-scale amplitude among
+        `longs`, for fixed s_d and l: bounded GLS of theta (offset x from the anchor) with the
+        long-scale and mesh-error coefficients under their Gaussian priors, in the normal
+        equations of the whitened system (module text; the eigenbasis of K_l makes the
+        whitening diagonal). The columns of C are the long-scale basis, then the mesh error."""
         w = 1.0 / v
         k = zJ.shape[1] if zJ is not None else 0
         G = np.concatenate([zJ if k else np.zeros((len(zr), 0)), -C], axis=1)
@@ -201,25 +234,33 @@ class ErrorModel:
         g0 = Gw.T @ zr
         q0 = float(zr @ (zr * w))
         base = float(np.sum(np.log(v))) + len(zr) * np.log(2 * np.pi)
-        m = C.shape[1]
+        q_mesh = self.N.shape[1]
+        m = C.shape[1] - q_mesh
         best = None
         for s_l in longs:
             if s_l > 0 and m:
-                H = H0.copy()
-                H[k:, k:] += np.eye(m) / (s_l * s_l)
-                g = g0
-                logdet = float(np.linalg.slogdet(np.eye(m) + s_l * s_l * H0[k:, k:])[1])
+                sel = np.arange(k + m + q_mesh)
+                pv = np.concatenate([np.full(m, s_l * s_l), self._nsd2])
             else:
-                H, g, logdet = H0[:k, :k], g0[:k], 0.0
+                sel = np.concatenate([np.arange(k), k + m + np.arange(q_mesh)])
+                pv = self._nsd2
+            H, g = H0[np.ix_(sel, sel)], g0[sel]
+            logdet = 0.0
+            if len(pv):
+                Hc = H[k:, k:]
+                logdet = float(np.linalg.slogdet(np.eye(len(pv)) + pv[:, None] * Hc)[1])
+                H = H.copy()
+                H[k:, k:] += np.diag(1.0 / pv)
             if len(g):
                 y = _bounded_quadratic(H + 1e-12 * np.trace(H) * np.eye(len(g)) / len(g), g, lo, hi, k)
                 q = q0 + float(y @ H @ y) + 2.0 * float(g @ y)
                 x = y[:k]
+                nu = y[len(g) - q_mesh:]
             else:
-                q, x = q0, np.zeros(0)
+                q, x, nu = q0, np.zeros(0), np.zeros(0)
             ll = -0.5 * (q + logdet + base)
             if best is None or ll > best[0]:
-                best = (ll, x, float(s_l))
+                best = (ll, x, float(s_l), nu)
         return best
 
     def fit(self, r: np.ndarray, J: np.ndarray | None = None, theta_a: np.ndarray | None = None,
@@ -247,18 +288,20 @@ class ErrorModel:
                 v = s_d * s_d * lam + self.sigma_n ** 2
                 top = self._profiles(zr, zJ, UB, v, scale * longs, lo, hi)
                 if best is None or top[0] > best[0]:
-                    best = (top[0], s_d, ell, top[1], top[2])
+                    best = (top[0], s_d, ell, top[1], top[2], top[3])
                 if top[0] < here - 1e-9:
                     break               # past this length's maximum in s_d (unimodal)
                 here = top[0]
-        ll, s_d, ell, x, s_l = best
+        ll, s_d, ell, x, s_l, nu = best
         theta = None
         if theta_a is not None:
             theta = np.array(theta_a, float)
             if nfree:
                 theta[free] = theta_a[free] + x
         long_mm = float(s_l * np.sqrt(np.mean(np.sum(self.B * self.B, axis=1)))) if self.B.size else 0.0
-        return Fit(theta, float(s_d), float(ell), float(ll), nfree + int(extra_k), float(s_l), long_mm)
+        mesh_mm = float(np.sqrt(np.mean((self.N @ nu) ** 2))) if self.N.size else 0.0
+        return Fit(theta, float(s_d), float(ell), float(ll), nfree + int(extra_k), float(s_l), long_mm,
+                   mesh_mm, np.asarray(nu, float))
 
     def standard_errors(self, J: np.ndarray, fit: Fit) -> np.ndarray:
         """Standard errors of the parameters (columns of J) under the error model `fit`:

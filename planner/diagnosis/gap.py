@@ -66,6 +66,8 @@ class ScanGap:
     surface: object = None        # forward.PatientSurface: the faces are the patient's skin's
     discrepancy_mm: float = 0.0   # model-form discrepancy amplitude (`discrepancy`), once estimated
     discrepancy_ell_mm: float = 0.0
+    mesh_error_mm: float = 0.0    # RMS of the estimated discretisation error (`discrepancy`), once estimated
+    mesh_offset: np.ndarray | None = None  # that error on the points, taken out of every gap (`distances`)
     error_test: object = None     # (r, mask) -> p-value of the gap under noise + discrepancy
 
     @property
@@ -106,8 +108,16 @@ class ScanGap:
     def distances(self, skin: np.ndarray, pose: bool = True) -> np.ndarray:
         """Signed distances (post-op minus prediction) of the fixed scan points to `skin`, with
         the scan superimposed on this prediction's unoperated regions (`realign`; `pose` False:
-        in the baseline's superimposition)."""
-        d = TriangleSurface(self.vertices(skin), self.faces).closest(self.points).signed
+        in the baseline's superimposition), less the mesh's estimated discretisation error
+        (`mesh_offset`) once it is known."""
+        d = self.distances_to(self.vertices(skin), self.faces, pose)
+        return d if self.mesh_offset is None else d - self.mesh_offset
+
+    def distances_to(self, vertices: np.ndarray, faces: np.ndarray, pose: bool = True) -> np.ndarray:
+        """Signed distances of the fixed scan points to another predicted face (vertices,
+        faces), in the baseline's superimposition (and `realign`ed when `pose`): the gap a
+        prediction of the same case on another mesh leaves on the same points."""
+        d = TriangleSurface(np.asarray(vertices, float), np.asarray(faces)).closest(self.points).signed
         return self.realign(d) if pose else d
 
     def vertices(self, skin: np.ndarray) -> np.ndarray:

@@ -18,12 +18,37 @@ from planner.diagnosis import analysis
 from planner.diagnosis.effects import available_effects
 from planner.diagnosis.forward import Forward, Runner, prepare_case
 from planner.diagnosis.gap import measure_gap, region_table
+from planner.errors import InputError
 
-__all__ = ["load_diagnosis_case", "diagnose_cases", "diagnose_data", "build_record"]
+__all__ = ["load_diagnosis_case", "diagnose_cases", "diagnose_data", "build_record", "mesh_reference"]
 
 
-def load_diagnosis_case(case_dir: Path, resolution: str | None, say):
-    """(CaseModel, post-op Surface, resolution) of one case folder; InputError when unusable."""
+def mesh_reference(resolution: str, choice: str | None = "auto") -> str | None:
+    """The second mesh whose baseline estimates the diagnosis mesh's discretisation error
+    (`discrepancy`, "The mesh's own error"): "auto" takes the next coarser resolution (cheap:
+    a fraction of the diagnosis's time) and none at the coarsest; "none" or None: no estimate;
+    a resolution name: that one (the next finer one gives the better estimate at the cost of
+    its solve)."""
+    from generic_mesh import RESOLUTIONS
+
+    if choice in (None, "none"):
+        return None
+    if choice == "auto":
+        i = RESOLUTIONS.index(resolution)
+        return RESOLUTIONS[i - 1] if i > 0 else None
+    if choice not in RESOLUTIONS:
+        raise InputError(f"unknown mesh reference {choice!r} (auto, none, {', '.join(RESOLUTIONS)})",
+                         field="--mesh-reference")
+    if choice == resolution:
+        raise InputError(f"the mesh reference must differ from the diagnosis resolution ({resolution})",
+                         field="--mesh-reference")
+    return choice
+
+
+def load_diagnosis_case(case_dir: Path, resolution: str | None, say, reference: str | None = "none"):
+    """(CaseModel, post-op Surface, resolution, reference CaseModel or None) of one case
+    folder; InputError when unusable. `reference` (`mesh_reference`): the same case registered
+    on a second mesh as well."""
     from planner.case import load_case
     from planner.compare.inputs import find_postop, load_surface
     from planner.pipeline import Progress, register_case
@@ -35,33 +60,69 @@ def load_diagnosis_case(case_dir: Path, resolution: str | None, say):
     plan = load_plan(case.require_plan())
     check_against_bones(plan, {k: np.asarray(v.vertices, float) for k, v in case.bones.items()})
     res = resolution or plan.model.resolution
+    ref = mesh_reference(res, reference)
     progress = Progress(echo=lambda s: None)
-    say(f"{case_dir.name}: registering the {res} model onto the patient")
-    model, _ = register_case(case, res, progress)
     plan_actual = None
     if case.postop_plan_path is not None:
         plan_actual = load_plan(case.postop_plan_path)
         check_against_bones(plan_actual, {k: np.asarray(v.vertices, float) for k, v in case.bones.items()})
     skin = (np.asarray(case.skin.vertices, float), np.asarray(case.skin.faces, np.int64))
-    return (prepare_case(case_dir.resolve().name, model, plan, case.bones, plan_actual,
-                         case.info.follow_up_months, preop_skin=skin), scan, res)
+    out = []
+    for r in (res, ref):
+        if r is None:
+            out.append(None)
+            continue
+        say(f"{case_dir.name}: registering the {r} model onto the patient")
+        model, _ = register_case(case, r, progress)
+        out.append(prepare_case(case_dir.resolve().name, model, plan, case.bones, plan_actual,
+                                case.info.follow_up_months, preop_skin=skin))
+    return out[0], scan, res, out[1]
 
 
 def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runner: Runner | None = None,
                    say=lambda s: None, effect_names: tuple[str, ...] | None = None,
-                   tangent: bool = True) -> dict:
+                   tangent: bool = True, reference: str | None = "auto") -> dict:
     t0 = time.perf_counter()
-    loaded = [load_diagnosis_case(Path(c), resolution, say) for c in case_dirs]
-    out = diagnose_data([m for m, _, _ in loaded], [s for _, s, _ in loaded], runner=runner, say=say,
-                        effect_names=effect_names, tangent=tangent)
-    out["record"]["resolution"] = sorted({r for _, _, r in loaded})
+    loaded = [load_diagnosis_case(Path(c), resolution, say, reference) for c in case_dirs]
+    refs = [x[3] for x in loaded]
+    out = diagnose_data([x[0] for x in loaded], [x[1] for x in loaded], runner=runner, say=say,
+                        effect_names=effect_names, tangent=tangent,
+                        references=refs if any(r is not None for r in refs) else None,
+                        reference_name=mesh_reference(loaded[0][2], reference) if loaded else None)
+    out["record"]["resolution"] = sorted({x[2] for x in loaded})
     out["record"]["timings_s"]["total"] = round(time.perf_counter() - t0, 2)
     return out
 
 
+def mesh_errors(data: list, references: list, runner: Runner | None, say, name: str | None,
+                forward: Forward | None = None) -> None:
+    """Per case the change of the gap when the baseline is solved on the reference mesh
+    (`CaseData.mesh_error`, the direction of the discretisation error: `discrepancy`), on the
+    same scan points and pose. A reference that cannot be solved leaves the case without one."""
+    idx = [i for i, r in enumerate(references) if r is not None]
+    if not idx:
+        return
+    say(f"baseline on the {name or 'reference'} mesh of {len(idx)} case(s) (the mesh's own error)")
+    fwd = forward or Forward([references[i] for i in idx], runner, lambda s: None)
+    skins = fwd.solve([(j, ()) for j in range(len(idx))])
+    for j, i in enumerate(idx):
+        d = data[i]
+        if isinstance(skins[j], str):
+            say(f"  {d.case.name}: the {name} baseline failed ({skins[j]}); no mesh-error estimate")
+            continue
+        v, f = references[i].predicted_surface(skins[j])
+        r_ref = d.gap.distances_to(v, f)
+        if np.all(np.isfinite(r_ref)):
+            d.mesh_error = r_ref - d.r0
+            d.mesh_reference = name
+            rms = float(np.sqrt(np.average(d.mesh_error ** 2, weights=d.gap.weights)))
+            say(f"  {d.case.name}: the gap changes by {rms:.2f} mm RMS on the {name} mesh")
+
+
 def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say=lambda s: None,
                   effect_names: tuple[str, ...] | None = None, forward: Forward | None = None,
-                  effects: list | None = None, tangent: bool = True) -> dict:
+                  effects: list | None = None, tangent: bool = True, references: list | None = None,
+                  reference_name: str | None = None, reference_forward: Forward | None = None) -> dict:
     """The diagnosis of prepared cases (`forward.CaseModel`) against their scans; returns
     {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}."""
     t0 = time.perf_counter()
@@ -80,6 +141,12 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
             f"scan roughness {gap.roughness_mm:.2f} mm); correlation length {gap.correlation_mm:.1f} mm")
         for w in gap.warnings:
             say(f"  warning: {w}")
+    if references is not None:
+        mesh_errors(data, references, forward.runner, say, reference_name, reference_forward)
+        for d in data:
+            if analysis.remove_mesh_error(d) is not None:
+                say(f"  {d.case.name}: estimated mesh error {d.gap.mesh_error_mm:.2f} mm RMS taken out of "
+                    f"the gap: {d.gap.rms(d.r0):.2f} mm left")
     moved = tuple(dict.fromkeys(s for c in cases for s in c.moved_segments))
     if effects is None:
         effects = available_effects(moved, effect_names,
@@ -235,6 +302,8 @@ def _error_entry(d, f) -> dict:
     return {"noise_mm": _r(d.gap.noise_floor_mm), "discrepancy_mm": _r(f.discrepancy_mm),
             "short_scale_mm": _r(f.sigma_d), "correlation_length_mm": _r(f.ell, 1),
             "long_scale_mm": _r(f.long_mm), "long_scale_basis": "offset and tilts of the whole face (linear polynomial)",
+            "mesh_error_mm": _r(d.gap.mesh_error_mm) if d.mesh_error is not None else None,
+            "mesh_reference": getattr(d, "mesh_reference", None),
             "level_mm": _r(float(np.hypot(f.discrepancy_mm, d.gap.noise_floor_mm))),
             "points": int(len(d.error.idx))}
 

@@ -134,3 +134,12 @@ def test_existing_cluster_via_scheduler_address(case, tmp_path):
 def test_scheduler_and_workers_exclude_each_other(case, capsys):
     assert main(["diagnose", str(case), "--scheduler", "tcp://127.0.0.1:1", "--workers", "2", "--quiet"]) == 2
     assert "--workers" in capsys.readouterr().err
+
+
+def test_mesh_reference_equal_to_the_resolution_exits_2(case, tmp_path, capsys):
+    # the second mesh must be another mesh: refused before any registration, nothing written
+    out = tmp_path / "diag"
+    assert main(["diagnose", str(case), "--out", str(out), "--workers", "0", "--resolution", "coarse",
+                 "--mesh-reference", "coarse", "--quiet"]) == 2
+    assert "--mesh-reference" in capsys.readouterr().err
+    assert not out.exists()

@@ -127,9 +127,19 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
     {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}."""
     t0 = time.perf_counter()
     forward = forward or Forward(cases, runner, say)
-    say(f"baseline prediction of {len(cases)} case(s)")
-    for i in range(len(cases)):
-        forward.solve([(i, ())])
+    moved = tuple(dict.fromkeys(s for c in cases for s in c.moved_segments))
+    if effects is None:
+        effects = available_effects(moved, effect_names,
+                                    plan_actual=all(c.plan_actual is not None for c in cases))
+    names = tuple(p.key for e in effects for p in e.parameters)
+    if tangent and names:
+        # the baseline and its tangent sensitivities in one solve per case (the analysis asks
+        # for the same request again and gets it from the store)
+        say(f"baseline prediction of {len(cases)} case(s) with the tangent sensitivities of {len(names)} parameter(s)")
+        forward.sensitivities([names] * len(cases))
+    else:
+        say(f"baseline prediction of {len(cases)} case(s)")
+        forward.solve([(i, ()) for i in range(len(cases))])
     data = []
     for i, (case, scan) in enumerate(zip(cases, scans)):
         skin = forward.baseline(i)
@@ -147,10 +157,6 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
             if analysis.remove_mesh_error(d) is not None:
                 say(f"  {d.case.name}: estimated mesh error {d.gap.mesh_error_mm:.2f} mm RMS taken out of "
                     f"the gap: {d.gap.rms(d.r0):.2f} mm left")
-    moved = tuple(dict.fromkeys(s for c in cases for s in c.moved_segments))
-    if effects is None:
-        effects = available_effects(moved, effect_names,
-                                    plan_actual=all(c.plan_actual is not None for c in cases))
     t_fit = time.perf_counter()
     result = analysis.analyse(data, effects, forward, say, tangent=tangent)
     record = build_record(data, result, effects)

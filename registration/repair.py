@@ -33,6 +33,16 @@ from registration.quality import (EDGE_OPERATOR, corner_edges, gather_element,
 from registration.surface import TargetSurface
 
 
+# the bound the penalty enforces lies this far above the threshold, so that the projection of
+# surface nodes back onto their surface after a round (a small move off the tangent plane)
+# does not take a corner just at the bound below the threshold
+BOUND_MARGIN = 0.01
+# weight of the bound's penalty against the quality target's (both squared shortfalls of a
+# scaled Jacobian): a corner 0.01 short of the bound then weighs as much as ten corners 0.1
+# short of the target
+BOUND_WEIGHT = 100.0
+
+
 @dataclass
 class SurfaceConstraint:
     """Nodes that must stay on a surface."""
@@ -72,7 +82,8 @@ def _tangent_bases(x: np.ndarray, free: np.ndarray, constraints: list[SurfaceCon
 
 
 @numba.njit(cache=True)
-def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.0):
+def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.0, bound=-2.0,
+                          weight=0.0):
     """sum over elements and their 9 corners of max(0, tau - sj)^2 and its gradient with
     respect to the free nodes (local[node] >= 0), accumulated node by node. Edge lengths are
     regularised, l = sqrt(|e|^2 + eps2): with eps2 > 0 a collapsed edge (two nodes on one
@@ -80,7 +91,11 @@ def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.
     gradient instead of a division by zero; eps2 = (1e-6 h)^2 changes sj by ~1e-12 elsewhere.
     With h3 > 0 (a typical element volume, h^3) every inverted corner also costs (det / h3)^2,
     Knupp's untangling term on the unscaled Jacobian: the scaled Jacobian is stationary at -1
-    (an element turned inside out as a whole has a zero sj gradient), its determinant is not."""
+    (an element turned inside out as a whole has a zero sj gradient), its determinant is not.
+    With weight > 0 every corner below `bound` (< tau) also costs weight * (bound - sj)^2: the
+    quadratic penalty of the constraint sj >= bound (Nocedal and Wright, ch. 17), which makes
+    the corners short of the threshold outweigh the many corners only short of the quality
+    target tau."""
     f = 0.0
     g = np.zeros((n_free, 3))
     e = np.empty((3, 3))
@@ -108,6 +123,10 @@ def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.
                 continue
             f += short * short
             coef = -2.0 * short
+            below = bound - sj
+            if weight > 0.0 and below > 0.0:
+                f += weight * below * below
+                coef -= 2.0 * weight * below
             untangle = 0.0
             if h3 > 0.0 and det < 0.0:
                 f += (det / h3) ** 2
@@ -126,7 +145,7 @@ def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.
     return f, g
 
 
-def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h, maxiter=50):
+def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h, maxiter=50, bound=-2.0, weight=0.0):
     hx = np.ascontiguousarray(hexes[patch_elems], dtype=np.int64)
     x0 = x[free].copy()
     local = np.full(len(x), -1, dtype=np.int64)
@@ -136,7 +155,8 @@ def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h, maxiter=50):
     def fun(a):
         a = a.reshape(-1, 3)
         xw[free] = x0 + np.einsum("kij,kj->ki", basis, a)
-        f, g = _penalty_and_gradient(xw, hx, local, len(free), EDGE_OPERATOR, tau, (1e-6 * h) ** 2, h**3)
+        f, g = _penalty_and_gradient(xw, hx, local, len(free), EDGE_OPERATOR, tau, (1e-6 * h) ** 2, h**3,
+                                     bound, weight)
         dx = xw[free] - x0
         f += mu * float(np.sum(dx**2)) / h**2
         g += 2.0 * mu * dx / h**2
@@ -155,21 +175,32 @@ def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h, maxiter=50):
 def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
                 constraints: list[SurfaceConstraint] = (), fixed: np.ndarray | None = None,
                 margin: float = 0.1, rings: int = 1, max_rounds: int = 8, mu: float = 1e-4,
-                stall_rounds: int = 3, release: bool = True, release_rounds: int = 6):
+                stall_rounds: int = 3, release: bool = True, release_rounds: int = 6,
+                bound_margin: float = BOUND_MARGIN, bound_weight: float = BOUND_WEIGHT):
     """Relocate nodes until every element's minimum scaled Jacobian is >= threshold.
 
     Returns (new nodes, report dict). Nodes in a constraint stay on its surface (to the
-    closest-point precision); `fixed` nodes never move. The search gives up early when
-    `stall_rounds` rounds in a row neither reduce the number of elements below the threshold
-    nor raise the worst of them (fixed nodes that make the threshold unreachable: a caller
-    then retries with fewer of them fixed). Each round allows the minimiser more iterations
-    than the last (a tangled patch can need hundreds). With `release`, when the constrained
-    rounds end with elements still below the threshold, the surface nodes of those elements
-    and their neighbours leave their surfaces (they move in 3D, held near their place by the
-    motion term only) for up to `release_rounds` more rounds: a surface that leaves no room for
-    a valid element between it and the next (soft tissue thinner than the mesh's layers, two
-    patient surfaces closer than the generic ones) then costs a local fit error, reported as
-    `nodes_released_from_surfaces`, instead of an invalid mesh."""
+    closest-point precision); `fixed` nodes never move.
+
+    Each round optimises a patch: the elements below the threshold grown by `rings` layers
+    (one more every second round). The objective's quality target is threshold + margin; the
+    bound itself, threshold + bound_margin, is a quadratic penalty of weight `bound_weight`
+    (module docstring): a few corners short of the threshold are not traded for many corners
+    short of the target only. A round is kept only when it lowers the total shortfall
+    sum_e max(0, threshold - sj_e) (the mesh never leaves a round worse than it entered);
+    a round that does not is undone and the next round's patch is one ring wider and its
+    bound penalty ten times heavier -- where the room to restore an element lies farther than
+    the patch reaches, or the target term outweighs the bound, the search widens instead of
+    repeating the same step. `stall_rounds` such rounds in a row end the search (fixed nodes
+    that make the threshold unreachable: a caller then retries with fewer of them fixed).
+    Each round allows the minimiser more iterations than the last (a tangled patch can need
+    hundreds). With `release`, when the constrained rounds end with elements still below the
+    threshold, the surface nodes of those elements and their neighbours leave their surfaces
+    (they move in 3D, held near their place by the motion term only) for up to
+    `release_rounds` more rounds: a surface that leaves no room for a valid element between it
+    and the next (soft tissue thinner than the mesh's layers, two patient surfaces closer than
+    the generic ones) then costs a local fit error, reported as `nodes_released_from_surfaces`,
+    instead of an invalid mesh."""
     hexes = np.asarray(hexes)
     x = np.array(nodes, dtype=float)
     fixed = np.zeros(0, int) if fixed is None else np.asarray(fixed, int)
@@ -181,12 +212,15 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
     moved = np.zeros(len(x), bool)
     constraints = list(constraints)
     released = np.zeros(0, np.int64)
-    rounds, total = 0, 0
+    rounds, total, undone = 0, 0, 0
+
+    def shortfall(qq):
+        return float(np.sum(np.maximum(threshold - qq, 0.0)))
 
     def run(n_rounds, first_round):
-        nonlocal x, q, total
+        nonlocal x, q, total, undone
         stalled = 0
-        best = (int(np.sum(q < threshold)), float(q.min()) if len(q) else 1.0)
+        best = shortfall(q)
         done = 0
         for r in range(first_round, first_round + n_rounds):
             bad = np.flatnonzero(q < threshold)
@@ -195,25 +229,29 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
             done += 1
             total += 1
             patch_nodes = np.unique(hexes[bad])
-            for _ in range(rings + (r - 1) // 2):
+            for _ in range(rings + (r - 1) // 2 + stalled):
                 elems = np.unique(inc[patch_nodes].indices)
                 patch_nodes = np.unique(hexes[elems])
             free = np.setdiff1d(patch_nodes, fixed)
             patch_elems = np.unique(inc[free].indices)
             basis = _tangent_bases(x, free, constraints, fixed)
+            x_prev, q_prev = x[free].copy(), q[patch_elems].copy()
             x = _optimise_patch(x, hexes, patch_elems, free, basis, threshold + margin, mu, h,
-                                maxiter=50 * min(r, 8))
+                                maxiter=50 * min(r, 8), bound=threshold + bound_margin,
+                                weight=bound_weight * 10.0**stalled)
             for con in constraints:
                 on = np.intersect1d(con.node_ids, free)
                 if len(on):
                     x[on] = con.surface.closest(x[on]).points
-            moved[free] = True
             # only the elements around the free nodes changed
             q[patch_elems] = min_scaled_jacobian(x, hexes[patch_elems])
-            now = (int(np.sum(q < threshold)), float(q.min()))
-            if now[0] < best[0] or now[1] > best[1] + 1e-3:
-                best, stalled = (min(now[0], best[0]), max(now[1], best[1])), 0
+            now = shortfall(q)
+            if now < best * (1.0 - 1e-3):
+                best, stalled = now, 0
+                moved[free] = True
             else:
+                x[free], q[patch_elems] = x_prev, q_prev
+                undone += 1
                 stalled += 1
                 if stalled >= stall_rounds:
                     break
@@ -235,6 +273,7 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
         "elements_inverted_before": int(before["n_inverted"]),
         "elements_still_below_threshold": int(after["n_below_threshold"]),
         "rounds": int(rounds),
+        "rounds_undone": int(undone),
         "nodes_moved": int(moved.sum()),
         "nodes_released_from_surfaces": int(len(released)),
         "quality_before": before,

@@ -8,7 +8,8 @@ quality improvement (Knupp, "Hexahedral and tetrahedral mesh untangling", Eng. C
 threshold, grown by `rings` layers of neighbours. The patch objective is
   E(a) = sum over patch elements e and their 9 corners q of max(0, tau - sj_eq)^2
          + sum over inverted corners of (det_eq / h^3)^2
-         + mu * sum_nodes |x - x0|^2 / h^2,
+         + mu * sum_nodes |x - x0|^2 / h^2
+         [+ w * sum over corners of max(0, threshold + delta - sj_eq)^2, once a round fails],
 with tau = threshold + margin, so that invalid corners (sj <= 0) are penalised hardest
 (validity first) and corners already better than tau cost nothing (quality next, with minimal
 motion). Node positions x = x0 + B a: interior nodes move freely (B = I), nodes on a patient
@@ -16,7 +17,9 @@ surface (skin, bone) move in its tangent plane and are projected back onto the s
 each optimisation, nodes on two surfaces stay fixed. The exact gradient comes from
 chain rule of `registration.quality` (evaluated node by node with numba, checked against
 `scaled_jacobian_gradient` in the tests); L-BFGS-B minimises. Rounds repeat with a
-larger patch until no element is below the threshold or the round budget is spent.
+larger patch until no element is below the threshold or the round budget is spent; a round
+that does not lower the total shortfall below the threshold is undone and switches on (then
+strengthens) the bound's penalty w (`repair_mesh`).
 """
 from __future__ import annotations
 
@@ -37,9 +40,9 @@ from registration.surface import TargetSurface
 # surface nodes back onto their surface after a round (a small move off the tangent plane)
 # does not take a corner just at the bound below the threshold
 BOUND_MARGIN = 0.01
-# weight of the bound's penalty against the quality target's (both squared shortfalls of a
-# scaled Jacobian): a corner 0.01 short of the bound then weighs as much as ten corners 0.1
-# short of the target
+# weight of the bound's penalty, once on (`repair_mesh`), against the quality target's (both
+# squared shortfalls of a scaled Jacobian): a corner 0.1 short of the bound then weighs as
+# much as a hundred corners 0.1 short of the target
 BOUND_WEIGHT = 100.0
 
 
@@ -183,16 +186,18 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
     closest-point precision); `fixed` nodes never move.
 
     Each round optimises a patch: the elements below the threshold grown by `rings` layers
-    (one more every second round). The objective's quality target is threshold + margin; the
-    bound itself, threshold + bound_margin, is a quadratic penalty of weight `bound_weight`
-    (module docstring): a few corners short of the threshold are not traded for many corners
-    short of the target only. A round is kept only when it lowers the total shortfall
-    sum_e max(0, threshold - sj_e) (the mesh never leaves a round worse than it entered);
-    a round that does not is undone and the next round's patch is one ring wider and its
-    bound penalty ten times heavier -- where the room to restore an element lies farther than
-    the patch reaches, or the target term outweighs the bound, the search widens instead of
-    repeating the same step. `stall_rounds` such rounds in a row end the search (fixed nodes
-    that make the threshold unreachable: a caller then retries with fewer of them fixed).
+    (one more every second round). The objective's quality target is threshold + margin. A
+    round is kept only when it lowers the total shortfall sum_e max(0, threshold - sj_e) (the
+    mesh never leaves a round worse than it entered); a round that does not is undone, and
+    the next one widens the patch by a ring and adds the bound threshold + bound_margin as a
+    quadratic penalty of weight `bound_weight` (ten times heavier after each further undone
+    round): penalty continuation (Nocedal and Wright, ch. 17). The target alone untangles best
+    (the bound's heavy weight on a few scaled Jacobians drowns the determinant's untangling
+    term), but it balances the squared shortfalls of all corners short of the target and can
+    leave a few corners below the threshold for many that are only short of the target; the
+    bound then makes those few outweigh the rest, and the wider patch reaches room the narrow
+    one did not. `stall_rounds` undone rounds in a row end the search (fixed nodes that make
+    the threshold unreachable: a caller then retries with fewer of them fixed).
     Each round allows the minimiser more iterations than the last (a tangled patch can need
     hundreds). With `release`, when the constrained rounds end with elements still below the
     threshold, the surface nodes of those elements and their neighbours leave their surfaces
@@ -238,7 +243,7 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
             x_prev, q_prev = x[free].copy(), q[patch_elems].copy()
             x = _optimise_patch(x, hexes, patch_elems, free, basis, threshold + margin, mu, h,
                                 maxiter=50 * min(r, 8), bound=threshold + bound_margin,
-                                weight=bound_weight * 10.0**stalled)
+                                weight=bound_weight * 10.0**(stalled - 1) if stalled else 0.0)
             for con in constraints:
                 on = np.intersect1d(con.node_ids, free)
                 if len(on):

@@ -179,7 +179,8 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
                 constraints: list[SurfaceConstraint] = (), fixed: np.ndarray | None = None,
                 margin: float = 0.1, rings: int = 1, max_rounds: int = 8, mu: float = 1e-4,
                 stall_rounds: int = 3, release: bool = True, release_rounds: int = 6,
-                bound_margin: float = BOUND_MARGIN, bound_weight: float = BOUND_WEIGHT):
+                bound_margin: float = BOUND_MARGIN, bound_weight: float = BOUND_WEIGHT,
+                bound_first: bool = False):
     """Relocate nodes until every element's minimum scaled Jacobian is >= threshold.
 
     Returns (new nodes, report dict). Nodes in a constraint stay on its surface (to the
@@ -215,7 +216,7 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
     inc = node_element_incidence(len(x), hexes)
     h = float(np.median(np.linalg.norm(x[hexes[:, 1]] - x[hexes[:, 0]], axis=1))) or 1.0
     moved = np.zeros(len(x), bool)
-    constraints = list(constraints)
+    constraints = constraints0 = list(constraints)
     released = np.zeros(0, np.int64)
     rounds, total, undone = 0, 0, 0
 
@@ -243,7 +244,8 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
             x_prev, q_prev = x[free].copy(), q[patch_elems].copy()
             x = _optimise_patch(x, hexes, patch_elems, free, basis, threshold + margin, mu, h,
                                 maxiter=50 * min(r, 8), bound=threshold + bound_margin,
-                                weight=bound_weight * 10.0**(stalled - 1) if stalled else 0.0)
+                                weight=bound_weight * 10.0**(stalled - 1) if stalled else
+                                (bound_weight if bound_first else 0.0))
             for con in constraints:
                 on = np.intersect1d(con.node_ids, free)
                 if len(on):
@@ -284,4 +286,16 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
         "quality_before": before,
         "quality_after": after,
     }
+    if after["n_below_threshold"] and not bound_first and bound_weight > 0:
+        # the other order: the bound penalised from the first round (where the target alone
+        # untangled into a state the bound cannot leave); the result nearer the threshold is kept
+        y, other = repair_mesh(nodes, hexes, threshold=threshold, constraints=constraints0,
+                               fixed=fixed, margin=margin, rings=rings, max_rounds=max_rounds,
+                               mu=mu, stall_rounds=stall_rounds, release=release,
+                               release_rounds=release_rounds, bound_margin=bound_margin,
+                               bound_weight=bound_weight, bound_first=True)
+        if shortfall(min_scaled_jacobian(y, hexes)) < shortfall(q):
+            other["rounds"] += report["rounds"]
+            other["bound_first"] = True
+            return y, other
     return x, report

@@ -8,7 +8,8 @@ quality improvement (Knupp, "Hexahedral and tetrahedral mesh untangling", Eng. C
 threshold, grown by `rings` layers of neighbours. The patch objective is
   E(a) = sum over patch elements e and their 9 corners q of max(0, tau - sj_eq)^2
          + sum over inverted corners of (det_eq / h^3)^2
-         + mu * sum_nodes |x - x0|^2 / h^2,
+         + mu * sum_nodes |x - x0|^2 / h^2
+         [+ w * sum over corners of max(0, threshold + delta - sj_eq)^2, once a round fails],
 with tau = threshold + margin, so that invalid corners (sj <= 0) are penalised hardest
 (validity first) and corners already better than tau cost nothing (quality next, with minimal
 motion). Node positions x = x0 + B a: interior nodes move freely (B = I), nodes on a patient
@@ -16,7 +17,9 @@ surface (skin, bone) move in its tangent plane and are projected back onto the s
 each optimisation, nodes on two surfaces stay fixed. The exact gradient comes from
 chain rule of `registration.quality` (evaluated node by node with numba, checked against
 `scaled_jacobian_gradient` in the tests); L-BFGS-B minimises. Rounds repeat with a
-larger patch until no element is below the threshold or the round budget is spent.
+larger patch until no element is below the threshold or the round budget is spent; a round
+that does not lower the total shortfall below the threshold is undone and switches on (then
+strengthens) the bound's penalty w (`repair_mesh`).
 """
 from __future__ import annotations
 
@@ -31,6 +34,16 @@ from threadpoolctl import threadpool_limits
 from registration.quality import (EDGE_OPERATOR, corner_edges, gather_element,
                                   min_scaled_jacobian, quality_summary)
 from registration.surface import TargetSurface
+
+
+# the bound the penalty enforces lies this far above the threshold, so that the projection of
+# surface nodes back onto their surface after a round (a small move off the tangent plane)
+# does not take a corner just at the bound below the threshold
+BOUND_MARGIN = 0.01
+# weight of the bound's penalty, once on (`repair_mesh`), against the quality target's (both
+# squared shortfalls of a scaled Jacobian): a corner 0.1 short of the bound then weighs as
+# much as a hundred corners 0.1 short of the target
+BOUND_WEIGHT = 100.0
 
 
 @dataclass
@@ -72,7 +85,8 @@ def _tangent_bases(x: np.ndarray, free: np.ndarray, constraints: list[SurfaceCon
 
 
 @numba.njit(cache=True)
-def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.0):
+def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.0, bound=-2.0,
+                          weight=0.0):
     """sum over elements and their 9 corners of max(0, tau - sj)^2 and its gradient with
     respect to the free nodes (local[node] >= 0), accumulated node by node. Edge lengths are
     regularised, l = sqrt(|e|^2 + eps2): with eps2 > 0 a collapsed edge (two nodes on one
@@ -80,7 +94,11 @@ def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.
     gradient instead of a division by zero; eps2 = (1e-6 h)^2 changes sj by ~1e-12 elsewhere.
     With h3 > 0 (a typical element volume, h^3) every inverted corner also costs (det / h3)^2,
     Knupp's untangling term on the unscaled Jacobian: the scaled Jacobian is stationary at -1
-    (an element turned inside out as a whole has a zero sj gradient), its determinant is not."""
+    (an element turned inside out as a whole has a zero sj gradient), its determinant is not.
+    With weight > 0 every corner below `bound` (< tau) also costs weight * (bound - sj)^2: the
+    quadratic penalty of the constraint sj >= bound (Nocedal and Wright, ch. 17), which makes
+    the corners short of the threshold outweigh the many corners only short of the quality
+    target tau."""
     f = 0.0
     g = np.zeros((n_free, 3))
     e = np.empty((3, 3))
@@ -108,6 +126,10 @@ def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.
                 continue
             f += short * short
             coef = -2.0 * short
+            below = bound - sj
+            if weight > 0.0 and below > 0.0:
+                f += weight * below * below
+                coef -= 2.0 * weight * below
             untangle = 0.0
             if h3 > 0.0 and det < 0.0:
                 f += (det / h3) ** 2
@@ -126,7 +148,7 @@ def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.
     return f, g
 
 
-def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h, maxiter=50):
+def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h, maxiter=50, bound=-2.0, weight=0.0):
     hx = np.ascontiguousarray(hexes[patch_elems], dtype=np.int64)
     x0 = x[free].copy()
     local = np.full(len(x), -1, dtype=np.int64)
@@ -136,7 +158,8 @@ def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h, maxiter=50):
     def fun(a):
         a = a.reshape(-1, 3)
         xw[free] = x0 + np.einsum("kij,kj->ki", basis, a)
-        f, g = _penalty_and_gradient(xw, hx, local, len(free), EDGE_OPERATOR, tau, (1e-6 * h) ** 2, h**3)
+        f, g = _penalty_and_gradient(xw, hx, local, len(free), EDGE_OPERATOR, tau, (1e-6 * h) ** 2, h**3,
+                                     bound, weight)
         dx = xw[free] - x0
         f += mu * float(np.sum(dx**2)) / h**2
         g += 2.0 * mu * dx / h**2
@@ -155,21 +178,35 @@ def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h, maxiter=50):
 def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
                 constraints: list[SurfaceConstraint] = (), fixed: np.ndarray | None = None,
                 margin: float = 0.1, rings: int = 1, max_rounds: int = 8, mu: float = 1e-4,
-                stall_rounds: int = 3, release: bool = True, release_rounds: int = 6):
+                stall_rounds: int = 3, release: bool = True, release_rounds: int = 6,
+                bound_margin: float = BOUND_MARGIN, bound_weight: float = BOUND_WEIGHT,
+                bound_first: bool = False):
     """Relocate nodes until every element's minimum scaled Jacobian is >= threshold.
 
     Returns (new nodes, report dict). Nodes in a constraint stay on its surface (to the
-    closest-point precision); `fixed` nodes never move. The search gives up early when
-    `stall_rounds` rounds in a row neither reduce the number of elements below the threshold
-    nor raise the worst of them (fixed nodes that make the threshold unreachable: a caller
-    then retries with fewer of them fixed). Each round allows the minimiser more iterations
-    than the last (a tangled patch can need hundreds). With `release`, when the constrained
-    rounds end with elements still below the threshold, the surface nodes of those elements
-    and their neighbours leave their surfaces (they move in 3D, held near their place by the
-    motion term only) for up to `release_rounds` more rounds: a surface that leaves no room for
-    a valid element between it and the next (soft tissue thinner than the mesh's layers, two
-    patient surfaces closer than the generic ones) then costs a local fit error, reported as
-    `nodes_released_from_surfaces`, instead of an invalid mesh."""
+    closest-point precision); `fixed` nodes never move.
+
+    Each round optimises a patch: the elements below the threshold grown by `rings` layers
+    (one more every second round). The objective's quality target is threshold + margin. A
+    round is kept only when it lowers the total shortfall sum_e max(0, threshold - sj_e) (the
+    mesh never leaves a round worse than it entered); a round that does not is undone, and
+    the next one widens the patch by a ring and adds the bound threshold + bound_margin as a
+    quadratic penalty of weight `bound_weight` (ten times heavier after each further undone
+    round): penalty continuation (Nocedal and Wright, ch. 17). The target alone untangles best
+    (the bound's heavy weight on a few scaled Jacobians drowns the determinant's untangling
+    term), but it balances the squared shortfalls of all corners short of the target and can
+    leave a few corners below the threshold for many that are only short of the target; the
+    bound then makes those few outweigh the rest, and the wider patch reaches room the narrow
+    one did not. `stall_rounds` undone rounds in a row end the search (fixed nodes that make
+    the threshold unreachable: a caller then retries with fewer of them fixed).
+    Each round allows the minimiser more iterations than the last (a tangled patch can need
+    hundreds). With `release`, when the constrained rounds end with elements still below the
+    threshold, the surface nodes of those elements and their neighbours leave their surfaces
+    (they move in 3D, held near their place by the motion term only) for up to
+    `release_rounds` more rounds: a surface that leaves no room for a valid element between it
+    and the next (soft tissue thinner than the mesh's layers, two patient surfaces closer than
+    the generic ones) then costs a local fit error, reported as `nodes_released_from_surfaces`,
+    instead of an invalid mesh."""
     hexes = np.asarray(hexes)
     x = np.array(nodes, dtype=float)
     fixed = np.zeros(0, int) if fixed is None else np.asarray(fixed, int)
@@ -179,14 +216,17 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
     inc = node_element_incidence(len(x), hexes)
     h = float(np.median(np.linalg.norm(x[hexes[:, 1]] - x[hexes[:, 0]], axis=1))) or 1.0
     moved = np.zeros(len(x), bool)
-    constraints = list(constraints)
+    constraints = constraints0 = list(constraints)
     released = np.zeros(0, np.int64)
-    rounds, total = 0, 0
+    rounds, total, undone = 0, 0, 0
+
+    def shortfall(qq):
+        return float(np.sum(np.maximum(threshold - qq, 0.0)))
 
     def run(n_rounds, first_round):
-        nonlocal x, q, total
+        nonlocal x, q, total, undone
         stalled = 0
-        best = (int(np.sum(q < threshold)), float(q.min()) if len(q) else 1.0)
+        best = shortfall(q)
         done = 0
         for r in range(first_round, first_round + n_rounds):
             bad = np.flatnonzero(q < threshold)
@@ -195,25 +235,30 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
             done += 1
             total += 1
             patch_nodes = np.unique(hexes[bad])
-            for _ in range(rings + (r - 1) // 2):
+            for _ in range(rings + (r - 1) // 2 + stalled):
                 elems = np.unique(inc[patch_nodes].indices)
                 patch_nodes = np.unique(hexes[elems])
             free = np.setdiff1d(patch_nodes, fixed)
             patch_elems = np.unique(inc[free].indices)
             basis = _tangent_bases(x, free, constraints, fixed)
+            x_prev, q_prev = x[free].copy(), q[patch_elems].copy()
             x = _optimise_patch(x, hexes, patch_elems, free, basis, threshold + margin, mu, h,
-                                maxiter=50 * min(r, 8))
+                                maxiter=50 * min(r, 8), bound=threshold + bound_margin,
+                                weight=bound_weight * 10.0**(stalled - 1) if stalled else
+                                (bound_weight if bound_first else 0.0))
             for con in constraints:
                 on = np.intersect1d(con.node_ids, free)
                 if len(on):
                     x[on] = con.surface.closest(x[on]).points
-            moved[free] = True
             # only the elements around the free nodes changed
             q[patch_elems] = min_scaled_jacobian(x, hexes[patch_elems])
-            now = (int(np.sum(q < threshold)), float(q.min()))
-            if now[0] < best[0] or now[1] > best[1] + 1e-3:
-                best, stalled = (min(now[0], best[0]), max(now[1], best[1])), 0
+            now = shortfall(q)
+            if now < best * (1.0 - 1e-3):
+                best, stalled = now, 0
+                moved[free] = True
             else:
+                x[free], q[patch_elems] = x_prev, q_prev
+                undone += 1
                 stalled += 1
                 if stalled >= stall_rounds:
                     break
@@ -235,9 +280,22 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
         "elements_inverted_before": int(before["n_inverted"]),
         "elements_still_below_threshold": int(after["n_below_threshold"]),
         "rounds": int(rounds),
+        "rounds_undone": int(undone),
         "nodes_moved": int(moved.sum()),
         "nodes_released_from_surfaces": int(len(released)),
         "quality_before": before,
         "quality_after": after,
     }
+    if after["n_below_threshold"] and not bound_first and bound_weight > 0:
+        # the other order: the bound penalised from the first round (where the target alone
+        # untangled into a state the bound cannot leave); the result nearer the threshold is kept
+        y, other = repair_mesh(nodes, hexes, threshold=threshold, constraints=constraints0,
+                               fixed=fixed, margin=margin, rings=rings, max_rounds=max_rounds,
+                               mu=mu, stall_rounds=stall_rounds, release=release,
+                               release_rounds=release_rounds, bound_margin=bound_margin,
+                               bound_weight=bound_weight, bound_first=True)
+        if shortfall(min_scaled_jacobian(y, hexes)) < shortfall(q):
+            other["rounds"] += report["rounds"]
+            other["bound_first"] = True
+            return y, other
     return x, report

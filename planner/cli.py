@@ -57,11 +57,24 @@ class _Interrupts:
             if current in (signal.SIG_DFL, signal.default_int_handler):
                 self.saved[sig] = current
                 signal.signal(sig, self._handler)
+        self._hook = sys.unraisablehook
+        sys.unraisablehook = self._unraisable
 
     def restore(self) -> None:
         self.done.set()
         for sig, handler in self.saved.items():
             signal.signal(sig, handler)
+        if getattr(self, "_hook", None) is not None:
+            sys.unraisablehook = self._hook
+            self._hook = None
+
+    def _unraisable(self, info) -> None:
+        """An interrupt raised while Python runs a finalizer (`__del__`, a weakref callback) is
+        not propagated: Python prints it as "Exception ignored" with a traceback. That is our
+        own signal, which the repeat delivers again, so it is not reported; anything else is."""
+        if self.pending is not None and isinstance(info.exc_value, (KeyboardInterrupt, Terminated)):
+            return
+        (self._hook or sys.__unraisablehook__)(info)
 
     def _handler(self, signum, frame):
         if self.done.is_set():        # main has returned: a late repeat is ignored

@@ -103,6 +103,32 @@ def test_ctrl_c_at_any_moment_exits_130(tmp_path, delay):
     assert sorted(q.name for q in tmp_path.iterdir() if q.name != "c") == []
 
 
+def test_an_interrupt_landing_in_a_finalizer_is_not_reported_as_a_traceback(tmp_path):
+    # Ctrl-C can arrive while Python runs a finalizer (llvmlite's __del__ during numba's
+    # compilation, say): Python cannot propagate it and prints "Exception ignored ...
+    # Traceback". The repeat delivers the interrupt again, so the command reports it once, as
+    # an interrupt; an unrelated exception in a finalizer is still reported
+    code = textwrap.dedent("""
+        import gc, signal
+        from planner import cli
+        it = cli._Interrupts()
+        it.install()
+        class Finalised:
+            def __init__(self, exc): self.exc = exc
+            def __del__(self): raise self.exc
+        it.pending = signal.SIGINT
+        Finalised(KeyboardInterrupt()); gc.collect()
+        Finalised(ValueError("a real fault")); gc.collect()
+        it.restore()
+        Finalised(KeyboardInterrupt("after restore")); gc.collect()
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path,
+                       env={**os.environ, "PYTHONPATH": str(Path(cli.__file__).resolve().parents[1])})
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.count("Exception ignored") == 2
+    assert "a real fault" in r.stderr and "after restore" in r.stderr
+
+
 def test_full_disk_exit_4_and_nothing_half_written(tmp_path, monkeypatch, capsys):
     out = tmp_path / "out"
 

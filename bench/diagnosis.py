@@ -227,7 +227,7 @@ def main_bench(argv=None) -> int:
             ref_fwd = None if ref is None else _StoredForward(
                 [ref], Runner(client), say, root / "solves", f"{Path(rec['case']).resolve()}|{ref_name}")
             out = diagnose_data([patient], [scan], forward=fwd, say=say,
-                                references=None if ref is None else [ref], reference_name=ref_name,
+                                references=None if ref is None else [ref], reference_names=[ref_name],
                                 reference_forward=ref_fwd)
             d = out["record"]
             if args.keep:

@@ -242,10 +242,14 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
             patch_elems = np.unique(inc[free].indices)
             basis = _tangent_bases(x, free, constraints, fixed)
             x_prev, q_prev = x[free].copy(), q[patch_elems].copy()
+            # the bound's penalty: on after an undone round (ten times heavier after each
+            # further one), or from the first round with `bound_first`
+            if stalled:
+                weight = bound_weight * 10.0 ** (stalled - 1)
+            else:
+                weight = bound_weight if bound_first else 0.0
             x = _optimise_patch(x, hexes, patch_elems, free, basis, threshold + margin, mu, h,
-                                maxiter=50 * min(r, 8), bound=threshold + bound_margin,
-                                weight=bound_weight * 10.0**(stalled - 1) if stalled else
-                                (bound_weight if bound_first else 0.0))
+                                maxiter=50 * min(r, 8), bound=threshold + bound_margin, weight=weight)
             for con in constraints:
                 on = np.intersect1d(con.node_ids, free)
                 if len(on):
@@ -281,6 +285,7 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
         "elements_still_below_threshold": int(after["n_below_threshold"]),
         "rounds": int(rounds),
         "rounds_undone": int(undone),
+        "bound_first": bool(bound_first),
         "nodes_moved": int(moved.sum()),
         "nodes_released_from_surfaces": int(len(released)),
         "quality_before": before,
@@ -296,6 +301,5 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
                                bound_weight=bound_weight, bound_first=True)
         if shortfall(min_scaled_jacobian(y, hexes)) < shortfall(q):
             other["rounds"] += report["rounds"]
-            other["bound_first"] = True
             return y, other
     return x, report

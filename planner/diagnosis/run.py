@@ -88,13 +88,13 @@ def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runn
     out = diagnose_data([x[0] for x in loaded], [x[1] for x in loaded], runner=runner, say=say,
                         effect_names=effect_names, tangent=tangent,
                         references=refs if any(r is not None for r in refs) else None,
-                        reference_name=mesh_reference(loaded[0][2], reference) if loaded else None)
+                        reference_names=[mesh_reference(x[2], reference) for x in loaded])
     out["record"]["resolution"] = sorted({x[2] for x in loaded})
     out["record"]["timings_s"]["total"] = round(time.perf_counter() - t0, 2)
     return out
 
 
-def mesh_errors(data: list, references: list, runner: Runner | None, say, name: str | None,
+def mesh_errors(data: list, references: list, runner: Runner | None, say, names: list,
                 forward: Forward | None = None) -> None:
     """Per case the change of the gap when the baseline is solved on the reference mesh
     (`CaseData.mesh_error`, the direction of the discretisation error: `discrepancy`), on the
@@ -102,11 +102,12 @@ def mesh_errors(data: list, references: list, runner: Runner | None, say, name: 
     idx = [i for i, r in enumerate(references) if r is not None]
     if not idx:
         return
-    say(f"baseline on the {name or 'reference'} mesh of {len(idx)} case(s) (the mesh's own error)")
+    say(f"baseline on the reference mesh ({', '.join(sorted({names[i] for i in idx}))}) of {len(idx)} "
+        "case(s): the mesh's own error")
     fwd = forward or Forward([references[i] for i in idx], runner, lambda s: None)
     skins = fwd.solve([(j, ()) for j in range(len(idx))])
     for j, i in enumerate(idx):
-        d = data[i]
+        d, name = data[i], names[i]
         if isinstance(skins[j], str):
             say(f"  {d.case.name}: the {name} baseline failed ({skins[j]}); no mesh-error estimate")
             continue
@@ -122,7 +123,7 @@ def mesh_errors(data: list, references: list, runner: Runner | None, say, name: 
 def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say=lambda s: None,
                   effect_names: tuple[str, ...] | None = None, forward: Forward | None = None,
                   effects: list | None = None, tangent: bool = True, references: list | None = None,
-                  reference_name: str | None = None, reference_forward: Forward | None = None) -> dict:
+                  reference_names: list | None = None, reference_forward: Forward | None = None) -> dict:
     """The diagnosis of prepared cases (`forward.CaseModel`) against their scans; returns
     {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}."""
     t0 = time.perf_counter()
@@ -152,7 +153,7 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
         for w in gap.warnings:
             say(f"  warning: {w}")
     if references is not None:
-        mesh_errors(data, references, forward.runner, say, reference_name, reference_forward)
+        mesh_errors(data, references, forward.runner, say, reference_names, reference_forward)
         for d in data:
             if analysis.remove_mesh_error(d) is not None:
                 say(f"  {d.case.name}: estimated mesh error {d.gap.mesh_error_mm:.2f} mm RMS taken out of "
@@ -309,7 +310,7 @@ def _error_entry(d, f) -> dict:
             "short_scale_mm": _r(f.sigma_d), "correlation_length_mm": _r(f.ell, 1),
             "long_scale_mm": _r(f.long_mm), "long_scale_basis": "offset and tilts of the whole face (linear polynomial)",
             "mesh_error_mm": _r(d.gap.mesh_error_mm) if d.mesh_error is not None else None,
-            "mesh_reference": getattr(d, "mesh_reference", None),
+            "mesh_reference": d.mesh_reference,
             "level_mm": _r(float(np.hypot(f.discrepancy_mm, d.gap.noise_floor_mm))),
             "points": int(len(d.error.idx))}
 

@@ -253,7 +253,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
              contact: bool = True, sliding=(), sliding_nodes: dict | None = None,
              materials: dict | None = None, growth=None, body_force=None,
              n_steps: int = 4, log=None, penalty_factor: float = 1.0,
-             contact_tolerance: float = 0.05, max_iterations: int = 25) -> SimulationResult:
+             contact_tolerance: float = 0.05, max_iterations: int = 25,
+             guess=None) -> SimulationResult:
     """Solve the face for bone `motions` {segment: 4x4} and muscle `activations` {muscle: a}.
 
     contact: lip-lip and lip-teeth contact on/off. sliding: segments whose deep nodes slide
@@ -269,7 +270,10 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     n_steps: initial number of load steps. log: optional callable receiving one text line per
     Newton iteration. penalty_factor: contact penalty eps = factor * 3 mu / h (mu the
     median shear modulus of the tissue at the contact surface, h its median facet edge). contact_tolerance:
-    largest lip/teeth penetration accepted (mm). Raises `facemodel.errors.ModelInputError` (a
+    largest lip/teeth penetration accepted (mm). guess: the displacement field (n, 3) of a
+    nearby solution on this model (the same case with other effect values): the full load is
+    solved from it first, the load stepped only if that fails (`solver.newton.newton_solve`).
+    Raises `facemodel.errors.ModelInputError` (a
     ValueError) for motions, activations, materials or model parts it cannot use (contact
     asked of a model without lip contact surfaces) and `solver.errors.SolveFailed` if Newton
     fails.
@@ -296,7 +300,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     advance = teeth_advance(model, motions, 1.0 / max(int(n_steps), 1)) if teeth else 0.0
     control = FACE_SOLVER.control(n_steps, max_iterations, _contact_nodes(terms), lip_size, advance)
     res = newton_solve(body, constraints, list(terms.values()) + extra, control=control,
-                       callback=callback)
+                       callback=callback, guess=None if guess is None else X + np.asarray(guess, float))
     elapsed = time.perf_counter() - t0
     x = res.x
     sig = body.cauchy_stress(x, 1.0)
@@ -308,7 +312,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             "convexified_updates": res.convexified,
             "continuation_from_load": res.continuation_from,
             "continuation_iterations": res.continuation_iterations,
-            "krylov_iterations": res.krylov_iterations, "timings": res.timings}
+            "krylov_iterations": res.krylov_iterations, "timings": res.timings,
+            "guess": res.guess}
     if contact:
         info["penetration_mm"] = {k: float(t.penetration(x)) for k, t in terms.items()}
         if "lip_contact" in terms:

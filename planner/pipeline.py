@@ -272,11 +272,14 @@ def model_inputs(setup: dict, effects: Effects) -> dict:
 
 def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
                plan_actual: Plan | None = None, follow_up_months: float | None = None,
-               progress: Progress | None = None) -> Prediction:
+               progress: Progress | None = None, guess=None) -> Prediction:
     """Assign attachments, impose the plan's movements and solve. `bones`: surfaces by name.
     effects: an `Effects`, `NAME=VALUE` strings or a mapping (over the plan's
     `model.effects`); plan_actual: the achieved movements (postop/plan_actual.yaml) for
-    `bone_execution=1`; follow_up_months: the post-op scan's time (swelling resolution)."""
+    `bone_execution=1`; follow_up_months: the post-op scan's time (swelling resolution);
+    guess: the displacement field (n, 3) of a nearby solution of this model (the same plan
+    with other effect values), solved from at full load first (`facemodel.simulation.
+    simulate`)."""
     progress = progress or Progress(echo=False)
     effects = check_effects(plan, effects)
     bone_vertices = {k: np.asarray(as_trimesh(v).vertices, float) for k, v in (bones or {}).items()}
@@ -335,7 +338,7 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
                           assignment, effects.as_dict(), setup)
     with progress.stage("solve"):
         try:
-            result = _call_simulate(model, progress=progress, **inputs)
+            result = _call_simulate(model, progress=progress, guess=guess, **inputs)
         except solver_errors.SolveFailed as exc:
             label = ""
             if exc.worst_element is not None and 0 <= exc.worst_element < len(model.labels):

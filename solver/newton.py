@@ -73,6 +73,9 @@ class NewtonResult:
     continuation_from: float | None = None   # load fraction from which pseudo-transient
                                              # continuation was on (None: never)
     continuation_iterations: int = 0         # iterations solved with the PTC damping
+    # the solve at full load from a given guess tried first (`newton_solve(guess=...)`):
+    # None when no guess was given, else {"converged", "iterations", "reason"}
+    guess: dict | None = None
     # forces the constraints exert on the body (residual at the constrained dofs), (n, 3), in
     # each node's local frame where a LocalFrame is given, zero at unconstrained components
     reactions: np.ndarray | None = None
@@ -205,19 +208,38 @@ class _System:
 
 
 def newton_solve(body, constraints=(), terms=(), external=None, control: SolverControl | None = None,
-                 *, x0=None, callback=None, step_callback=None, **settings) -> NewtonResult:
+                 *, x0=None, guess=None, callback=None, step_callback=None,
+                 **settings) -> NewtonResult:
     """Solve the static equilibrium of `body` from load fraction 0 to 1.
 
     body: `solver.mechanics.SolidBody`; constraints: `Prescribed` / `LocalFrame` list;
     terms: `solver.terms.Term`s (or objects with its `assemble`, `energy`, `end_step`);
     external: optional dead nodal force vector (3n,) at load 1; control: `SolverControl` (the
     settings, generic defaults); any of its fields may also be given as a keyword argument,
-    which overrides it. x0: start coordinates (default the reference ones); callback(record:
-    dict) receives every iteration's log record; step_callback(result) each converged step.
+    which overrides it. x0: start coordinates (default the reference ones); guess: coordinates
+    (n, 3) of a solution of a nearby problem on the same mesh (other material parameters,
+    loads or prescribed values): the full load is first solved in one step from there
+    (`_solve_from_guess`), and only if that fails is the load stepped from x0 (the attempt's
+    iterations counted, the terms' state it changed undone); callback(record: dict) receives
+    every iteration's log record; step_callback(result) each converged step.
     Raises `SolveFailed` (with the last converged state) if the load cannot be reached.
     """
     control = dataclasses.replace(control or SolverControl(), **settings)
+    tried = None
+    if guess is not None:
+        out, tried = _solve_from_guess(body, constraints, terms, external, control, guess,
+                                       callback)
+        if out is not None:
+            if step_callback is not None:
+                step_callback(out)
+            return out
     run = _Run(body, constraints, terms, external, control, x0, callback)
+    if tried is not None:           # the failed attempt's cost stays in the counts
+        run.result.guess = tried["record"]
+        run.result.iterations += tried["record"]["iterations"]
+        run.result.krylov_iterations += tried["krylov_iterations"]
+        run.result.log.extend(tried["log"])
+        run.factorizations0 = tried["factorizations"]
     result, stepper, predictor = run.result, run.stepper, run.predictor
     x, load, step_no = run.x, 0.0, 0
     failures = 0                # consecutive failed load steps
@@ -279,6 +301,39 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
                 raise _failed(step_no, target, load, step, result,
                               f"step size fell below {control.min_step:g}")
     return run.finish(x, load, converged=True)
+
+
+def _solve_from_guess(body, constraints, terms, external, control, guess, callback):
+    """The full load solved in one load step from the coordinates `guess`, the solution of a
+    nearby problem on the same mesh (continuation in a parameter of the problem rather than in
+    the load: a solve that differs from a converged one by a small change of a material, load
+    or prescribed value starts inside Newton's basin of convergence, where stepping the load
+    from rest repeats the whole path). The three-field state starts from the guess's own
+    dilatations and pressures, the terms from their present state (contact searched afresh,
+    multipliers augmented as in any step). Returns (the finished result, None) when the step
+    converges, else (None, the attempt's counts) with the terms' state back to what it was.
+    A solution of another mesh interpolated is not such a guess (its elements inherit the
+    other mesh's sub-element volume changes and prescribed values: docs/effects.md)."""
+    guess = np.asarray(guess, dtype=float)
+    if guess.shape != body.mesh.nodes.shape:
+        raise ValueError(f"guess must have shape {body.mesh.nodes.shape}, got {guess.shape}")
+    run = _Run(body, constraints, terms, external, control, guess, callback)
+    step = run.solve_load_step(run.x, 1.0, 1)
+    result = run.result
+    record = {"converged": bool(step.converged), "iterations": int(result.iterations),
+              "reason": None if step.converged else step.reason}
+    result.guess = record
+    if step.converged:
+        result.steps.append(StepRecord(1, 1.0, step.iterations, step.residuals, step.retries))
+        result.x, result.u, result.load = step.x, step.x - run.X, 1.0
+        log.info("converged at full load from the guess in %d iterations", result.iterations)
+        return run.finish(step.x, 1.0, converged=True), None
+    log.warning("the full load did not converge from the guess (%s): stepping the load",
+                step.reason)
+    run.restore_terms()
+    return None, {"record": record, "log": list(result.log),
+                  "factorizations": run.lin.factorizations,
+                  "krylov_iterations": result.krylov_iterations}
 
 
 def _failed(step_no, target, load, step, result, why) -> SolveFailed:
@@ -355,6 +410,7 @@ class _Run:
         self._start_mixed = None
         self._term_states = []
         self.ptc = None             # the `PseudoTransient` damping once continuation is on
+        self.factorizations0 = 0    # those of a solve from a guess tried before this run
 
     def start_continuation(self, load):
         """Pseudo-transient continuation for the rest of the run (`solver.continuation`)."""
@@ -689,7 +745,7 @@ class _Run:
     def finish(self, x, load, converged):
         """Reactions, timings and counts into the result."""
         result, system = self.result, self.system
-        result.factorizations = self.lin.factorizations
+        result.factorizations = self.factorizations0 + self.lin.factorizations
         if not converged:
             result.timings = dict(system.timing, total=time.perf_counter() - self.t_start)
             return result

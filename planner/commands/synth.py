@@ -520,8 +520,9 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     def truth(eff):
         clock = time.perf_counter()
         try:
+            # from the base solution: the effect changes the problem by a little
             out = solve_plan(patient, truth_plan, case.bones, effects=eff, plan_actual=plan_actual,
-                             follow_up_months=fu)
+                             follow_up_months=fu, guess=base.displacement)
         finally:
             timings["solve_effect_s"] = timings.get("solve_effect_s", 0.0) + time.perf_counter() - clock
         solves.append(_solve_record("effect", out))

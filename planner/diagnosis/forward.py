@@ -132,7 +132,9 @@ def prepare_case(name: str, model, plan, bones: dict | None, plan_actual=None,
                      plan_actual, follow_up_months, surface)
 
 
-def _solve(case: CaseModel, strings: tuple[str, ...]):
+def _solve(case: CaseModel, strings: tuple[str, ...], guess=None):
+    """The prediction with the effects `strings`; guess: the baseline's displacement, from
+    which the full load is solved first (`planner.pipeline.solve_plan`)."""
     from planner.pipeline import Progress, parse_effects, solve_plan
 
     import trimesh
@@ -142,14 +144,14 @@ def _solve(case: CaseModel, strings: tuple[str, ...]):
     bones = {k: trimesh.Trimesh(v, f, process=False) for k, (v, f) in case.bones.items()}
     return solve_plan(case.model, case.plan, bones or None, effects=parse_effects(list(strings)),
                       plan_actual=case.plan_actual, follow_up_months=case.follow_up_months,
-                      progress=Progress(echo=False))
+                      progress=Progress(echo=False), guess=guess)
 
 
-def solve_skin(case: CaseModel, strings: tuple[str, ...]):
+def solve_skin(case: CaseModel, strings: tuple[str, ...], guess=None):
     """Skin vertex positions (n_skin, 3) of the prediction with the effects `strings`, or the
-    error message (str) when the model cannot be solved there."""
+    error message (str) when the model cannot be solved there; guess as in `_solve`."""
     try:
-        pred = _solve(case, strings)
+        pred = _solve(case, strings, guess)
     except SolveError as exc:
         return f"{exc}"
     return np.asarray(pred.predicted_nodes, float)[case.skin_ids]
@@ -157,35 +159,38 @@ def solve_skin(case: CaseModel, strings: tuple[str, ...]):
 
 def solve_with_sensitivities(case: CaseModel, names: tuple[str, ...]):
     """(baseline skin, {parameter: d(skin vertex positions)/dp (n_skin, 3)} or the reason
-    they are not available): the direct differentiation at the converged baseline
-    (`planner.pipeline.skin_sensitivities`, one factorisation for every parameter)."""
+    they are not available, the baseline's displacement (n_nodes, 3) or None): the direct
+    differentiation at the converged baseline (`planner.pipeline.skin_sensitivities`, one
+    factorisation for every parameter)."""
     try:
         pred = _solve(case, ())
     except SolveError as exc:
-        return f"{exc}", None
+        return f"{exc}", None, None
     skin = np.asarray(pred.predicted_nodes, float)[case.skin_ids]
+    u = np.asarray(pred.displacement, float)
     try:
         from planner.pipeline import skin_sensitivities
     except ImportError:
-        return skin, "the pipeline gives no sensitivities"
+        return skin, "the pipeline gives no sensitivities", u
     try:
         ids, sens = skin_sensitivities(pred, list(names))
     except (ValueError, KeyError, ArithmeticError, RuntimeError) as exc:
-        return skin, f"sensitivities not available: {exc}"
+        return skin, f"sensitivities not available: {exc}", u
     if not np.array_equal(np.asarray(ids), np.asarray(case.skin_ids)):
-        return skin, "sensitivities on another skin vertex set"
-    return skin, {k: np.asarray(v, float) for k, v in sens.items()}
+        return skin, "sensitivities on another skin vertex set", u
+    return skin, {k: np.asarray(v, float) for k, v in sens.items()}, u
 
 
-def _solve_task(case: CaseModel, request):
-    """A request is effect strings (a solve) or ("sensitivities", names)."""
+def _solve_task(case: CaseModel, request, guess=None):
+    """A request is effect strings (a solve, from the baseline's displacement `guess` when
+    given) or ("sensitivities", names)."""
     import os
 
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     if request and request[0] == SENSITIVITIES:
         return solve_with_sensitivities(case, tuple(request[1]))
-    return solve_skin(case, request)
+    return solve_skin(case, request, guess)
 
 
 SENSITIVITIES = "sensitivities"
@@ -205,11 +210,14 @@ class Runner:
         return max(1, len(self.client.scheduler_info().get("workers", {})))
 
     def map(self, cases: list[CaseModel], requests: list[tuple[int, tuple[str, ...]]],
-            on_done: Callable[[int], None] | None = None) -> list:
+            on_done: Callable[[int], None] | None = None, guesses: dict | None = None) -> list:
+        """Results of the requests (case index, effect strings); guesses: {case index: the
+        baseline's displacement} for the effect solves to start from."""
+        guesses = guesses or {}
         if self.client is None:
             out = []
             for k, (i, s) in enumerate(requests):
-                out.append(_solve_task(cases[i], s))
+                out.append(_solve_task(cases[i], s, guesses.get(i)))
                 if on_done:
                     on_done(k)
             return out
@@ -219,7 +227,14 @@ class Runner:
         for i, s in requests:
             if id(cases[i]) not in self._scattered:
                 self._scattered[id(cases[i])] = self.client.scatter(cases[i], broadcast=True)
-            futures.append(self.client.submit(_solve_task, self._scattered[id(cases[i])], s, pure=False))
+            g = guesses.get(i)
+            if g is not None:
+                key = ("guess", id(cases[i]), id(g))
+                if key not in self._scattered:
+                    self._scattered[key] = self.client.scatter(g, broadcast=True)
+                g = self._scattered[key]
+            futures.append(self.client.submit(_solve_task, self._scattered[id(cases[i])], s, g,
+                                              pure=False))
         index = {f.key: k for k, f in enumerate(futures)}
         for f in as_completed(futures):
             if on_done:
@@ -236,6 +251,9 @@ class Forward:
         self.runner = runner or Runner()
         self.say = say or (lambda s: None)
         self._store: dict[tuple[int, tuple[str, ...]], object] = {}
+        # per case index, the baseline's displacement: every effect solve starts from it (the
+        # effects change the problem by a little; `solver.newton.newton_solve(guess=...)`)
+        self._guess: dict[int, np.ndarray] = {}
         self.n_solves = 0
         self.solve_time_s = 0.0
 
@@ -260,7 +278,7 @@ class Forward:
                         else ", ".join(s) or "baseline")
                 self.say(f"    solved {self.cases[i].name} [{what}]")
 
-            for r, skin in zip(todo, self.runner.map(self.cases, todo, done)):
+            for r, skin in zip(todo, self.runner.map(self.cases, todo, done, self._guess)):
                 self._store[self._key(r)] = skin
             self.n_solves += len(todo)
             self.solve_time_s += time.perf_counter() - t0
@@ -270,10 +288,12 @@ class Forward:
         """Per case (baseline skin, {name: d skin/dp} or reason) in one parallel batch; the
         baseline skins are stored as the baseline solves."""
         reqs = [(i, (SENSITIVITIES, tuple(n))) for i, n in enumerate(names_per_case)]
-        out = self.solve(reqs)
-        for i, (skin, _) in enumerate(out):
+        out = [(o[0], o[1]) + ((o[2],) if len(o) > 2 else (None,)) for o in self.solve(reqs)]
+        for i, (skin, _, u) in enumerate(out):
             self._store.setdefault(self._key((i, ())), skin)
-        return out
+            if u is not None and not isinstance(skin, str):
+                self._guess[i] = u
+        return [(skin, sens) for skin, sens, _ in out]
 
     def baseline(self, i: int) -> np.ndarray:
         skin = self.solve([(i, ())])[0]

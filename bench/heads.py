@@ -84,7 +84,9 @@ def run_one(model, head, landmarks: bool):
            "ch_max": max((v for k, v in truth.items() if k in CHEILIA), default=None),
            "skin_max": (fit.get("skin_nodes") or {}).get("max_mm"),
            "coverage": rep.get("coverage"), "unfitted": unfitted,
-           "released": (rep.get("repair") or {}).get("nodes_released_from_surfaces")}
+           "released": (rep.get("repair") or {}).get("nodes_released_from_surfaces"),
+           # registered from the profile pose after the surface pose left the nose off
+           "retried": bool((rep.get("alignment") or {}).get("surface_pose_refused"))}
     return row
 
 
@@ -132,7 +134,8 @@ def main(argv=None) -> int:
                           f"minSJ {fmt(r['min_sj'])} inv {fmt(r['inverted'], 'd')} "
                           f"skin {fmt(r['skin_mean'])}/{fmt(r['skin_p95'])}/{fmt(r['skin_max'], '.1f')} mm bone {fmt(r['bone_mean'])} "
                           f"lm_max {fmt(r['lm_max'], '.2f')} (profile {fmt(r['lm_mid'], '.2f')}, Me {fmt(r['me'], '.2f')}, corners {fmt(r['ch_max'], '.2f')}) cover {fmt(r['coverage'], '.2f')} released {fmt(r['released'], 'd')} "
-                          f"not_fitted [{','.join(r['unfitted'])}] {r['time_s']:.1f} s {r['error'][:120]}",
+                          f"not_fitted [{','.join(r['unfitted'])}]{' profile-pose-retry' if r['retried'] else ''} "
+                          f"{r['time_s']:.1f} s {r['error'][:120]}",
                           flush=True)
     print()
     for res in resolutions:
@@ -157,7 +160,10 @@ def main(argv=None) -> int:
                   f"median of the per-run max {fmt(float(np.median(errs)) if errs else None, '.2f')} mm; "
                   f"mouth corners max {fmt(max(ch) if ch else None, '.2f')} mm; menton median "
                   f"{fmt(float(np.median(me)) if me else None, '.2f')} max {fmt(max(me) if me else None, '.2f')} mm); "
-                  f"refused {len(refused)}; wrong {len(wrong)}; crashes {sum(r['status'] == 'CRASH' for r in free)}")
+                  f"refused {len(refused)}; wrong {len(wrong)}; crashes {sum(r['status'] == 'CRASH' for r in free)}; "
+                  f"registered from the profile pose after the surface pose left the nose off: "
+                  f"{sum(r['retried'] for r in free if r['status'] == 'ok')} "
+                  f"(aligned {sum(r['retried'] for r in good)})")
         for r in sel:
             if r["status"] != "ok":
                 print(f"  {r['status']} head {r['seed']} {r['cut']} lm={'y' if r['landmarks'] else 'n'}: {r['error']}")

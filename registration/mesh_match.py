@@ -24,6 +24,7 @@ never returned.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -93,6 +94,12 @@ class MatchOptions:
     # without landmarks, the pose corrected by the skin's symmetry plane and profile features
     # (registration.profile_pose) where the surface alignment misplaces them
     profile_pose: bool = True
+    # the profile pose wherever it was found, whatever the surface pose (set for the second
+    # attempt of a registration whose surface pose left the model's nose off the patient's)
+    prefer_profile_pose: bool = False
+    # the profile's features guide the elastic stage whichever pose placed the face (set for
+    # the second attempt of a registration whose located landmarks disagree with them)
+    profile_guide: bool = False
     seed: int = 0
 
 
@@ -253,7 +260,8 @@ def initial_alignment(model: MatchInput, skin: TargetSurface, landmarks: dict | 
             src = np.array([feats[k] for k in FEATURES])
             moved = float(np.linalg.norm(pose.apply(src) - sim.apply(src), axis=1).max())
             pinfo["features_moved_mm"] = moved
-            if moved > PROFILE_POSE_AGREE_MM + 2.0 * float(pinfo.get("features_rms_mm", 0.0)):
+            if options.prefer_profile_pose or \
+                    moved > PROFILE_POSE_AGREE_MM + 2.0 * float(pinfo.get("features_rms_mm", 0.0)):
                 sim = pose
                 info.update(method="surfaces", pose="profile", scale=sim.scale, rotation_deg=sim.rotation_deg)
     if not 0.65 <= sim.scale <= 1.5:
@@ -362,6 +370,11 @@ def _bone_groups(model: MatchInput, bones: dict) -> list[SurfaceGroup]:
     return groups
 
 
+class _NoseNotPlaced(RegistrationFailure):
+    """A registration without landmarks whose surface pose left the model's nose off the
+    patient's (`match_and_repair_arrays` tries the profile pose then)."""
+
+
 def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                             landmarks: dict | None = None, options: MatchOptions | None = None,
                             files: dict | None = None, teeth: dict | None = None):
@@ -372,8 +385,53 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     name -> surface), else the generic arch moved with its bone segment -- and no node that
     is neither on the skin nor attached to a bone lies closer than the clearance to them
     (`registration.teeth`). `bones` maps segment names to TargetSurface; a segment of the
-    model without a patient bone surface is fitted to the union of the given bones."""
+    model without a patient bone surface is fitted to the union of the given bones.
+
+    Without landmarks the face is placed by the surfaces, or by the skin's profile features
+    where the two disagree by more than the features' own misfit allows (`initial_alignment`).
+    A face of other proportions than the generic one can fit the features poorly enough that
+    the surface pose is kept, and yet the surfaces slide it along its profile:
+    - when that leaves the model's nose off the patient's skin or off the scan (the refusal's
+      cause), the registration is made once more from the profile pose, which places the nose
+      by construction, and returned if it passes every gate (the nose's included); the report's
+      `alignment.surface_pose_refused` says so; otherwise the first refusal stands;
+    - when the landmarks located on the skin lie farther from the profile's features than the
+      features' own error allows (the search took another crease for the mouth), the
+      registration is made once more with the features guiding the elastic stage, and that
+      one is returned if it passes every gate (`alignment.guided_after` gives the distances
+      that asked for it); otherwise the first."""
     opt = options or MatchOptions()
+    try:
+        out = _match_and_repair_once(model, skin, bones, landmarks, opt, files, teeth)
+    except _NoseNotPlaced as exc:
+        pinfo = (exc.report.get("alignment") or {}).get("profile_pose") or {}
+        if opt.prefer_profile_pose or not pinfo.get("features") or "refused" in pinfo:
+            raise RegistrationFailure(str(exc), exc.report) from None
+        first = exc
+    else:
+        far = out[2].get("alignment", {}).get("located_far_from_features_mm")
+        if not far or opt.profile_guide:
+            return out
+        try:
+            guided = _match_and_repair_once(model, skin, bones, landmarks,
+                                            dataclasses.replace(opt, profile_guide=True), files, teeth)
+        except RegistrationFailure:
+            return out
+        guided[2]["alignment"]["guided_after"] = far
+        return guided
+    retry = dataclasses.replace(opt, prefer_profile_pose=True)
+    try:
+        out = _match_and_repair_once(model, skin, bones, landmarks, retry, files, teeth)
+    except RegistrationFailure as exc:
+        raise RegistrationFailure(f"{first} (from the skin profile's pose as well: {exc})",
+                                  first.report) from None
+    out[2]["alignment"]["surface_pose_refused"] = str(first)
+    return out
+
+
+def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, landmarks,
+                           opt: MatchOptions, files: dict | None, teeth: dict | None):
+    """One registration from one initial pose (`match_and_repair_arrays`)."""
     files = files or {}
     times: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -435,16 +493,19 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
             lm = (np.array([model.landmark_nodes[k] for k in common]),
                   inv.apply(np.array([landmarks[k] for k in common], dtype=float)))
     # without landmarks, where the profile pose replaced the surface pose (the bulk fit put the
-    # features elsewhere), the features it found on the skin guide the elastic stage as
-    # landmarks do (the stomion nodes both towards the fissure point, which lies between them):
-    # the bulk of such a face otherwise slides its mouth and chin along the smooth profile by up
-    # to 10-15 mm, beyond the reach of the landmark search that follows. Where the surfaces and
-    # the profile agree, the elastic stage and the landmark search need no guide, and a
-    # feature found to a few mm must not pull the lips off landmarks the search finds exactly.
+    # features elsewhere), or where a first registration located landmarks that disagree with
+    # the features (`profile_guide`), the features the profile pose found on the skin guide the
+    # elastic stage as landmarks do (the stomion nodes both towards the fissure point, which
+    # lies between them): the bulk of such a face otherwise slides its mouth and chin along the
+    # smooth profile by up to 10-15 mm, beyond the reach of the landmark search that follows.
+    # Where the surfaces and the profile agree, the elastic stage and the landmark search need
+    # no guide, and a feature found to a few mm must not pull the lips off landmarks the search
+    # finds exactly (a lower lip well in front of the upper one: the fissure point lies between).
     guide = lm
-    feats = (align_info.get("profile_pose") or {}).get("features")
-    if lm is None and feats and align_info.get("pose") == "profile" \
-            and "refused" not in align_info["profile_pose"]:
+    pinfo = align_info.get("profile_pose") or {}
+    feats = pinfo.get("features")
+    features_ok = lm is None and bool(feats) and "refused" not in pinfo
+    if features_ok and (align_info.get("pose") == "profile" or opt.profile_guide):
         pairs = [(k, f) for k, f in (("Prn", "Prn"), ("Sn", "Sn"), ("Stms", "mouth"), ("Stmi", "mouth"),
                                      ("Pog", "Pog")) if k in model.landmark_nodes]
         guide = (np.array([model.landmark_nodes[k] for k, _ in pairs], np.int64),
@@ -485,6 +546,20 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
             if far:
                 search_report["not_used_far_from_profile_pose"] = far
                 search_report["not_found"] = sorted(set(search_report["not_found"]) | set(far))
+        if guide is lm and features_ok:
+            # unguided, the search is checked against the profile's features: a landmark found
+            # farther from its feature than the search's own reach about the mouth (the
+            # features lie within 1-4 mm of the landmarks) took another crease of a face the
+            # surfaces placed along its profile; the registration is then made again with the
+            # features guiding (`match_and_repair_arrays`)
+            mine = {k: found[k] for k in ("Prn", "Sn", "Pog") if k in found}
+            if "Stms" in found and "Stmi" in found:     # the feature is the stomia's midpoint
+                mine["mouth"] = 0.5 * (found["Stms"] + found["Stmi"])
+            apart = {k: round(float(np.linalg.norm(p - inv.apply(np.asarray(feats[k], float)[None])[0])), 2)
+                     for k, p in mine.items()}
+            far = {k: v for k, v in apart.items() if v > PROFILE_LOCATED_MAX_MOVE_MM}
+            if far:
+                align_info["located_far_from_features_mm"] = far
         if found:
             add = list(found)
             located = add
@@ -687,7 +762,8 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                f"{100 * beyond:.0f}% of the model's nose region)" if beyond >= 0.5 else
                f"the face model's nose was not brought onto the patient's (only "
                f"{100 * nose['covered_fraction']:.0f}% of the model's nose region fits the skin)")
-        raise RegistrationFailure(
+        kind = RegistrationFailure if beyond >= 0.5 else _NoseNotPlaced
+        raise kind(
             f"{why} and the case gives fewer than four landmarks: without the nose nothing on "
             f"the skin fixes where the face sits on it, so the registration and the landmarks "
             f"located on the skin cannot be trusted; give at least four landmarks "
@@ -704,11 +780,14 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
             f"cannot be trusted; give at least four landmarks (landmarks.json)", report)
     if len(off):
         where = f" ({', '.join(off_regions)})" if off_regions else ""
+        # the nose off the scan is the same misplacement as the nose not brought onto it
+        kind = (_NoseNotPlaced if align_info.get("method") == "surfaces"
+                and {NOSE_REGION, "nasal_root"} & set(off_regions) else RegistrationFailure)
         hint = ("the skin and bones alone did not place the face on the scan: give at least "
                 "four landmarks (landmarks.json)"
                 if align_info.get("method") == "surfaces" else
                 "check the landmarks and that the skin is the patient's face")
-        raise RegistrationFailure(
+        raise kind(
             f"{len(off)} skin node(s) of the face model{where} lie up to "
             f"{report['fit']['skin_off_scan']['max_mm']:.1f} mm off the patient skin where the scan "
             f"covers them (gate {opt.skin_off_scan_gate_mm:g} mm): the model is misplaced along "

@@ -10,13 +10,15 @@ from solver.contact import SurfaceContact
 from test_contact_terms import _fd_check
 
 
-def _sheet_and_node(release, nx=3):
+def _sheet_and_node(release, nx=3, blend=0.0, crease=0.0):
     """A flat master sheet z = 0 (nx x nx nodes over [0, 2]^2, normal +z, free edges at
     x = 0, 2 and y = 0, 2) and a slave triangle facing it (normal -z) whose first node is the
     probe; the slave facet sits 0.2 mm below the sheet (penetrating)."""
     s = np.linspace(0.0, 2.0, nx)
     gx, gy = np.meshgrid(s, s, indexing="ij")
-    sheet = np.stack([gx.ravel(), gy.ravel(), np.zeros(nx * nx)], axis=1)
+    # a crease along x = 1 (slope `crease` on the x > 1 side)
+    sheet = np.stack([gx.ravel(), gy.ravel(), crease * np.maximum(gx.ravel() - 1.0, 0.0)],
+                     axis=1)
     quads = np.array([[i * nx + j, (i + 1) * nx + j, (i + 1) * nx + j + 1, i * nx + j + 1]
                       for i in range(nx - 1) for j in range(nx - 1)])
     probe = np.array([[1.0, 1.3, -0.2], [1.0, 0.3, -0.2], [0.0, 1.3, -0.2]])
@@ -25,14 +27,14 @@ def _sheet_and_node(release, nx=3):
     slave = np.array([[n, n + 1, n + 2]])                  # normal -z
     term = SurfaceContact(x, slave, quads, two_pass=False, penalty=50.0, search_radius=1.0,
                           max_depth=1.0, ignore_initial_penetration=False,
-                          edge_release=release)
+                          edge_release=release, crease_blend=blend)
     return term, x, n
 
 
-def _probe_force(release, xs):
+def _probe_force(release, xs, **kw):
     """Contact force (mN) on the probe node at each x-position (fresh search at each, as at
     the first Newton iterations of a load step), the node 0.2 mm deep."""
-    term, x, n = _sheet_and_node(release)
+    term, x, n = _sheet_and_node(release, **kw)
     out = []
     for xp in xs:
         y = x.copy()
@@ -66,13 +68,16 @@ def test_a_node_sliding_off_the_free_edge_is_released_continuously():
     assert np.linalg.norm(np.diff(f0, axis=0), axis=1).max() > 0.9 * full
 
 
-@pytest.mark.parametrize("position", [(2.2, 1.3), (2.3, 2.15), (1.0, 1.3)])
-def test_release_band_force_and_tangent_are_the_derivatives_of_the_energy(position):
+@pytest.mark.parametrize("blend", [0.0, 0.25])
+@pytest.mark.parametrize("position", [(2.2, 1.3), (2.3, 2.15), (1.0, 1.3), (1.1, 0.93)])
+def test_release_band_force_and_tangent_are_the_derivatives_of_the_energy(position, blend):
     """Finite differences on every coordinate (slave and master nodes) in the band past one
     free edge, past a corner (two free edges: the product of two fades) and on the sheet,
-    with the master sheet bent and multipliers set; the status frozen (the pairing and the
-    band's edge normals are kept, as in a Newton solve after `freeze_after` evaluations)."""
-    term, x, n = _sheet_and_node(0.5)
+    with the master sheet bent and multipliers set, with and without crease blending (near
+    an interior edge and a vertex: the blended gap of up to three neighbouring planes); the
+    status frozen (the pairing and the bands' edge normals are kept, as in a Newton solve
+    after `freeze_after` evaluations)."""
+    term, x, n = _sheet_and_node(0.5, blend=blend)
     y = x.copy()
     y[n:, 0] += position[0] - 1.0
     y[n:, 1] += position[1] - 1.3
@@ -112,3 +117,24 @@ def test_patch_test_holds_with_the_release_band():
     I1 = 2 + lam ** 2
     expected = mu / lam * lam ** (-2 / 3) * (lam ** 2 - I1 / 3) + 0.5 * K * (lam - 1 / lam)
     assert szz.mean() == pytest.approx(expected, rel=1e-3)
+
+
+def test_crease_blending_makes_the_force_continuous_across_a_crease():
+    """The probe, 0.2 mm below the sheet, slides along x across the crease at x = 1 (the
+    sheet rises with slope 0.5 beyond it, 26.6 deg). Without blending the gap jumps from one
+    plane to the other where the pairing switches (here by about 0.03 mm of the 0.2 mm
+    depth, with the pairing hysteresis 0.05 even more); with blending (band 0.25 of the edge
+    each side) the force changes by at most 2 % of its value per um step (the largest slope
+    of the blend, 15/8 per band width 0.5 mm, times the planes' gap difference, at most the
+    slope x 0.25 mm: about 0.1 mN/mm here), and it is the plane's force well inside each
+    triangle."""
+    xs = np.linspace(0.6, 1.4, 801)                         # steps of 1 um
+    kw = dict(crease=0.5)
+    f = _probe_force(0.0, xs, blend=0.25, **kw)
+    fn = np.linalg.norm(f, axis=1)
+    jumps = np.linalg.norm(np.diff(f, axis=0), axis=1)
+    assert jumps.max() < 2e-2 * fn.max()
+    f0 = _probe_force(0.0, xs, **kw)
+    assert np.allclose(f[0], f0[0], rtol=1e-9)               # outside the band: unchanged
+    assert np.allclose(f[-1], f0[-1], rtol=1e-9)
+    assert np.linalg.norm(np.diff(f0, axis=0), axis=1).max() > 10 * jumps.max()

@@ -569,13 +569,14 @@ class SurfaceContact(ContactTerm):
         step will be augmented (`UzawaLoop.augmentation_due`); the status (pairing, active
         set) of the solve is left as it is."""
         saved = [(ps.previous.copy(), ps.active.copy(), ps.edge_normal.copy(),
-                  ps.band.copy()) for ps in self.passes]
+                  ps.band.copy(), ps.blend_band.copy()) for ps in self.passes]
         try:
             err = self._active_penetration(self._evaluate(x, hessian=False,
                                                           frozen=self._is_frozen(load)))
         finally:
-            for ps, (prev, act, en, band) in zip(self.passes, saved):
+            for ps, (prev, act, en, band, bb) in zip(self.passes, saved):
                 ps.previous, ps.active, ps.edge_normal, ps.band = prev, act, en, band
+                ps.blend_band = bb
         return self.uzawa.augmentation_due(load, self.augmented, err, self.tolerance)
 
     def end_step(self, x, load) -> bool:

@@ -138,3 +138,4 @@ def test_crease_blending_makes_the_force_continuous_across_a_crease():
     assert np.allclose(f[0], f0[0], rtol=1e-9)               # outside the band: unchanged
     assert np.allclose(f[-1], f0[-1], rtol=1e-9)
     assert np.linalg.norm(np.diff(f0, axis=0), axis=1).max() > 10 * jumps.max()
+

@@ -50,6 +50,9 @@ slides off (the second part pushes it off the edge, the reaction of a rounded ed
 tangent is the exact second derivative of E for the kept m. Inside the master surface
 (d >= 0) nothing changes. A node in the band counts for the augmentation and the status in
 proportion to w (its penetration w |g|, its force w p).
+
+Both are off by default (0: the gap, forces and tangent are those of the plain node-to-segment
+pairs, bit for bit).
 """
 from __future__ import annotations
 
@@ -163,7 +166,6 @@ class _Pass:
         self.layout = 7 if self.blend > 0 else 4
         if self.blend > 0:
             self.neighbour, self.nb_slots, self.nb_opposite = _neighbours(self.master)
-
         # per slave, the in-plane edge normals (3, 3) and band widths (3,) of its paired
         # triangle, taken at the search and kept while the status is frozen (width 0: no band)
         self.edge_normal = np.zeros((len(self.slaves), 3, 3))

@@ -213,7 +213,9 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
         terms["lip_contact"] = SurfaceContact(
             X, up, lo, penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
             search_radius=max(1.0, h), max_depth=max(2.0, h),
-            pair_hysteresis=FACE_SOLVER.pair_hysteresis)
+            pair_hysteresis=FACE_SOLVER.pair_hysteresis,
+            edge_release=FACE_SOLVER.lip_edge_release,
+            crease_blend=FACE_SOLVER.lip_crease_blend)
         mucosa = [np.asarray(fs[k], dtype=np.int64) for k in ("lip_upper_teeth", "lip_lower_teeth")
                   if k in fs and len(fs[k])]
         if mucosa:

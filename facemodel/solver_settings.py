@@ -47,6 +47,10 @@ class FaceSolverSettings:
     iterations carry the mucosa over the teeth's advance at every resolution.
     pair_hysteresis: a lip node keeps its master triangle while its projection is within this
     barycentric distance outside it (a node over a crease otherwise flips between two planes).
+    lip_crease_blend, lip_edge_release: crease blending and the release band of the lip-lip
+    contact (`SurfaceContact`'s `crease_blend`, `edge_release`; fractions of a facet edge),
+    off (0): on held-out seed 1016 at standard (docs/solver_control.md, Limitations) neither
+    passed the pinched stomion corner, and each changes the Newton path of every face solve.
     """
 
     rtol: float = 1e-6
@@ -58,6 +62,8 @@ class FaceSolverSettings:
     increment_fraction: float = 0.35
     teeth_increment_fraction: float = 0.5
     pair_hysteresis: float = 0.05
+    lip_crease_blend: float = 0.0
+    lip_edge_release: float = 0.0
 
     def max_increment(self, lip_size: float | None, teeth_advance: float = 0.0) -> float:
         """The increment limit (mm) of a contact node: `increment_fraction` of the lip facets'

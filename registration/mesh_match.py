@@ -399,7 +399,9 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
       features' own error allows (the search took another crease for the mouth), the
       registration is made once more with the features guiding the elastic stage, and that
       one is returned if it passes every gate (`alignment.guided_after` gives the distances
-      that asked for it); otherwise the first."""
+      that asked for it); otherwise the first. Where the profile pose was refused (features
+      that fit the generic profile too poorly to place the face) such a disagreement is a
+      refusal: the surfaces alone placed a face whose own features are elsewhere."""
     opt = options or MatchOptions()
     try:
         out = _match_and_repair_once(model, skin, bones, landmarks, opt, files, teeth)
@@ -409,9 +411,20 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
             raise RegistrationFailure(str(exc), exc.report) from None
         first = exc
     else:
-        far = out[2].get("alignment", {}).get("located_far_from_features_mm")
+        align = out[2].get("alignment", {})
+        far = align.get("located_far_from_features_mm")
         if not far or opt.profile_guide:
             return out
+        refused = (align.get("profile_pose") or {}).get("refused")
+        if refused:
+            # the features were found but fit the generic profile too poorly to place the
+            # face, and the surfaces placed it elsewhere: nothing left to trust
+            raise RegistrationFailure(
+                f"without landmarks the surfaces alone placed the face (the skin profile's pose "
+                f"was refused: {refused}), and the landmarks located on it lie "
+                + ", ".join(f"{k} {v:.1f} mm" for k, v in far.items())
+                + " from the features found on the skin's profile: the placement cannot be "
+                "trusted; give at least four landmarks (landmarks.json)", out[2])
         try:
             guided = _match_and_repair_once(model, skin, bones, landmarks,
                                             dataclasses.replace(opt, profile_guide=True), files, teeth)
@@ -546,13 +559,14 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
             if far:
                 search_report["not_used_far_from_profile_pose"] = far
                 search_report["not_found"] = sorted(set(search_report["not_found"]) | set(far))
-        if guide is lm and features_ok:
+        if guide is lm and lm is None and feats:
             # unguided, the search is checked against the profile's features: a landmark found
             # farther from its feature than the search's own reach about the mouth (the
             # features lie within 1-4 mm of the landmarks) took another crease of a face the
             # surfaces placed along its profile; the registration is then made again with the
             # features guiding (`match_and_repair_arrays`)
-            mine = {k: found[k] for k in ("Prn", "Sn", "Pog") if k in found}
+            # (the chin's feature, the least sharp, is not used: 5-9 mm off on some faces)
+            mine = {k: found[k] for k in ("Prn", "Sn") if k in found}
             if "Stms" in found and "Stmi" in found:     # the feature is the stomia's midpoint
                 mine["mouth"] = 0.5 * (found["Stms"] + found["Stmi"])
             apart = {k: round(float(np.linalg.norm(p - inv.apply(np.asarray(feats[k], float)[None])[0])), 2)

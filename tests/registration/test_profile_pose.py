@@ -119,6 +119,20 @@ def test_landmark_free_placement_unchecked_by_the_profile_is_flagged():
     assert registration_notes(placed) == []
 
 
+def _scripted_registrations(calls: list, option: str):
+    """A stand-in for `_match_and_repair_once`: `once(outcomes)` returns (or raises) the
+    outcomes in turn, recording the value of the MatchOptions field `option` of each call."""
+    def once(outcomes):
+        def run(model, skin, bones, landmarks, opt, files, teeth):
+            calls.append(getattr(opt, option))
+            out = outcomes[len(calls) - 1]
+            if isinstance(out, Exception):
+                raise out
+            return out
+        return run
+    return once
+
+
 def test_a_nose_left_off_by_the_surface_pose_is_registered_again_from_the_profile_pose(monkeypatch):
     """The retry rule of `match_and_repair_arrays` (its figures do not matter here: the
     registration itself is replaced): a refusal because the surface pose left the model's nose
@@ -129,15 +143,7 @@ def test_a_nose_left_off_by_the_surface_pose_is_registered_again_from_the_profil
 
     calls = []
     found = {"alignment": {"profile_pose": {"features": {"Prn": [0, 0, 0]}}}}
-
-    def once(outcomes):
-        def run(model, skin, bones, landmarks, opt, files, teeth):
-            calls.append(opt.prefer_profile_pose)
-            out = outcomes[len(calls) - 1]
-            if isinstance(out, Exception):
-                raise out
-            return out
-        return run
+    once = _scripted_registrations(calls, "prefer_profile_pose")
 
     ok = (None, None, {"alignment": {"pose": "profile"}}, None)
     monkeypatch.setattr(mm, "_match_and_repair_once", once([mm._NoseNotPlaced("nose off", found), ok]))
@@ -171,15 +177,7 @@ def test_landmarks_located_far_from_the_profile_features_ask_for_a_guided_regist
     from registration import mesh_match as mm
 
     calls = []
-
-    def once(outcomes):
-        def run(model, skin, bones, landmarks, opt, files, teeth):
-            calls.append(opt.profile_guide)
-            out = outcomes[len(calls) - 1]
-            if isinstance(out, Exception):
-                raise out
-            return out
-        return run
+    once = _scripted_registrations(calls, "profile_guide")
 
     far = {"Stms": 13.1}
     first = (None, None, {"alignment": {"located_far_from_features_mm": far}}, None)

@@ -406,8 +406,11 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
     try:
         out = _match_and_repair_once(model, skin, bones, landmarks, opt, files, teeth)
     except _NoseNotPlaced as exc:
-        pinfo = (exc.report.get("alignment") or {}).get("profile_pose") or {}
-        if opt.prefer_profile_pose or not pinfo.get("features") or "refused" in pinfo:
+        align = exc.report.get("alignment") or {}
+        pinfo = align.get("profile_pose") or {}
+        # nothing to retry: the profile pose placed this face already, or there is none
+        if opt.prefer_profile_pose or align.get("pose") == "profile" or not pinfo.get("features") \
+                or "refused" in pinfo:
             raise RegistrationFailure(str(exc), exc.report) from None
         first = exc
     else:

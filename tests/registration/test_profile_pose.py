@@ -138,7 +138,8 @@ def test_a_nose_left_off_by_the_surface_pose_is_registered_again_from_the_profil
     registration itself is replaced): a refusal because the surface pose left the model's nose
     off the patient's is followed by one registration from the profile pose, whose result is
     returned with the first refusal in the report; when that fails too the first refusal
-    stands, naming both; without a profile pose (refused, or no features) nothing is retried."""
+    stands, naming both; without a profile pose (refused, or no features), or where the profile
+    pose placed the face already, nothing is retried."""
     from registration import mesh_match as mm
 
     calls = []
@@ -158,9 +159,11 @@ def test_a_nose_left_off_by_the_surface_pose_is_registered_again_from_the_profil
         mm.match_and_repair_arrays(None, None, {})
     assert type(exc.value) is mm.RegistrationFailure and exc.value.report is found
 
-    for pinfo in ({"refused": "no nose tip", "features": {"Prn": [0, 0, 0]}}, {}):
+    for align in ({"profile_pose": {"refused": "no nose tip", "features": {"Prn": [0, 0, 0]}}},
+                  {"profile_pose": {}},
+                  {"pose": "profile", "profile_pose": {"features": {"Prn": [0, 0, 0]}}}):
         calls.clear()
-        rep = {"alignment": {"profile_pose": pinfo}}
+        rep = {"alignment": align}
         monkeypatch.setattr(mm, "_match_and_repair_once", once([mm._NoseNotPlaced("nose off", rep)]))
         with pytest.raises(mm.RegistrationFailure, match="^nose off$"):
             mm.match_and_repair_arrays(None, None, {})

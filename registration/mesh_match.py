@@ -280,8 +280,8 @@ PROFILE_POSE_AGREE_MM = 5.0
 
 
 # mm: how far a located landmark may lie from where the elastic stage, guided by the profile's
-# features, carried it: the profile pose places the features to 1-3 mm and the stomia lie within
-# 1-3 mm of the fissure point, while the nearest other feature a definition can latch onto (the
+# features, carried it, and, unguided, from its feature itself: the profile pose places the
+# features to 1-3 mm and the stomia lie within 1-3 mm of the fissure point, while the nearest other feature a definition can latch onto (the
 # labiomental fold below the lips, the columella above) lies 10 mm or more away
 PROFILE_LOCATED_MAX_MOVE_MM = 8.0
 
@@ -564,11 +564,10 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
                 search_report["not_found"] = sorted(set(search_report["not_found"]) | set(far))
         if guide is lm and lm is None and feats:
             # unguided, the search is checked against the profile's features: a landmark found
-            # farther from its feature than the search's own reach about the mouth (the
-            # features lie within 1-4 mm of the landmarks) took another crease of a face the
-            # surfaces placed along its profile; the registration is then made again with the
-            # features guiding (`match_and_repair_arrays`)
-            # (the chin's feature, the least sharp, is not used: 5-9 mm off on some faces)
+            # farther than PROFILE_LOCATED_MAX_MOVE_MM from its feature took another crease of
+            # a face the surfaces placed along its profile, and the registration is made again
+            # with the features guiding (`match_and_repair_arrays`); the chin's feature, the
+            # least sharp (5-9 mm off on some faces), is not used
             mine = {k: found[k] for k in ("Prn", "Sn") if k in found}
             if "Stms" in found and "Stmi" in found:     # the feature is the stomia's midpoint
                 mine["mouth"] = 0.5 * (found["Stms"] + found["Stmi"])

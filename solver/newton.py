@@ -219,27 +219,24 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
     which overrides it. x0: start coordinates (default the reference ones); guess: coordinates
     (n, 3) of a solution of a nearby problem on the same mesh (other material parameters,
     loads or prescribed values): the full load is first solved in one step from there
-    (`_solve_from_guess`), and only if that fails is the load stepped from x0 (the attempt's
+    (`_Run.solve_from_guess`), and only if that fails is the load stepped from x0 (the attempt's
     iterations counted, the terms' state it changed undone); callback(record: dict) receives
     every iteration's log record; step_callback(result) each converged step.
     Raises `SolveFailed` (with the last converged state) if the load cannot be reached.
     """
     control = dataclasses.replace(control or SolverControl(), **settings)
-    tried = None
     if guess is not None:
-        out, tried = _solve_from_guess(body, constraints, terms, external, control, guess,
-                                       callback)
-        if out is not None:
+        guess = np.asarray(guess, dtype=float)
+        if guess.shape != body.mesh.nodes.shape:
+            raise ValueError(f"guess must have shape {body.mesh.nodes.shape}, got {guess.shape}")
+    run = _Run(body, constraints, terms, external, control, x0 if guess is None else guess,
+               callback)
+    if guess is not None:
+        if run.solve_from_guess():
             if step_callback is not None:
-                step_callback(out)
-            return out
-    run = _Run(body, constraints, terms, external, control, x0, callback)
-    if tried is not None:           # the failed attempt's cost stays in the counts
-        run.result.guess = tried["record"]
-        run.result.iterations += tried["record"]["iterations"]
-        run.result.krylov_iterations += tried["krylov_iterations"]
-        run.result.log.extend(tried["log"])
-        run.factorizations0 = tried["factorizations"]
+                step_callback(run.result)
+            return run.finish(run.result.x, 1.0, converged=True)
+        run.start_from(x0)          # the attempt's iterations stay in the counts
     result, stepper, predictor = run.result, run.stepper, run.predictor
     x, load, step_no = run.x, 0.0, 0
     failures = 0                # consecutive failed load steps
@@ -303,39 +300,6 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
     return run.finish(x, load, converged=True)
 
 
-def _solve_from_guess(body, constraints, terms, external, control, guess, callback):
-    """The full load solved in one load step from the coordinates `guess`, the solution of a
-    nearby problem on the same mesh (continuation in a parameter of the problem rather than in
-    the load: a solve that differs from a converged one by a small change of a material, load
-    or prescribed value starts inside Newton's basin of convergence, where stepping the load
-    from rest repeats the whole path). The three-field state starts from the guess's own
-    dilatations and pressures, the terms from their present state (contact searched afresh,
-    multipliers augmented as in any step). Returns (the finished result, None) when the step
-    converges, else (None, the attempt's counts) with the terms' state back to what it was.
-    A solution of another mesh interpolated is not such a guess (its elements inherit the
-    other mesh's sub-element volume changes and prescribed values: docs/effects.md)."""
-    guess = np.asarray(guess, dtype=float)
-    if guess.shape != body.mesh.nodes.shape:
-        raise ValueError(f"guess must have shape {body.mesh.nodes.shape}, got {guess.shape}")
-    run = _Run(body, constraints, terms, external, control, guess, callback)
-    step = run.solve_load_step(run.x, 1.0, 1)
-    result = run.result
-    record = {"converged": bool(step.converged), "iterations": int(result.iterations),
-              "reason": None if step.converged else step.reason}
-    result.guess = record
-    if step.converged:
-        result.steps.append(StepRecord(1, 1.0, step.iterations, step.residuals, step.retries))
-        result.x, result.u, result.load = step.x, step.x - run.X, 1.0
-        log.info("converged at full load from the guess in %d iterations", result.iterations)
-        return run.finish(step.x, 1.0, converged=True), None
-    log.warning("the full load did not converge from the guess (%s): stepping the load",
-                step.reason)
-    run.restore_terms()
-    return None, {"record": record, "log": list(result.log),
-                  "factorizations": run.lin.factorizations,
-                  "krylov_iterations": result.krylov_iterations}
-
-
 def _failed(step_no, target, load, step, result, why) -> SolveFailed:
     """The error ending a run whose step `step_no` (to load `target`, from the converged
     `load`) failed, with where, why and the run's state."""
@@ -391,17 +355,11 @@ class _Run:
             kind = "secant" if strategy == "lagged" else "tangent"
             if system.terms and len(cons.dofs) and np.any(cons.targets(1.0, X) != 0.0):
                 kind = "tangent"
-        self.x = X.copy() if x0 is None else np.array(x0, dtype=float)
         self.mixed = bool(control.mixed and getattr(body, "supports_mixed", False))
-        if self.mixed:
-            body.begin_mixed(self.x)
-        elif getattr(body, "supports_mixed", False):
+        if not self.mixed and getattr(body, "supports_mixed", False):
             body.mixed = None
-        # a quadratic extrapolation overshoots where contact switching on kinks the load
-        # path: with extra terms it is linear
-        start = None if x0 is not None else (0.0, self.x.copy(), self.mixed_state())
-        self.predictor = Predictor(kind, 2 if system.terms else 3, start, _extrapolate)
-        self.stepper = StepController(control)
+        self.kind = kind
+        self.start_from(x0)
         self.result = NewtonResult(x=self.x, u=self.x - X, load=0.0, converged=False,
                                    linear_strategy=strategy, predictor=kind)
         self.size = float(np.abs(X).max()) + 1.0
@@ -410,7 +368,48 @@ class _Run:
         self._start_mixed = None
         self._term_states = []
         self.ptc = None             # the `PseudoTransient` damping once continuation is on
-        self.factorizations0 = 0    # those of a solve from a guess tried before this run
+
+    def start_from(self, x0):
+        """The load stepping starts at load 0 from x0 (None: the reference coordinates): the
+        three-field state, the predictor's history and the step controller afresh (also
+        after a solve from a guess that failed, whose counts stay in the result)."""
+        X = self.X
+        self.x = X.copy() if x0 is None else np.array(x0, dtype=float)
+        if self.mixed:
+            self.body.begin_mixed(self.x)
+        # a quadratic extrapolation overshoots where contact switching on kinks the load
+        # path: with extra terms it is linear
+        start = None if x0 is not None else (0.0, self.x.copy(), self.mixed_state())
+        self.predictor = Predictor(self.kind, 2 if self.system.terms else 3, start, _extrapolate)
+        self.stepper = StepController(self.control)
+        if isinstance(self.lin, LaggedFactorSolver):
+            self.lin.reset()
+
+    def solve_from_guess(self) -> bool:
+        """The full load solved in one load step from the start coordinates, the solution of
+        a nearby problem on the same mesh (continuation in a parameter of the problem rather
+        than in the load: a solve that differs from a converged one by a small change of a
+        material, load or prescribed value starts inside Newton's basin of convergence, where
+        stepping the load from rest repeats the whole path). The three-field state starts
+        from the guess's own dilatations and pressures, the terms from their present state
+        (contact searched afresh, multipliers augmented as in any step). True when the step
+        converged (the result holds it); else the terms' state is back to what it was.
+        `result.guess` records the attempt. A solution of another mesh interpolated is not
+        such a guess (its elements inherit the other mesh's sub-element volume changes and
+        prescribed values: docs/effects.md)."""
+        result = self.result
+        step = self.solve_load_step(self.x, 1.0, 1)
+        result.guess = {"converged": bool(step.converged), "iterations": int(result.iterations),
+                        "reason": None if step.converged else step.reason}
+        if step.converged:
+            result.steps.append(StepRecord(1, 1.0, step.iterations, step.residuals, step.retries))
+            result.x, result.u, result.load = step.x, step.x - self.X, 1.0
+            log.info("converged at full load from the guess in %d iterations", result.iterations)
+            return True
+        log.warning("the full load did not converge from the guess (%s): stepping the load",
+                    step.reason)
+        self.restore_terms()
+        return False
 
     def start_continuation(self, load):
         """Pseudo-transient continuation for the rest of the run (`solver.continuation`)."""
@@ -745,7 +744,7 @@ class _Run:
     def finish(self, x, load, converged):
         """Reactions, timings and counts into the result."""
         result, system = self.result, self.system
-        result.factorizations = self.factorizations0 + self.lin.factorizations
+        result.factorizations = self.lin.factorizations
         if not converged:
             result.timings = dict(system.timing, total=time.perf_counter() - self.t_start)
             return result

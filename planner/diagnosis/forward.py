@@ -288,7 +288,7 @@ class Forward:
         """Per case (baseline skin, {name: d skin/dp} or reason) in one parallel batch; the
         baseline skins are stored as the baseline solves."""
         reqs = [(i, (SENSITIVITIES, tuple(n))) for i, n in enumerate(names_per_case)]
-        out = [(o[0], o[1]) + ((o[2],) if len(o) > 2 else (None,)) for o in self.solve(reqs)]
+        out = self.solve(reqs)
         for i, (skin, _, u) in enumerate(out):
             self._store.setdefault(self._key((i, ())), skin)
             if u is not None and not isinstance(skin, str):

@@ -274,12 +274,12 @@ class _Pass:
         s = np.nonzero(self.previous >= 0)[0]
         out = self.evaluate_pairs(x, s, self.previous[s], hessian)
         keep = (out[2] > -max_depth) & (out[2] < radius)
-        return tuple(a[keep] for a in out)
+        return tuple(None if a is None else a[keep] for a in out)
 
     def evaluate_pairs(self, x, s, t, hessian=True, refresh=False):
         """Gap g (crease-blended, module docstring), its gradient and Hessian in the pair's
-        coordinates, the dofs, and the release weight w with its gradient and Hessian of the
-        pairs (slave positions s, master triangles t) at x. The pair's nodes are the slave,
+        coordinates, the dofs, and the release weight w with its gradient and Hessian (None
+        without a release band) of the pairs (slave positions s, master triangles t) at x. The pair's nodes are the slave,
         the triangle's three vertices and, with crease blending, the vertex opposite each
         edge in the neighbouring triangle (the slave again where there is none, with zero
         entries). refresh: take the edge normals of the bands from x (a search) instead of
@@ -295,15 +295,15 @@ class _Pass:
         dofs = (3 * nodes[:, :, None] + np.arange(3)).reshape(k, 3 * L)
         pt = x[tri]
         xs = x[self.slaves[s]]
-        g, grad12, hess12, _, _ = plane_gap(xs, pt[:, 0], pt[:, 1], pt[:, 2], hessian=hessian)
-        G = np.zeros((k, 3 * L))
-        G[:, :12] = grad12
-        H = np.zeros((k, 3 * L, 3 * L) if hessian else (k, 0, 0))
-        if hessian:
-            H[:, :12, :12] = hess12
-        w = np.ones(k)
-        dw = np.zeros((k, 3 * L))
-        d2w = np.zeros((k, 3 * L, 3 * L) if hessian else (k, 0, 0))
+        g, G, H, _, _ = plane_gap(xs, pt[:, 0], pt[:, 1], pt[:, 2], hessian=hessian)
+        if H is None:
+            H = np.zeros((k, 0, 0))
+        if L > 4:                   # the neighbours' opposite vertices: zero entries so far
+            G = np.concatenate([G, np.zeros((k, 3 * L - 12))], axis=1)
+            if hessian:
+                H = np.pad(H, ((0, 0), (0, 3 * L - 12), (0, 3 * L - 12)))
+        # the release weight and its derivatives: w = 1 (dw, d2w None) without a release band
+        w, dw, d2w = np.ones(k), None, None
         if k and (self.release > 0 or self.blend > 0):
             if refresh:
                 m, elen = self.edge_normals(x, t, pt)
@@ -525,14 +525,16 @@ class SurfaceContact(ContactTerm):
                 continue
             gr, hs, dd, pa, wa = grad[a], hess[a], dofs[a], p[a], w[a]
             # E = w psi(g), psi = p^2 / (2 eps): dE = -w p dg + psi dw
-            psi = pa * pa / (2.0 * eps[a])
-            np.add.at(f, dd.ravel(), (-(wa * pa)[:, None] * gr + psi[:, None] * dw[a]).ravel())
+            force = -(wa * pa)[:, None] * gr
             curvature = -(wa * pa)[:, None, None] * hs
-            if ps.release > 0:
+            if dw is not None:
+                psi = pa * pa / (2.0 * eps[a])
                 dwa = dw[a]
+                force = force + psi[:, None] * dwa
                 curvature = curvature - pa[:, None, None] * (
                     gr[:, :, None] * dwa[:, None, :] + dwa[:, :, None] * gr[:, None, :]) \
                     + psi[:, None, None] * d2w[a]
+            np.add.at(f, dd.ravel(), force.ravel())
             if self._convex:
                 curvature = psd_projection(curvature)
             Ke = (wa * eps[a])[:, None, None] * gr[:, :, None] * gr[:, None, :] + curvature
@@ -656,9 +658,10 @@ class SurfaceContact(ContactTerm):
         for ps, s, g, grad, hess, dofs, eps, lam, p, w, dw, _ in self._evaluate(
                 x, hessian=False):
             a = p > 0
-            psi = p[a] ** 2 / (2.0 * eps[a])
-            np.add.at(f, dofs[a].ravel(),
-                      ((w[a] * p[a])[:, None] * grad[a] - psi[:, None] * dw[a]).ravel())
+            force = (w[a] * p[a])[:, None] * grad[a]
+            if dw is not None:
+                force = force - (p[a] ** 2 / (2.0 * eps[a]))[:, None] * dw[a]
+            np.add.at(f, dofs[a].ravel(), force.ravel())
         return f.reshape(-1, 3)
 
     def contact_pressure(self, x, load: float = 1.0):

@@ -12,12 +12,13 @@ and run through the pipeline's functions (`planner.pipeline.register_case`, `pre
 at each resolution asked.
 
 Per case and resolution: success or the failure (exception type and message), Newton
-iterations, load steps, cut-backs, minimum scaled Jacobian of the registered and of the
-predicted mesh, inverted elements, landmark errors (registered landmark nodes against the
+iterations, load steps, cut-backs, the contacts the prediction left deeper than twice their
+tolerance (a warning of `faceplan predict`), minimum scaled Jacobian of the registered and of
+the predicted mesh, inverted elements, landmark errors (registered landmark nodes against the
 head's true landmarks, mm) and the time of each stage; then per resolution the success rate,
 median / max iterations, total cut-backs, the worst scaled Jacobian, landmark error median /
 max, median stage times, and a summary line
-`heldout <res>: ok=<k>/<n> newton_median=.. newton_max=.. cutbacks=.. min_sj=.. inverted=.. folded=..
+`heldout <res>: ok=<k>/<n> newton_median=.. newton_max=.. cutbacks=.. contact_unmet=.. min_sj=.. inverted=.. folded=..
 lm_median_mm=.. lm_max_mm=.. registration_median_s=.. predict_median_s=..`.
 
 Flags: `--count N` patients (default 30), `--first-seed S` (default 1000), `--seeds A,B,..`
@@ -158,6 +159,7 @@ def run_case(seed: int, resolution: str, root: Path, landmarks: bool) -> dict:
         rec["load_steps"] = solver.get("steps")
         rec["cutbacks"] = info.get("cutbacks")
         rec["continuation_from_load"] = info.get("continuation_from_load")
+        rec["contact_unmet_mm"] = info.get("contact_unmet_mm") or {}
         rec["predict_stages_s"] = report.get("timings_s", {})
         rec["predicted_min_sj"] = _predicted_quality(out)
         mq = report.get("mesh_quality", {})
@@ -198,6 +200,11 @@ def summarise(records: list[dict], resolution: str) -> str:
               f"{len(cont)} case(s)" + (" (seeds " + ", ".join(
                   f"{r['seed']} from load {r['continuation_from_load']:.3g}" for r in cont) + ")"
                                         if cont else ""))
+        unmet = [r for r in ok if r.get("contact_unmet_mm")]
+        print(f"  contact deeper than twice its tolerance at the end (converged, reported as a "
+              f"warning): {len(unmet)} case(s)" + (" (" + "; ".join(
+                  f"seed {r['seed']}: " + ", ".join(f"{k} {v:.2f} mm" for k, v in sorted(r["contact_unmet_mm"].items()))
+                  for r in unmet) + ")" if unmet else ""))
     if sj:
         print(f"  minimum scaled Jacobian: registered {min(r['registered_min_sj'] for r in rs if 'registered_min_sj' in r):.3f}"
               + (f", predicted {min(r['predicted_min_sj'] for r in ok):.3f}" if ok else "")
@@ -221,7 +228,7 @@ def summarise(records: list[dict], resolution: str) -> str:
         f"{k} {_median(v):.1f}/{max(v):.1f}" for k, v in stages.items()))
     line = (f"heldout {resolution}: ok={len(ok)}/{len(rs)} "
             f"newton_median={_median(its):.0f} newton_max={max(its) if its else 'nan'} "
-            f"cutbacks={sum(cut)} min_sj={min(sj) if sj else float('nan'):.3f} inverted={inv} folded={folded} "
+            f"cutbacks={sum(cut)} contact_unmet={sum(bool(r.get('contact_unmet_mm')) for r in ok)} min_sj={min(sj) if sj else float('nan'):.3f} inverted={inv} folded={folded} "
             f"lm_median_mm={_median(lm):.2f} lm_max_mm={max(lm) if lm else float('nan'):.2f} "
             f"registration_median_s={_median(stages.get('registration', [])):.1f} "
             f"predict_median_s={_median(stages.get('predict', [])):.1f}")

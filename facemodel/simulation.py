@@ -211,7 +211,8 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
         h = lip_size = _typical_size(X, np.vstack([up, lo]))
         mu = _local_shear_modulus(model, by_label, np.vstack([up, lo]))
         terms["lip_contact"] = SurfaceContact(
-            X, up, lo, penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
+            X, up, lo, penalty=penalty_factor * FACE_SOLVER.lip_penalty * 3.0 * mu / h,
+            tolerance=contact_tolerance,
             search_radius=max(1.0, h), max_depth=max(2.0, h),
             pair_hysteresis=FACE_SOLVER.pair_hysteresis,
             edge_release=FACE_SOLVER.lip_edge_release,
@@ -318,6 +319,13 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             "guess": res.guess}
     if contact:
         info["penetration_mm"] = {k: float(t.penetration(x)) for k, t in terms.items()}
+        # the augmentations are bounded (`AugmentedLagrangian.max_augmentations`): a solve
+        # whose last one left a contact deeper than the tolerance converged, but not to the
+        # contact state asked for. Twice the tolerance is the margin: the term's final search
+        # can pair a node other than its frozen solve did (docs/solver_control.md)
+        info["contact_tolerance_mm"] = float(contact_tolerance)
+        info["contact_unmet_mm"] = {k: v for k, v in info["penetration_mm"].items()
+                                    if v > 2.0 * contact_tolerance}
         if "lip_contact" in terms:
             # lips overlapping before any movement (a registered mesh can have them so) are
             # left as they are; contact acts against further penetration only

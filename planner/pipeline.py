@@ -368,6 +368,12 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
     if folded.size:
         progress.say(f"  warning: {folded.size} element(s) have a folded corner (corner Jacobian <= 0) "
                      "but are valid at their Gauss points")
+    unmet = (stats.get("info") or {}).get("contact_unmet_mm") or {}
+    if unmet:
+        progress.say("  warning: the contact augmentations stopped with "
+                     + ", ".join(f"{k} {v:.2f} mm" for k, v in sorted(unmet.items()))
+                     + f" of penetration (tolerance {stats['info']['contact_tolerance_mm']:g} mm): "
+                     "the prediction is converged, but its lips or teeth overlap there")
     stats["sliding"] = list(sliding)
     stats["degloved_sliding_nodes"] = {s: int(len(ids)) for s, ids in degloved.items()}
     stats["activations"] = activations

@@ -399,9 +399,10 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
       features' own error allows (the search took another crease for the mouth), the
       registration is made once more with the features guiding the elastic stage, and that
       one is returned if it passes every gate (`alignment.guided_after` gives the distances
-      that asked for it); otherwise the first. Where the profile pose was refused (features
-      that fit the generic profile too poorly to place the face) such a disagreement is a
-      refusal: the surfaces alone placed a face whose own features are elsewhere."""
+      that asked for it); if it fails, the registration is refused: the first is known to be
+      misplaced. Where the profile pose was refused (features that fit the generic profile
+      too poorly to place the face) such a disagreement is a refusal at once: the surfaces
+      alone placed a face whose own features are elsewhere."""
     opt = options or MatchOptions()
     try:
         out = _match_and_repair_once(model, skin, bones, landmarks, opt, files, teeth)
@@ -431,8 +432,15 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         try:
             guided = _match_and_repair_once(model, skin, bones, landmarks,
                                             dataclasses.replace(opt, profile_guide=True), files, teeth)
-        except RegistrationFailure:
-            return out
+        except RegistrationFailure as exc:
+            # the first registration is known to disagree with the skin's own features, and
+            # the one they guide did not pass its gates: neither placement can be trusted
+            raise RegistrationFailure(
+                "without landmarks the landmarks located on the registered face lie "
+                + ", ".join(f"{k} {v:.1f} mm" for k, v in far.items())
+                + f" from the features found on the skin's profile, and the registration guided "
+                f"by those features failed ({exc}): the placement cannot be trusted; give at "
+                f"least four landmarks (landmarks.json)", out[2]) from None
         guided[2]["alignment"]["guided_after"] = far
         return guided
     retry = dataclasses.replace(opt, prefer_profile_pose=True)

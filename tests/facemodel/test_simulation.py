@@ -115,3 +115,53 @@ def test_tissue_sliding_on_the_impacted_maxilla_keeps_the_normal_and_frees_the_t
     pair = d < 1e-6
     assert pair.sum() == len(X)
     np.testing.assert_allclose(u[pair], u[j[pair]] * mirror, atol=1e-6)
+
+
+def test_the_lip_penalty_sets_the_conditioning_not_the_answer(face, seed7_motions, monkeypatch):
+    """The lip-lip contact is an augmented Lagrangian: at convergence the multipliers, not the
+    penalty, carry the contact force, so the face solved with a tenth of the lips' penalty
+    (FACE_SOLVER.lip_penalty 0.1) must end where the nominal penalty (1) ends. The seed-7
+    bimaxillary plan on the coarse face with lip and teeth contact: both converge, both meet
+    the contact tolerance (0.05 mm, plus 0.03 mm for the teeth's faceted edges as above; none
+    reported unmet), and the skin agrees to 0.1 mm, twice the contact tolerance (each solve
+    may leave its lips up to the tolerance from the exact contact state, and the tissue
+    carries such a boundary difference without amplifying it)."""
+    import dataclasses
+
+    import facemodel.simulation as fs
+    from facemodel.teeth import clear_teeth
+
+    model, _ = clear_teeth(face)
+    skin = np.unique(np.asarray(model.facet_sets["skin"]))
+    out = {}
+    for factor in (1.0, 0.1):
+        monkeypatch.setattr(fs, "FACE_SOLVER", dataclasses.replace(fs.FACE_SOLVER, lip_penalty=factor))
+        res = simulate(model, seed7_motions, {})
+        assert res.converged and res.load == 1.0
+        pen = lip_penetrations(model, res.x, motions=seed7_motions)
+        assert max(pen.values()) < 0.08
+        assert res.info["contact_unmet_mm"] == {}
+        out[factor] = res.x
+    diff = np.linalg.norm(out[1.0][skin] - out[0.1][skin], axis=1)
+    assert diff.max() < 0.1
+
+
+def test_a_contact_left_deeper_than_its_tolerance_is_reported(face, seed7_motions, monkeypatch):
+    """The augmentations are bounded (ten per step): with a hundredth of the lips' penalty
+    each multiplier update removes only about a hundredth of the lips' overlap, and the
+    seed-7 plan on the coarse face converges with the lips still 0.1-0.2 mm inside each
+    other, against a tolerance of 0.05 mm. The solve's report names that contact and its
+    penetration (what `faceplan predict` warns of), and only contacts deeper than twice the
+    tolerance (the teeth, within it, are not named)."""
+    import dataclasses
+
+    import facemodel.simulation as fs
+    from facemodel.teeth import clear_teeth
+
+    model, _ = clear_teeth(face)
+    monkeypatch.setattr(fs, "FACE_SOLVER", dataclasses.replace(fs.FACE_SOLVER, lip_penalty=0.01))
+    res = simulate(model, seed7_motions, {})
+    assert res.converged and res.load == 1.0
+    unmet = res.info["contact_unmet_mm"]
+    assert set(unmet) == {"lip_contact"} and unmet["lip_contact"] > 0.1
+    assert all(v <= 0.1 for k, v in res.info["penetration_mm"].items() if k != "lip_contact")

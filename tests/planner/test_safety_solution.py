@@ -78,3 +78,20 @@ def test_a_finished_state_passes(model, plan):
     n, m = len(model.nodes), len(model.hexes)
     check_solution(Prediction(model, plan, np.zeros((n, 3)), np.zeros((m, 3, 3)),
                               {"converged": True, "load": 1.0}))
+
+
+def test_a_contact_left_unmet_is_a_warning_not_a_silent_prediction(model, plan, monkeypatch):
+    """A converged state whose contact the augmentations left deeper than twice its tolerance
+    is still a prediction (converged, full load, no inverted element), but the user is told:
+    the progress log names the contact, its depth and the tolerance."""
+    zero = np.zeros((len(model.nodes), 3))
+    result = _result(model, zero)
+    result.info = {"penetration_mm": {"lip_contact": 0.45}, "contact_tolerance_mm": 0.05,
+                   "contact_unmet_mm": {"lip_contact": 0.45}}
+    result.problem = None
+    monkeypatch.setattr(pipeline, "_call_simulate", lambda *a, **k: result)
+    progress = Progress(echo=False)
+    pred = solve_plan(model, plan, None, progress=progress)
+    assert pred.solver["info"]["contact_unmet_mm"] == {"lip_contact": 0.45}
+    warned = [line for line in progress.log if "warning" in line and "lip_contact 0.45 mm" in line]
+    assert warned and "tolerance 0.05 mm" in warned[0]

@@ -174,9 +174,9 @@ def test_landmarks_located_far_from_the_profile_features_ask_for_a_guided_regist
     """The second retry rule of `match_and_repair_arrays` (the registration itself replaced): a
     registration that passes but whose located landmarks lie far from the profile's features
     is made again with the features guiding; the guided one is returned with the distances
-    that asked for it, or the first when the guided one fails; with the profile pose refused
-    the disagreement is a refusal; a first registration without such landmarks is returned as
-    it is."""
+    that asked for it; when the guided one fails, or with the profile pose refused, the
+    disagreement is a refusal (the first registration is known to be misplaced); a first
+    registration without such landmarks is returned as it is."""
     from registration import mesh_match as mm
 
     calls = []
@@ -191,7 +191,10 @@ def test_landmarks_located_far_from_the_profile_features_ask_for_a_guided_regist
 
     calls.clear()
     monkeypatch.setattr(mm, "_match_and_repair_once", once([first, mm.RegistrationFailure("1 inverted")]))
-    assert mm.match_and_repair_arrays(None, None, {}) is first and calls == [False, True]
+    with pytest.raises(mm.RegistrationFailure, match="Stms 13.1 mm.*guided by those features "
+                                                     "failed \\(1 inverted\\).*four landmarks") as exc:
+        mm.match_and_repair_arrays(None, None, {})
+    assert calls == [False, True] and exc.value.report is first[2]
 
     # the profile pose refused (features that fit the generic profile too poorly to place the
     # face): the disagreement is a refusal, nothing is retried

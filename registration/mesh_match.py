@@ -281,8 +281,9 @@ PROFILE_POSE_AGREE_MM = 5.0
 
 # mm: how far a located landmark may lie from where the elastic stage, guided by the profile's
 # features, carried it, and, unguided, from its feature itself: the profile pose places the
-# features to 1-3 mm and the stomia lie within 1-3 mm of the fissure point, while the nearest other feature a definition can latch onto (the
-# labiomental fold below the lips, the columella above) lies 10 mm or more away
+# features to 1-3 mm and the stomia lie within 1-3 mm of the fissure point, while the nearest
+# other feature a definition can latch onto (the labiomental fold below the lips, the
+# columella above) lies 10 mm or more away
 PROFILE_LOCATED_MAX_MOVE_MM = 8.0
 
 
@@ -375,6 +376,16 @@ class _NoseNotPlaced(RegistrationFailure):
     patient's (`match_and_repair_arrays` tries the profile pose then)."""
 
 
+def _far_from_features(before: str, far: dict, after: str, report: dict) -> RegistrationFailure:
+    """The refusal of a registration without landmarks whose located landmarks lie `far`
+    (name -> mm) from the features found on the skin's profile."""
+    return RegistrationFailure(
+        f"without landmarks {before + ' ' if before else ''}the landmarks located on the "
+        f"registered face lie " + ", ".join(f"{k} {v:.1f} mm" for k, v in far.items())
+        + f" from the features found on the skin's profile{after}: the placement cannot be "
+        "trusted; give at least four landmarks (landmarks.json)", report)
+
+
 def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                             landmarks: dict | None = None, options: MatchOptions | None = None,
                             files: dict | None = None, teeth: dict | None = None):
@@ -423,24 +434,16 @@ def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
         if refused:
             # the features were found but fit the generic profile too poorly to place the
             # face, and the surfaces placed it elsewhere: nothing left to trust
-            raise RegistrationFailure(
-                f"without landmarks the surfaces alone placed the face (the skin profile's pose "
-                f"was refused: {refused}), and the landmarks located on it lie "
-                + ", ".join(f"{k} {v:.1f} mm" for k, v in far.items())
-                + " from the features found on the skin's profile: the placement cannot be "
-                "trusted; give at least four landmarks (landmarks.json)", out[2])
+            raise _far_from_features(f"the surfaces alone placed the face (the skin profile's "
+                                     f"pose was refused: {refused}), and", far, "", out[2])
         try:
             guided = _match_and_repair_once(model, skin, bones, landmarks,
                                             dataclasses.replace(opt, profile_guide=True), files, teeth)
         except RegistrationFailure as exc:
             # the first registration is known to disagree with the skin's own features, and
             # the one they guide did not pass its gates: neither placement can be trusted
-            raise RegistrationFailure(
-                "without landmarks the landmarks located on the registered face lie "
-                + ", ".join(f"{k} {v:.1f} mm" for k, v in far.items())
-                + f" from the features found on the skin's profile, and the registration guided "
-                f"by those features failed ({exc}): the placement cannot be trusted; give at "
-                f"least four landmarks (landmarks.json)", out[2]) from None
+            raise _far_from_features("", far, f", and the registration guided by those features "
+                                     f"failed ({exc})", out[2]) from None
         guided[2]["alignment"]["guided_after"] = far
         return guided
     retry = dataclasses.replace(opt, prefer_profile_pose=True)

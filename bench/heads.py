@@ -86,7 +86,9 @@ def run_one(model, head, landmarks: bool):
            "coverage": rep.get("coverage"), "unfitted": unfitted,
            "released": (rep.get("repair") or {}).get("nodes_released_from_surfaces"),
            # registered from the profile pose after the surface pose left the nose off
-           "retried": bool((rep.get("alignment") or {}).get("surface_pose_refused"))}
+           "retried": bool((rep.get("alignment") or {}).get("surface_pose_refused")),
+           # a located stomion set aside because its partner was
+           "partner_set_aside": sorted((rep.get("landmark_search") or {}).get("not_used_partner_set_aside") or [])}
     return row
 
 
@@ -134,7 +136,8 @@ def main(argv=None) -> int:
                           f"minSJ {fmt(r['min_sj'])} inv {fmt(r['inverted'], 'd')} "
                           f"skin {fmt(r['skin_mean'])}/{fmt(r['skin_p95'])}/{fmt(r['skin_max'], '.1f')} mm bone {fmt(r['bone_mean'])} "
                           f"lm_max {fmt(r['lm_max'], '.2f')} (profile {fmt(r['lm_mid'], '.2f')}, Me {fmt(r['me'], '.2f')}, corners {fmt(r['ch_max'], '.2f')}) cover {fmt(r['coverage'], '.2f')} released {fmt(r['released'], 'd')} "
-                          f"not_fitted [{','.join(r['unfitted'])}]{' profile-pose-retry' if r['retried'] else ''} "
+                          f"not_fitted [{','.join(r['unfitted'])}]{' profile-pose-retry' if r['retried'] else ''}"
+                          f"{' partner-set-aside:' + ','.join(r['partner_set_aside']) if r['partner_set_aside'] else ''} "
                           f"{r['time_s']:.1f} s {r['error'][:120]}",
                           flush=True)
     print()

@@ -376,6 +376,21 @@ class _NoseNotPlaced(RegistrationFailure):
     patient's (`match_and_repair_arrays` tries the profile pose then)."""
 
 
+def stomia_as_one(found: dict, wanted, report: dict) -> None:
+    """Set aside a located stomion whose partner was set aside. The two stomia are one
+    detection, the mouth slit's two ends (`landmark_search`): where one of them was not used
+    (another crease taken for the slit, found far from where the registration carried it, or
+    out of the profile's order), the slit found is not the mouth's, and the other is not used
+    either (the registration carries it). Only when both were sought (`wanted`); `found` and
+    `report` (the search's: `not_found`, `not_used_partner_set_aside`) are updated in place."""
+    pair = [k for k in ("Stms", "Stmi") if k in wanted]
+    lone = [k for k in pair if k in found] if len(pair) == 2 else []
+    if len(lone) == 1:
+        del found[lone[0]]
+        report["not_used_partner_set_aside"] = lone
+        report["not_found"] = sorted(set(report.get("not_found", [])) | set(lone))
+
+
 def _far_from_features(before: str, far: dict, after: str, report: dict) -> RegistrationFailure:
     """The refusal of a registration without landmarks whose located landmarks lie `far`
     (name -> mm) from the features found on the skin's profile."""
@@ -587,6 +602,7 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
             far = {k: v for k, v in apart.items() if v > PROFILE_LOCATED_MAX_MOVE_MM}
             if far:
                 align_info["located_far_from_features_mm"] = far
+        stomia_as_one(found, missing, search_report)
         if found:
             add = list(found)
             located = add

@@ -261,6 +261,8 @@ def _solve_record(kind: str, pred) -> dict:
     return {"solve": kind, "nodes": int(len(pred.model.nodes)), "steps": pred.solver.get("steps"),
             "iterations": pred.solver.get("iterations"), "cutbacks": info.get("cutbacks"),
             "factorizations": info.get("factorizations"),
+            # contacts the augmentations left deeper than twice their tolerance (mm)
+            "contact_unmet_mm": info.get("contact_unmet_mm") or {},
             # where a solve's time goes: residual and tangent assembly (contact terms
             # included), linear solves, the whole Newton run
             "assembly_s": t.get("assembly"), "linear_s": t.get("solve"), "newton_s": t.get("total")}
@@ -574,6 +576,13 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
         finally:
             timings[f"solve_{truth_resolution}_s"] = time.perf_counter() - clock
         solves.append(_solve_record(truth_resolution, pred))
+    # a truth whose lips or teeth overlap beyond the contact tolerance is still a converged
+    # solution of the truth model, but not the contact state it asks for: the key says so
+    unmet = (pred.solver.get("info") or {}).get("contact_unmet_mm") or {}
+    if unmet:
+        print(f"faceplan synth: {folder.name}: warning: the truth solve ended with "
+              + ", ".join(f"{k} {v:.2f} mm" for k, v in sorted(unmet.items()))
+              + " of penetration (recorded in the key, truth_contact_unmet_mm)", file=sys.stderr, flush=True)
     # the post-op skin: the patient's skin moved with the truth model's skin, scanned
     clock = time.perf_counter()
     x_pre, tris, ids = skin_surface(pred.model)
@@ -588,6 +597,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                              **mat_record, "scan": scan},
             "plan_actual": plan_actual is not None, "value_reductions": reductions,
             "value_corrections": corrections,
+            "truth_contact_unmet_mm": {k: round(float(v), 4) for k, v in unmet.items()},
             "effect_skin_change_mm": {"regions": list(region) if region else "skin", **change,
                                       "measured_at": companion,
                                       "target_max_mm": None if target is None else round(target, 4)}}

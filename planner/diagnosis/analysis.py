@@ -39,6 +39,16 @@ is the total probability of the models that contain the named effect(s), the pro
 being held-out ones (pseudo-BMA+ weights of the held-out log predictive densities, among the
 baseline and the models that pass both the BIC and the held-out checks: `probabilities`), like
 the ranking.
+
+Where the mesh's own error is estimated from a second mesh (`remove_mesh_error`: the gap's
+coefficient a on the direction r_ref - r_d), the fitted values are also extrapolated to the
+converged model (`mesh_extrapolated_theta`): the diagnosis mesh's response per unit of an
+effect differs from the converged model's as its baseline does (a coarse mesh is too stiff
+where the tissue bends), so the gap's Jacobian is extrapolated with the same coefficient,
+J_inf = J_d + kappa (J_ref - J_d), kappa = -a (kappa = 1 when the truth is the reference
+mesh's own prediction; Richardson extrapolation, Roache 1998, ch. 5), both Jacobians from the
+tangents at the two baselines, and the values are those whose response on J_inf reproduces the
+fitted response J_d (theta - theta_0) in weighted least squares.
 """
 from __future__ import annotations
 
@@ -75,6 +85,12 @@ class CaseData:
     gp_n_eff: float | None = None  # independent samples at the baseline's correlation length
     mesh_error: np.ndarray | None = None   # change of the gap on a second mesh (`discrepancy`)
     mesh_reference: str | None = None      # that mesh's resolution
+    mesh_coef: float | None = None         # the gap's estimated coefficient on that direction
+    # the second mesh's case model, baseline skin and tangent sensitivities {key: d skin/dp}
+    # (`mesh_extrapolated_theta`); None without them
+    reference: object = None
+    reference_skin: np.ndarray | None = None
+    reference_sens: dict | None = None
 
     @property
     def folds(self) -> dict[str, np.ndarray]:
@@ -104,6 +120,7 @@ def remove_mesh_error(d: CaseData):
     off = np.asarray(d.mesh_error, float).reshape(len(d.r0), -1) @ f.mesh_coef
     d.gap.mesh_offset = off if d.gap.mesh_offset is None else d.gap.mesh_offset + off
     d.gap.mesh_error_mm = f.mesh_mm
+    d.mesh_coef = float(np.ravel(f.mesh_coef)[0])
     d.r0 = d.r0 - off
     d.gap.correlation_mm = correlation_length(d.gap.points, d.r0, d.gap.weights)
     return f
@@ -451,6 +468,8 @@ class Scored:
     lpd_gain_se: float = np.nan                  # its standard error over the folds
     noise_shrink_pct: float = np.nan             # held-out shrinkage of the gap beyond the noise
     noise_spread_pct: float = np.inf             # its bootstrap spread
+    theta_mesh: list | None = None               # per case values extrapolated to the converged mesh
+    mesh_kappa: list | None = None               # per case extrapolation factor kappa
 
     def values(self, c: int) -> dict:
         return self.cand.values(c, self.theta[c] if self.theta else None)
@@ -500,6 +519,73 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
     out.gp, out.gp_bic, out.theta = gp, gp_bic, theta
     out.lpd = heldout_lpd(cand, data, gp, heldout)
     return out
+
+
+def _gap_jacobians(cand: Candidate, d: CaseData, skin0, sens: dict):
+    """(J_d, J_ref) of the gap at the two meshes' baselines from their tangent sensitivities
+    (per fit coordinate: d value / d theta = value for log coordinates), or None where a
+    parameter has no tangent sensitivity on either mesh."""
+    keys = [p.key for p in cand.params]
+    if not isinstance(sens, dict) or not isinstance(d.reference_sens, dict) \
+            or any(k not in sens or k not in d.reference_sens for k in keys):
+        return None
+    ref = d.reference
+    v_ref, f_ref = ref.predicted_surface(d.reference_skin)
+    Jd = np.zeros((len(d.r0), len(keys)))
+    Jr = np.zeros_like(Jd)
+    for k, p in enumerate(cand.params):
+        scale = p.none if p.log else 1.0
+        Jd[:, k] = d.gap.linearised(skin0, sens[p.key]) * scale
+        dv = d.reference_sens[p.key]
+        dv = ref.surface.carry_velocity(dv) if ref.surface is not None else np.asarray(dv, float)
+        Jr[:, k] = d.gap.linearised_on(v_ref, f_ref, dv) * scale
+    return Jd, Jr
+
+
+def extrapolated_theta(Jd: np.ndarray, Jr: np.ndarray, kappa: float, theta: np.ndarray,
+                       origin: np.ndarray, free: np.ndarray, w: np.ndarray,
+                       lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The coordinates whose linear response on the extrapolated Jacobian J_inf = Jd +
+    kappa (Jr - Jd) best reproduces (weights w) the response Jd (theta - origin) fitted on the
+    diagnosis mesh; the parameters that are not free stay at the origin; clipped to the bounds.
+    Jd, Jr: (n, k) over the stacked points of the cases the coordinates are shared by."""
+    theta_inf = np.array(origin, float)
+    if not np.any(free):
+        return theta_inf
+    J_inf = Jd + kappa * (Jr - Jd)
+    target = Jd[:, free] @ (np.asarray(theta, float)[free] - origin[free])
+    sw = np.sqrt(np.asarray(w, float))
+    delta = np.linalg.lstsq(J_inf[:, free] * sw[:, None], target * sw, rcond=None)[0]
+    theta_inf[free] += delta
+    return np.clip(theta_inf, lower, upper)
+
+
+def mesh_extrapolated_theta(s: Scored, data: list[CaseData], forward, sens: list) -> None:
+    """Set `s.theta_mesh` (per case) and `s.mesh_kappa` where every case has a second mesh's
+    tangent sensitivities and an estimated mesh-error coefficient (module text); the
+    candidate's discrete choices, if any, rule it out (their response is not a tangent)."""
+    cand = s.cand
+    if cand.free is None or not cand.free.any() or any(e.choices for e in cand.effects):
+        return
+    if any(d.mesh_coef is None for d in data):
+        return
+    jac = [_gap_jacobians(cand, d, forward.baseline(c), sens[c]) for c, d in enumerate(data)]
+    if any(j is None for j in jac):
+        return
+    kappas = [-d.mesh_coef for d in data]
+    theta = [np.asarray(t, float) for t in (s.theta or cand.theta)]
+    args = (cand.origin, cand.free)
+    if cand.shared and len(data) > 1:
+        # one set of coordinates for every case: the cases' rows stacked, each with its kappa
+        Jd = np.vstack([j[0] for j in jac])
+        Jr = np.vstack([j[0] + k * (j[1] - j[0]) for j, k in zip(jac, kappas)])
+        w = np.concatenate([d.gap.weights for d in data])
+        t = extrapolated_theta(Jd, Jr, 1.0, theta[0], *args, w, cand.lower, cand.upper)
+        s.theta_mesh = [t] * len(data)
+    else:
+        s.theta_mesh = [extrapolated_theta(j[0], j[1], k, t, *args, d.gap.weights, cand.lower, cand.upper)
+                        for j, k, t, d in zip(jac, kappas, theta, data)]
+    s.mesh_kappa = kappas
 
 
 def heldout_lpd(cand: Candidate | None, data: list[CaseData], fits: list, heldout: list | None = None
@@ -626,6 +712,8 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
     prob = probabilities(gp0, lpd0, scored + pairs)
     for s in scored + pairs:
         s.probability = prob[s.cand.name]
+        if s.identifiable:
+            mesh_extrapolated_theta(s, data, forward, sens)
     verdict = _verdict(data, best, pairs, prob, scored)
     return {"rms0": rms0, "bic0": bic0, "gp_bic0": gp0, "baseline_error": base_fits, "n_eff": n_eff, "scored": scored, "pairs": pairs, "notes": notes,
             "failed": failed, "verdict": verdict, "probabilities": prob, "best": best,

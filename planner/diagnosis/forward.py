@@ -147,38 +147,45 @@ def _solve(case: CaseModel, strings: tuple[str, ...], guess=None):
                       progress=Progress(echo=False), guess=guess)
 
 
+def _unmet(pred) -> dict:
+    """The contacts a converged solve left deeper than twice their tolerance ({name: mm})."""
+    return dict((pred.solver.get("info") or {}).get("contact_unmet_mm") or {})
+
+
 def solve_skin(case: CaseModel, strings: tuple[str, ...], guess=None):
-    """Skin vertex positions (n_skin, 3) of the prediction with the effects `strings`, or the
-    error message (str) when the model cannot be solved there; guess as in `_solve`."""
+    """(skin vertex positions (n_skin, 3) of the prediction with the effects `strings`, or the
+    error message (str) when the model cannot be solved there; the contacts it left unmet,
+    {name: mm}); guess as in `_solve`."""
     try:
         pred = _solve(case, strings, guess)
     except SolveError as exc:
-        return f"{exc}"
-    return np.asarray(pred.predicted_nodes, float)[case.skin_ids]
+        return f"{exc}", {}
+    return np.asarray(pred.predicted_nodes, float)[case.skin_ids], _unmet(pred)
 
 
 def solve_with_sensitivities(case: CaseModel, names: tuple[str, ...]):
     """(baseline skin, {parameter: d(skin vertex positions)/dp (n_skin, 3)} or the reason
-    they are not available, the baseline's displacement (n_nodes, 3) or None): the direct
-    differentiation at the converged baseline (`planner.pipeline.skin_sensitivities`, one
-    factorisation for every parameter)."""
+    they are not available, the baseline's displacement (n_nodes, 3) or None, the contacts
+    the baseline left unmet {name: mm}): the direct differentiation at the converged baseline
+    (`planner.pipeline.skin_sensitivities`, one factorisation for every parameter)."""
     try:
         pred = _solve(case, ())
     except SolveError as exc:
-        return f"{exc}", None, None
+        return f"{exc}", None, None, {}
     skin = np.asarray(pred.predicted_nodes, float)[case.skin_ids]
     u = np.asarray(pred.displacement, float)
+    unmet = _unmet(pred)
     try:
         from planner.pipeline import skin_sensitivities
     except ImportError:
-        return skin, "the pipeline gives no sensitivities", u
+        return skin, "the pipeline gives no sensitivities", u, unmet
     try:
         ids, sens = skin_sensitivities(pred, list(names))
     except (ValueError, KeyError, ArithmeticError, RuntimeError) as exc:
-        return skin, f"sensitivities not available: {exc}", u
+        return skin, f"sensitivities not available: {exc}", u, unmet
     if not np.array_equal(np.asarray(ids), np.asarray(case.skin_ids)):
-        return skin, "sensitivities on another skin vertex set", u
-    return skin, {k: np.asarray(v, float) for k, v in sens.items()}, u
+        return skin, "sensitivities on another skin vertex set", u, unmet
+    return skin, {k: np.asarray(v, float) for k, v in sens.items()}, u, unmet
 
 
 def _solve_task(case: CaseModel, request, guess=None):
@@ -254,6 +261,10 @@ class Forward:
         # per case index, the baseline's displacement: every effect solve starts from it (the
         # effects change the problem by a little; `solver.newton.newton_solve(guess=...)`)
         self._guess: dict[int, np.ndarray] = {}
+        # per (case, effects) solved, the contacts the solve left deeper than twice their
+        # tolerance (`facemodel.simulation`: a converged prediction, not the contact state
+        # asked for), {name: mm}; absent when every contact was met
+        self._unmet: dict = {}
         self.n_solves = 0
         self.solve_time_s = 0.0
 
@@ -278,8 +289,14 @@ class Forward:
                         else ", ".join(s) or "baseline")
                 self.say(f"    solved {self.cases[i].name} [{what}]")
 
-            for r, skin in zip(todo, self.runner.map(self.cases, todo, done, self._guess)):
-                self._store[self._key(r)] = skin
+            for r, out in zip(todo, self.runner.map(self.cases, todo, done, self._guess)):
+                if r[1] and r[1][0] == SENSITIVITIES:
+                    out, unmet = out[:3], out[3]
+                    self._unmet_of((r[0], ()), unmet)
+                else:
+                    out, unmet = out
+                self._unmet_of(r, unmet)
+                self._store[self._key(r)] = out
             self.n_solves += len(todo)
             self.solve_time_s += time.perf_counter() - t0
         return [self._store[self._key(r)] for r in requests]
@@ -294,6 +311,15 @@ class Forward:
             if u is not None and not isinstance(skin, str):
                 self._guess[i] = u
         return [(skin, sens) for skin, sens, _ in out]
+
+    def _unmet_of(self, r, unmet: dict) -> None:
+        if unmet:
+            self._unmet[self._key(r)] = dict(unmet)
+
+    def contact_unmet(self, i: int, strings: tuple[str, ...] = ()) -> dict:
+        """The contacts the solve of case `i` with the effects `strings` (default: the
+        baseline) left deeper than twice their tolerance, {name: mm} ({} when met)."""
+        return dict(self._unmet.get(self._key((i, tuple(strings))), {}))
 
     def baseline(self, i: int) -> np.ndarray:
         skin = self.solve([(i, ())])[0]

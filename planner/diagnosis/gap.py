@@ -86,24 +86,39 @@ class ScanGap:
         closest point moves with its triangle's barycentric combination of the vertices'."""
         key = id(skin)
         if getattr(self, "_lin_key", None) != key:
-            self._lin = TriangleSurface(self.vertices(skin), self.faces).closest(self.points)
+            self._lin = self._closest_with_direction(self.vertices(skin), self.faces)
             self._lin_key = key
-            cp = self._lin
-            # the signed distance is s = u . (p - c) with u the unit direction from the closest
-            # point to p (outward-signed): ds = -u . dc; u is the face normal where p lies over
-            # a triangle's interior, the direction to an edge or corner otherwise
-            off = self.points - cp.point
-            far = np.abs(cp.signed) > 1e-9
-            u = np.where(far[:, None], off / np.where(far, cp.signed, 1.0)[:, None], cp.normal)
-            self._lin_u = u
-        cp = self._lin
-        tri = self.faces[cp.face]                                  # (n, 3) vertex ids
         dskin = np.asarray(dskin, float)
         if self.surface is not None:
             dskin = self.surface.carry_velocity(dskin)
-        dc = np.einsum("nj,njk->nk", cp.bary, dskin[tri])
-        out = -np.einsum("nk,nk->n", self._lin_u, dc)
+        out = self._distance_velocity(self._lin, self.faces, dskin)
         return self.realign(out) if pose else out
+
+    def linearised_on(self, vertices: np.ndarray, faces: np.ndarray, dvertices: np.ndarray,
+                      pose: bool = True) -> np.ndarray:
+        """d(distances_to(vertices, faces))/dp for vertex velocities `dvertices`: the same
+        linearisation as `linearised`, on another predicted face (a second mesh's)."""
+        cp = self._closest_with_direction(np.asarray(vertices, float), np.asarray(faces))
+        out = self._distance_velocity(cp, np.asarray(faces), np.asarray(dvertices, float))
+        return self.realign(out) if pose else out
+
+    def _closest_with_direction(self, vertices, faces):
+        """(closest points of the scan points on (vertices, faces), u): the signed distance
+        is s = u . (p - c), u the unit direction from the closest point c to p (outward-signed),
+        so ds = -u . dc; u is the face normal where p lies over a triangle's interior, the
+        direction to an edge or corner otherwise."""
+        cp = TriangleSurface(vertices, faces).closest(self.points)
+        off = self.points - cp.point
+        far = np.abs(cp.signed) > 1e-9
+        return cp, np.where(far[:, None], off / np.where(far, cp.signed, 1.0)[:, None], cp.normal)
+
+    @staticmethod
+    def _distance_velocity(closest, faces, dvertices):
+        """-u . dc with dc the closest point's velocity, its triangle's barycentric combination
+        of the vertex velocities; `closest` from `_closest_with_direction`."""
+        cp, u = closest
+        dc = np.einsum("nj,njk->nk", cp.bary, dvertices[faces[cp.face]])
+        return -np.einsum("nk,nk->n", u, dc)
 
     def distances(self, skin: np.ndarray, pose: bool = True) -> np.ndarray:
         """Signed distances (post-op minus prediction) of the fixed scan points to `skin`, with
@@ -135,8 +150,8 @@ class ScanGap:
         if self.unoperated is None or self.unoperated.sum() < 12:
             return
         self.linearised(skin, np.zeros((len(skin), 3)))    # the closest points and u
-        u = self._lin_u
-        raw = TriangleSurface(self.vertices(skin), self.faces).closest(self.points).signed
+        cp, u = self._lin
+        raw = cp.signed
         q = self.points - np.average(self.points[self.unoperated], axis=0, weights=self.weights[self.unoperated])
         R = np.concatenate([np.cross(q, u), u], axis=1)
         idx = np.nonzero(self.unoperated)[0]

@@ -95,17 +95,24 @@ def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runn
 
 
 def mesh_errors(data: list, references: list, runner: Runner | None, say, names: list,
-                forward: Forward | None = None) -> None:
+                forward: Forward | None = None, params: tuple[str, ...] = ()) -> None:
     """Per case the change of the gap when the baseline is solved on the reference mesh
     (`CaseData.mesh_error`, the direction of the discretisation error: `discrepancy`), on the
-    same scan points and pose. A reference that cannot be solved leaves the case without one."""
+    same scan points and pose, and with `params` (effect parameter keys) the reference
+    baseline's tangent sensitivities to them (`CaseData.reference_sens`: the fitted values'
+    extrapolation, `analysis.mesh_extrapolated_theta`). A reference that cannot be solved
+    leaves the case without either."""
     idx = [i for i, r in enumerate(references) if r is not None]
     if not idx:
         return
     say(f"baseline on the reference mesh ({', '.join(sorted({names[i] for i in idx}))}) of {len(idx)} "
         "case(s): the mesh's own error")
     fwd = forward or Forward([references[i] for i in idx], runner, lambda s: None)
-    skins = fwd.solve([(j, ()) for j in range(len(idx))])
+    if params:
+        out = fwd.sensitivities([tuple(params)] * len(idx))
+        skins, sens = [o[0] for o in out], [o[1] for o in out]
+    else:
+        skins, sens = fwd.solve([(j, ()) for j in range(len(idx))]), [None] * len(idx)
     for j, i in enumerate(idx):
         d, name = data[i], names[i]
         if isinstance(skins[j], str):
@@ -116,6 +123,8 @@ def mesh_errors(data: list, references: list, runner: Runner | None, say, names:
         if np.all(np.isfinite(r_ref)):
             d.mesh_error = r_ref - d.r0
             d.mesh_reference = name
+            d.reference, d.reference_skin = references[i], skins[j]
+            d.reference_sens = sens[j] if isinstance(sens[j], dict) else None
             rms = float(np.sqrt(np.average(d.mesh_error ** 2, weights=d.gap.weights)))
             say(f"  {d.case.name}: the gap changes by {rms:.2f} mm RMS on the {name} mesh")
 
@@ -145,6 +154,12 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
     for i, (case, scan) in enumerate(zip(cases, scans)):
         skin = forward.baseline(i)
         gap = measure_gap(case, skin, scan)
+        unmet = forward.contact_unmet(i)
+        if unmet:
+            gap.warnings.append("the baseline prediction converged with "
+                                + ", ".join(f"{k} {v:.2f} mm" for k, v in sorted(unmet.items()))
+                                + " of penetration (beyond twice the contact tolerance): its lips "
+                                "or teeth overlap there, and the gap near the mouth includes it")
         r0 = gap.distances(skin)
         data.append(analysis.CaseData(case, gap, r0))
         say(f"{case.name}: baseline RMS gap {gap.rms(r0):.2f} mm on {len(r0)} scan points; noise floor "
@@ -153,7 +168,8 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
         for w in gap.warnings:
             say(f"  warning: {w}")
     if references is not None:
-        mesh_errors(data, references, forward.runner, say, reference_names, reference_forward)
+        mesh_errors(data, references, forward.runner, say, reference_names, reference_forward,
+                    params=names if tangent else ())
         for d in data:
             if analysis.remove_mesh_error(d) is not None:
                 say(f"  {d.case.name}: estimated mesh error {d.gap.mesh_error_mm:.2f} mm RMS taken out of "
@@ -187,12 +203,28 @@ def _params(s, least_squares: bool = False) -> dict:
     return {"per_case": per_case}
 
 
+def _mesh_params(s) -> dict | None:
+    """The fitted values extrapolated to the converged mesh (`analysis.mesh_extrapolated_theta`)
+    in the form of `params`; None where not estimated."""
+    from planner.diagnosis.effects import collect_effects
+
+    cand = s.cand
+    if not s.theta_mesh:
+        return None
+    per_case = [collect_effects(cand.values(c, s.theta_mesh[c])) for c in range(cand.n_cases)]
+    if cand.shared or cand.n_cases == 1:
+        return per_case[0]
+    return {"per_case": per_case}
+
+
 def _effect_entry(s: analysis.Scored) -> dict:
     c = s.cand
     entry = {
         "name": c.name,
         "params": _params(s),
         "params_least_squares": _params(s, least_squares=True),
+        "params_mesh_extrapolated": _mesh_params(s),
+        "mesh_extrapolation_factor": ([_r(k, 3) for k in s.mesh_kappa] if s.mesh_kappa else None),
         "identifiable": s.identifiable,
         "rms_after_mm": _r(s.rms_after),
         "shrink_pct": _r(s.shrink_pct, 2),

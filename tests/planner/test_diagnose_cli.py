@@ -38,7 +38,7 @@ def case(tmp_path_factory, monkeypatch_module):
     plan = load_plan(c.require_plan())
     model, _ = register_case(c, "coarse", Progress(echo=False))
     patient = prepare_case("case", model, plan, c.bones)
-    skin = solve_skin(perturbed_case(patient, 21, modulus_pct=5.0, thickness_pct=5.0), ("sliding=1",))
+    skin, _ = solve_skin(perturbed_case(patient, 21, modulus_pct=5.0, thickness_pct=5.0), ("sliding=1",))
     assert not isinstance(skin, str), skin
     v, f = scan_like(skin, patient.skin_faces, seed=21)
     (folder / "postop").mkdir()

@@ -43,7 +43,7 @@ def forward(patient):
 
 def _scan(case, strings, seed, perturb=True, forward=None, **kw):
     if perturb or forward is None:
-        skin = solve_skin(perturbed_case(case, seed, **kw) if perturb else case, tuple(strings))
+        skin, _ = solve_skin(perturbed_case(case, seed, **kw) if perturb else case, tuple(strings))
     else:
         skin = forward.solve([(0, effect_strings(dict(s.split("=") for s in strings)))])[0]
     assert not isinstance(skin, str), skin
@@ -77,6 +77,27 @@ def test_withheld_muscle_tone_is_named(patient, forward):
     for region in rec["verdict"]["regions"]:
         r = rec["shrinkage"]["regions"][region]
         assert r["after_mm"] < r["before_mm"]
+
+
+def test_a_better_reference_model_moves_the_fitted_value_towards_the_truth(patient, forward):
+    """The muscle-tone scan of the test above was made on the perturbed model (moduli +-15 %,
+    layers +-20 %), which responds to tone otherwise than the diagnosed one. Given that model
+    as the second mesh (`references`: the mesh-error direction is then exactly the models'
+    difference at the baseline), the gap's coefficient on it comes out near 1 (kappa within
+    0.5-1.5; the noise and the discrepancy share the gap) and the fitted tone extrapolated with
+    the reference's tangent lies closer to the truth than the fit on the diagnosed model alone
+    (their difference is the models' response ratio, the thing extrapolated)."""
+    _diagnose(patient, forward, "tone", ["muscle_tone=0.15"], seed=1)      # makes and keeps the scan
+    scan = _RESULTS["tone_scan"]
+    ref = perturbed_case(patient, 1)
+    rec = diagnose_data([patient], [scan], forward=forward, effect_names=("muscle_tone",),
+                        references=[ref], reference_names=["perturbed"])["record"]
+    tone = next(e for e in rec["effects"] if e["name"] == "muscle_tone")
+    kappa = tone["mesh_extrapolation_factor"][0]
+    assert 0.5 <= kappa <= 1.5, kappa
+    fitted = tone["params"]["muscle_tone"]
+    extrapolated = tone["params_mesh_extrapolated"]["muscle_tone"]
+    assert abs(extrapolated - 0.15) < abs(fitted - 0.15), (fitted, extrapolated)
 
 
 def test_uniform_stiffness_is_not_identifiable(patient, forward):
@@ -206,6 +227,35 @@ def test_partial_scan_warns_and_reports_uncovered_regions(patient, forward):
     assert {"chin", "lower_lip"} <= set(gap.uncovered_regions)
 
 
+def test_a_baseline_with_a_contact_left_unmet_is_a_warning(patient, forward):
+    """A baseline solve that converged with a contact deeper than twice its tolerance
+    (`facemodel.simulation`'s contact_unmet_mm) is not silently diagnosed: diagnosis.json's
+    warnings name the contact and its depth. The shared solves are reused; the stand-in runner
+    only adds the report of an unmet lip contact to the baseline."""
+    from planner.diagnosis.forward import SENSITIVITIES
+
+    class Reported:
+        n_workers = 1
+
+        def map(self, cases, requests, on_done=None, guesses=None):
+            out = []
+            for k, (i, s) in enumerate(requests):
+                res = forward.solve([(0, s)])[0]
+                unmet = {"lip_contact": 0.31} if not s or s[0] == SENSITIVITIES else {}
+                out.append((*res, unmet) if s and s[0] == SENSITIVITIES else (res, unmet))
+                if on_done:
+                    on_done(k)
+            return out
+
+    scan = _scan(patient, [], seed=3, perturb=False, forward=forward)
+    fwd = Forward([patient], Reported())
+    rec = diagnose_data([patient], [scan], forward=fwd, effect_names=("muscle_tone",))["record"]
+    assert fwd.contact_unmet(0) == {"lip_contact": 0.31}
+    assert any("lip_contact 0.31 mm" in w for w in rec["warnings"]), rec["warnings"]
+    # an effect solve that met its contacts reports nothing
+    assert fwd.contact_unmet(0, ("muscle_tone=0.5",)) == {}
+
+
 # --------------------------------------------------------------------------- parts
 
 def test_effect_strings_parse_and_none_is_the_baseline(patient):
@@ -243,6 +293,57 @@ def test_linearised_gap_matches_finite_differences(patient, forward):
     lin = gap.linearised(skin, v)
     fd = (gap.distances(skin + h * v) - gap.distances(skin - h * v)) / (2 * h)
     assert np.sqrt(np.mean((lin - fd) ** 2)) < 2.0 * raw
+
+
+def test_linearised_on_another_face_matches_finite_differences(patient, forward):
+    """ScanGap.linearised_on (a second mesh's predicted face) is the same linearisation as
+    `linearised`: on the model's own face it agrees with it to round-off, and against central
+    differences of the exact distances it meets the same bounds (see the test above)."""
+    from planner.diagnosis.gap import measure_gap
+
+    scan = _scan(patient, [], seed=7, perturb=False, forward=forward)
+    skin = forward.baseline(0)
+    gap = measure_gap(patient, skin, scan)
+    v = np.cos(skin / 15.0) * np.array([0.5, 0.8, 0.3])
+    verts, faces = patient.predicted_surface(skin)
+    dv = v if patient.surface is None else patient.surface.carry_velocity(v)
+    on = gap.linearised_on(verts, faces, dv, pose=False)
+    assert np.allclose(on, gap.linearised(skin, v, pose=False), atol=1e-12)
+    h = 0.01
+    fd = (gap.distances_to(verts + h * dv, faces, pose=False)
+          - gap.distances_to(verts - h * dv, faces, pose=False)) / (2 * h)
+    assert np.median(np.abs(on - fd)) < 1e-5
+    assert np.mean(np.abs(on - fd) < 2e-2) > 0.98
+
+
+def test_fitted_values_are_extrapolated_to_the_converged_mesh():
+    """The diagnosis mesh responds to an effect 30 % less than the converged model
+    (J_true = 1.3 J_d on the gap) and the second mesh lies between them as a first-order
+    Richardson pair does (J_ref = J_d + (J_true - J_d) / kappa, kappa = 4/3: a mesh twice as
+    fine). The least-squares fit on J_d finds 1.3x the true coordinates; extrapolated with
+    kappa it gives them back exactly (linear algebra: 1e-10), a fixed parameter stays at its
+    origin, kappa = 0 (no mesh error) changes nothing, and the bounds hold."""
+    from planner.diagnosis.analysis import extrapolated_theta
+
+    rng = np.random.default_rng(3)
+    Jd = rng.normal(size=(300, 3))
+    w = rng.uniform(0.5, 2.0, 300)
+    true = np.array([0.4, -0.25, 0.0])
+    free = np.array([True, True, False])
+    origin = np.zeros(3)
+    kappa = 4.0 / 3.0
+    J_true = 1.3 * Jd
+    Jr = Jd + (J_true - Jd) / kappa
+    r = J_true[:, free] @ true[free]                      # the gap the effect leaves
+    fitted = origin.copy()
+    fitted[free] = np.linalg.lstsq(Jd[:, free] * np.sqrt(w)[:, None], r * np.sqrt(w), rcond=None)[0]
+    assert np.allclose(fitted[free], 1.3 * true[free], atol=1e-10)
+    lo, hi = -np.ones(3), np.ones(3)
+    got = extrapolated_theta(Jd, Jr, kappa, fitted, origin, free, w, lo, hi)
+    assert np.allclose(got, true, atol=1e-10)
+    assert np.allclose(extrapolated_theta(Jd, Jr, 0.0, fitted, origin, free, w, lo, hi), fitted, atol=1e-10)
+    got = extrapolated_theta(Jd, Jr, kappa, fitted, origin, free, w, lo, np.array([0.3, 1.0, 1.0]))
+    assert got[0] == pytest.approx(0.3)
 
 
 def test_linear_fit_recovers_parameters_within_bounds():

@@ -133,6 +133,8 @@ def test_cohort_on_a_two_worker_cluster_matches_one_process(tmp_path):
     r = recs[0]
     assert r["effect"] is None and r["value"] is None
     assert 3.0 <= r["follow_up_months"] <= 12.0 and r["plan_actual"] is False
+    # the truth's contact state is in the key: without contact terms nothing can be left unmet
+    assert r["truth_contact_unmet_mm"] == {}
     p = r["perturbation"]
     assert 500 <= p["bulk_to_shear"] <= 2000
     assert all(0.85 <= f <= 1.15 for f in p["modulus_factors"].values())

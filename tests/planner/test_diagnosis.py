@@ -79,14 +79,15 @@ def test_withheld_muscle_tone_is_named(patient, forward):
         assert r["after_mm"] < r["before_mm"]
 
 
-def test_a_better_reference_model_moves_the_fitted_value_towards_the_truth(patient, forward):
+def test_fitted_values_extrapolated_with_the_truths_model_as_the_second_mesh(patient, forward):
     """The muscle-tone scan of the test above was made on the perturbed model (moduli +-15 %,
     layers +-20 %), which responds to tone otherwise than the diagnosed one. Given that model
     as the second mesh (`references`: the mesh-error direction is then exactly the models'
     difference at the baseline), the gap's coefficient on it comes out near 1 (kappa within
-    0.5-1.5; the noise and the discrepancy share the gap) and the fitted tone extrapolated with
-    the reference's tangent lies closer to the truth than the fit on the diagnosed model alone
-    (their difference is the models' response ratio, the thing extrapolated)."""
+    0.5-1.5: the noise and the discrepancy share the gap) and the tone extrapolated with the
+    reference's tangent lies within 10 % of the truth: the fit's own scatter on this scan (a
+    few %, from the scan noise and the error model's estimates) and not the 25 % the issue
+    allows, as the reference here is the truth's own model."""
     _diagnose(patient, forward, "tone", ["muscle_tone=0.15"], seed=1)      # makes and keeps the scan
     scan = _RESULTS["tone_scan"]
     ref = perturbed_case(patient, 1)
@@ -95,9 +96,8 @@ def test_a_better_reference_model_moves_the_fitted_value_towards_the_truth(patie
     tone = next(e for e in rec["effects"] if e["name"] == "muscle_tone")
     kappa = tone["mesh_extrapolation_factor"][0]
     assert 0.5 <= kappa <= 1.5, kappa
-    fitted = tone["params"]["muscle_tone"]
     extrapolated = tone["params_mesh_extrapolated"]["muscle_tone"]
-    assert abs(extrapolated - 0.15) < abs(fitted - 0.15), (fitted, extrapolated)
+    assert extrapolated == pytest.approx(0.15, rel=0.10), (tone["params"], extrapolated)
 
 
 def test_uniform_stiffness_is_not_identifiable(patient, forward):

@@ -191,27 +191,18 @@ def _r(x, n=4):
     return None if x is None or not np.isfinite(x) else round(float(x), n)
 
 
-def _params(s, least_squares: bool = False) -> dict:
-    """Fitted values in the form `--effect` takes them (per case when case-specific): the
-    estimates under noise + discrepancy, or the refined least-squares fit."""
+def _params(s, thetas: list | None = None) -> dict | None:
+    """Values in the form `--effect` takes them (per case when case-specific): by default the
+    estimates under noise + discrepancy; `thetas` (per case coordinates): those, e.g. the
+    refined least-squares fit (`cand.theta`) or the values extrapolated to the converged mesh
+    (`theta_mesh`, None where not estimated)."""
     from planner.diagnosis.effects import collect_effects
 
     cand = s.cand
-    per_case = [collect_effects(cand.values(c) if least_squares else s.values(c)) for c in range(cand.n_cases)]
-    if cand.shared or cand.n_cases == 1:
-        return per_case[0]
-    return {"per_case": per_case}
-
-
-def _mesh_params(s) -> dict | None:
-    """The fitted values extrapolated to the converged mesh (`analysis.mesh_extrapolated_theta`)
-    in the form of `params`; None where not estimated."""
-    from planner.diagnosis.effects import collect_effects
-
-    cand = s.cand
-    if not s.theta_mesh:
+    if thetas is not None and not thetas:
         return None
-    per_case = [collect_effects(cand.values(c, s.theta_mesh[c])) for c in range(cand.n_cases)]
+    per_case = [collect_effects(s.values(c) if thetas is None else cand.values(c, thetas[c]))
+                for c in range(cand.n_cases)]
     if cand.shared or cand.n_cases == 1:
         return per_case[0]
     return {"per_case": per_case}
@@ -222,8 +213,8 @@ def _effect_entry(s: analysis.Scored) -> dict:
     entry = {
         "name": c.name,
         "params": _params(s),
-        "params_least_squares": _params(s, least_squares=True),
-        "params_mesh_extrapolated": _mesh_params(s),
+        "params_least_squares": _params(s, c.theta),
+        "params_mesh_extrapolated": _params(s, s.theta_mesh or []),
         "mesh_extrapolation_factor": ([_r(k, 3) for k in s.mesh_kappa] if s.mesh_kappa else None),
         "identifiable": s.identifiable,
         "rms_after_mm": _r(s.rms_after),

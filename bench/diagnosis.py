@@ -49,11 +49,13 @@ def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str):
 
 
 def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: str,
-                truth_resolution: str, workers: int, skip: tuple[int, ...] = (), make: bool = True) -> list[dict]:
+                truth_resolution: str, workers: int, skip: tuple[int, ...] = (), make: bool = True,
+                max_minutes: float | None = None) -> list[dict]:
     """Case folders with post-op scans and their key, one `faceplan synth` per seed (`workers`
-    at a time). A seed whose truth cannot be solved is reported and left out (its verdict
-    would say nothing about the diagnosis). Cases already in `root` (an earlier run with
-    --keep) are read back instead of made again."""
+    at a time). A seed whose truth cannot be solved, or whose synth runs longer than
+    `max_minutes` (a plan whose solve creeps at a limit point of the lips), is reported and
+    left out (its verdict would say nothing about the diagnosis). Cases already in `root` (an
+    earlier run with --keep) are read back instead of made again."""
     jobs = []
     for kind, count, s0 in (("random", n_random, seed), ("none", n_none, seed + 500)):
         (root / kind).mkdir(parents=True, exist_ok=True)
@@ -63,9 +65,16 @@ def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: s
     while todo or running:
         while todo and len(running) < max(workers, 1):
             kind, s = todo.pop(0)
-            running.append((kind, s, _synth_one(root, kind, s, truth_resolution)))
+            running.append((kind, s, _synth_one(root, kind, s, truth_resolution), time.perf_counter()))
         time.sleep(2.0)
         for job in list(running):
+            if job[2].poll() is None and max_minutes and time.perf_counter() - job[3] > 60.0 * max_minutes:
+                job[2].kill()
+                job[2].wait()
+                print(f"synth {job[0]} seed {job[1]}: stopped after {max_minutes:g} min "
+                      "(--synth-max-minutes); left out", file=sys.stderr, flush=True)
+                running.remove(job)
+                continue
             if job[2].poll() is not None:
                 running.remove(job)
                 print(f"synth {job[0]} seed {job[1]}: exit {job[2].returncode}", file=sys.stderr, flush=True)
@@ -179,6 +188,9 @@ def main_bench(argv=None) -> int:
     ap.add_argument("--mesh-reference", default="auto", choices=("auto", "none", "coarse", "standard", "fine"),
                     help="second mesh whose baseline estimates the model mesh's discretisation error "
                          "(as faceplan diagnose --mesh-reference; default auto: the next coarser, none at coarse)")
+    ap.add_argument("--synth-max-minutes", type=float, default=None,
+                    help="stop a case's faceplan synth after this many minutes and leave the seed out "
+                         "(default: no limit)")
     ap.add_argument("--skip-seeds", default="", help="comma-separated seeds whose truth synth cannot solve "
                     "(left out, and said so)")
     args = ap.parse_args(argv)
@@ -194,7 +206,8 @@ def main_bench(argv=None) -> int:
     finer = {"coarse": "standard", "standard": "fine", "fine": "fine"}
     key = make_cohort(root, args.random, args.none, args.seed, args.resolution,
                       args.truth_resolution or finer[args.resolution], args.workers,
-                      tuple(int(x) for x in args.skip_seeds.split(",") if x.strip()), make=not args.no_make)
+                      tuple(int(x) for x in args.skip_seeds.split(",") if x.strip()), make=not args.no_make,
+                      max_minutes=args.synth_max_minutes)
     if args.skip_seeds:
         print(f"seeds left out (their truth could not be solved by synth): {args.skip_seeds}", flush=True)
     t_cohort = time.perf_counter() - t0

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -257,7 +257,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
              materials: dict | None = None, growth=None, body_force=None,
              n_steps: int = 4, log=None, penalty_factor: float = 1.0,
              contact_tolerance: float = 0.05, max_iterations: int = 25,
-             guess=None) -> SimulationResult:
+             guess=None, max_seconds: float | None = None) -> SimulationResult:
     """Solve the face for bone `motions` {segment: 4x4} and muscle `activations` {muscle: a}.
 
     contact: lip-lip and lip-teeth contact on/off. sliding: segments whose deep nodes slide
@@ -276,6 +276,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     largest lip/teeth penetration accepted (mm). guess: the displacement field (n, 3) of a
     nearby solution on this model (the same case with other effect values): the full load is
     solved from it first, the load stepped only if that fails (`solver.newton.newton_solve`).
+    max_seconds: the solve's wall-clock budget (`SolverControl.max_seconds`; None: none).
     Raises `facemodel.errors.ModelInputError` (a
     ValueError) for motions, activations, materials or model parts it cannot use (contact
     asked of a model without lip contact surfaces) and `solver.errors.SolveFailed` if Newton
@@ -302,6 +303,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     teeth = any(isinstance(t, RigidSurfaceContact) for t in terms.values())
     advance = teeth_advance(model, motions, 1.0 / max(int(n_steps), 1)) if teeth else 0.0
     control = FACE_SOLVER.control(n_steps, max_iterations, _contact_nodes(terms), lip_size, advance)
+    if max_seconds is not None:
+        control = replace(control, max_seconds=float(max_seconds))
     res = newton_solve(body, constraints, list(terms.values()) + extra, control=control,
                        callback=callback, guess=None if guess is None else X + np.asarray(guess, float))
     elapsed = time.perf_counter() - t0

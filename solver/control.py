@@ -63,6 +63,10 @@ class SolverControl:
     (re-solves for the contact status or augmentations included; None: no limit);
     ptc_max_failures, the consecutive failed load steps under continuation after which the
     run fails (None: only `min_step` ends it).
+    Wall clock: max_seconds, the run's time budget (None: none). Checked after every Newton
+    iteration; when it is spent the run ends at once with `SolveFailed` naming the load
+    reached, so that a run creeping near a limit point (tens of damped solves, each within its
+    own budget) ends when its caller can no longer use it, not after hours.
     """
 
     steps: int = 10
@@ -98,6 +102,7 @@ class SolverControl:
     ptc_iterations: int = 60
     ptc_step_iterations: int | None = 120
     ptc_max_failures: int | None = 4
+    max_seconds: float | None = None
 
     def __post_init__(self):
         if self.linear_strategy not in ("auto", "exact", "lagged"):
@@ -109,6 +114,8 @@ class SolverControl:
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise ValueError(f"{name} must be None or >= 1, got {value!r}")
+        if self.max_seconds is not None and not self.max_seconds > 0.0:
+            raise ValueError(f"max_seconds must be None or > 0, got {self.max_seconds!r}")
         if not self.ptc_damping > 0.0:
             raise ValueError(f"ptc_damping must be > 0, got {self.ptc_damping!r}")
         if self.predictor not in ("auto", "tangent", "secant"):
@@ -285,6 +292,7 @@ class StepResult:
     predicted: bool = False          # started from the extrapolated state
     retries: int = 0                 # re-solves the terms asked for (augmentations)
     first_iterations: int | None = None   # iterations of the step's first solve
+    out_of_time: bool = False        # stopped because the run's wall-clock budget is spent
 
     def __post_init__(self):
         if self.residuals is None:

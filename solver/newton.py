@@ -267,6 +267,9 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
             # the shorter step starts from the converged state, with the terms as they were
             # there: not from the failed solve's iterate (at the higher load) nor with the
             # multipliers its augmentations updated
+            if step.out_of_time:
+                run.finish(x, load, converged=False)
+                raise _failed(step_no, target, load, step, result, "no time left for a shorter step")
             result.cutbacks += 1
             predictor.cut_back()
             run.restore_step_start()
@@ -484,6 +487,11 @@ class _Run:
                 first_iterations = step.iterations
             if not step.converged:
                 break
+            if self.out_of_time():
+                # converged, but the re-solves the terms ask for cannot be afforded
+                step.converged, step.out_of_time = False, True
+                step.reason = f"the run's wall-clock budget of {control.max_seconds:g} s is spent"
+                break
             again = any([bool(t.end_step(step.x, target)) for t in terms])
             result.early_augmentations += bool(step.early)
             if step.early and not again:
@@ -586,6 +594,11 @@ class _Run:
                     return step
             if criterion.at_round_off(it, rn, scale, dn, self.size, gap_after, tiny):
                 step.converged, step.reason = True, "converged at round-off"
+                return step
+            if self.out_of_time():
+                step.out_of_time = True
+                step.reason = (f"the run's wall-clock budget of {control.max_seconds:g} s is spent "
+                               f"(|R| = {rn:.3e})")
                 return step
             if criterion.diverges(it, residuals):
                 step.reason = "residual diverges"
@@ -740,6 +753,11 @@ class _Run:
                  f" ptc {self.ptc.delta:.2e}" if self.ptc is not None else "")
         if self.callback is not None:
             self.callback(rec)
+
+    def out_of_time(self) -> bool:
+        """The run's wall-clock budget (`SolverControl.max_seconds`) is spent."""
+        budget = self.control.max_seconds
+        return budget is not None and time.perf_counter() - self.t_start > budget
 
     def finish(self, x, load, converged):
         """Reactions, timings and counts into the result."""

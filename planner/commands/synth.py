@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -91,6 +92,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
                         help="dask scheduler to run the cases on (default: a local cluster)")
     parser.add_argument("--workers", type=int, default=2, help="local cluster worker processes (default 2)")
+    parser.add_argument("--case-max-minutes", type=float, default=None, metavar="M",
+                        help="time budget of each case's truth solves: a case whose solves are still "
+                             "running after M minutes (a plan creeping at a limit point of the lips) "
+                             "fails with the load it reached (default: no limit)")
     parser.add_argument("--ct", action="store_true", help="also write a CT-like volume preop/ct.nii.gz")
     parser.add_argument("--ct-spacing", type=float, default=1.0, help="CT voxel size in mm (default 1)")
     parser.add_argument("--surface-size", type=float, default=1.0,
@@ -139,6 +144,9 @@ def _check(args) -> None:
         raise InputError(f"--ct-spacing must be in [0.2, 5] mm, got {args.ct_spacing}", field="--ct-spacing")
     if not (1.0 <= args.surface_size <= 10.0):
         raise InputError(f"--surface-size must be in [1, 10] mm, got {args.surface_size}", field="--surface-size")
+    if args.case_max_minutes is not None and not args.case_max_minutes > 0:
+        raise InputError(f"--case-max-minutes must be > 0, got {args.case_max_minutes}",
+                         field="--case-max-minutes")
 
 
 def sample_plan(shape) -> dict:
@@ -420,7 +428,8 @@ def prolonged_patient(generic, companion_generic, companion):
 
 
 def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
-                contact: bool = True, timings: dict | None = None, log=None) -> dict:
+                contact: bool = True, timings: dict | None = None, log=None,
+                deadline: float | None = None) -> dict:
     """Predict and write `folder`/postop/skin.stl (and plan_actual.yaml) for an existing case
     folder; return the key record's post-op fields. contact: lip contact in the truth model
     (on for every case the command makes; off only to keep tests on coarse meshes short).
@@ -429,7 +438,8 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     change measured on the companion, and the finer model solved once with that value.
     timings: a dict that receives the stages' times (s) and the solves' Newton counts (kept
     when a solve fails); log: a callable receiving the truth solves' progress lines (one per
-    Newton iteration)."""
+    Newton iteration); deadline: `time.perf_counter()` by which every truth solve must have
+    ended (each gets what is left as its budget; a `SolveError` when it is spent)."""
     import dataclasses
     import time
 
@@ -443,12 +453,17 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     from facemodel import synthetic as sy
     from generic_mesh.builder import RESOLUTIONS
     from planner.case import load_case
-    from planner.pipeline import Progress, skin_sensitivities, skin_surface
+    from planner.pipeline import Progress, skin_sensitivities, skin_surface, unmet_text
     from planner.pipeline import solve_plan as _solve_plan
     from planner.plan import load_plan, parse_plan
 
     def solve_plan(*a, **kw):
-        return _solve_plan(*a, progress=None if log is None else Progress(echo=log), **kw)
+        left = None
+        if deadline is not None:
+            left = deadline - time.perf_counter()
+            if left <= 0.0:
+                raise SolveError(f"{Path(folder).name}: the case's time budget is spent before its next solve")
+        return _solve_plan(*a, progress=None if log is None else Progress(echo=log), max_seconds=left, **kw)
 
     folder = Path(folder)
     rng = _rng(seed)
@@ -578,10 +593,9 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
         solves.append(_solve_record(truth_resolution, pred))
     # a truth whose lips or teeth overlap beyond the contact tolerance is still a converged
     # solution of the truth model, but not the contact state it asks for: the key says so
-    unmet = (pred.solver.get("info") or {}).get("contact_unmet_mm") or {}
+    unmet = pred.contact_unmet
     if unmet:
-        print(f"faceplan synth: {folder.name}: warning: the truth solve ended with "
-              + ", ".join(f"{k} {v:.2f} mm" for k, v in sorted(unmet.items()))
+        print(f"faceplan synth: {folder.name}: warning: the truth solve ended with " + unmet_text(unmet)
               + " of penetration (recorded in the key, truth_contact_unmet_mm)", file=sys.stderr, flush=True)
     # the post-op skin: the patient's skin moved with the truth model's skin, scanned
     clock = time.perf_counter()
@@ -610,6 +624,7 @@ def make_case(root: str, seed: int, options: dict) -> dict:
 
     from facemodel.synthetic import synthetic_head
 
+    start = time.perf_counter()
     name = f"synth_{seed:04d}"
     target = Path(root) / name
     if target.exists():
@@ -626,8 +641,10 @@ def make_case(root: str, seed: int, options: dict) -> dict:
               "follow_up_months": None if fu is None else round(fu, 2), "plan_actual": False,
               "shape": rec["shape"], "plan": rec["plan"]}
     if withheld is not None:
+        budget = options.get("case_max_minutes")
         record.update(make_postop(str(target), seed, tuple(withheld), options["truth_resolution"],
-                                  contact=options.get("contact", True)))
+                                  contact=options.get("contact", True),
+                                  deadline=None if budget is None else start + 60.0 * float(budget)))
     return record
 
 
@@ -669,7 +686,7 @@ def run(args) -> int:
         raise InputError("--out exists and is not a folder", file=str(out), field="--out")
     options = {"withheld": parse_withheld(args.withheld_effect), "truth_resolution": args.truth_resolution,
                "surface_size": args.surface_size, "mesher": args.mesher, "ct": args.ct,
-               "ct_spacing": args.ct_spacing}
+               "ct_spacing": args.ct_spacing, "case_max_minutes": args.case_max_minutes}
     seeds = [args.seed + i for i in range(args.count)]
     with atomic_output_dir(out) as tmp:
         if out.is_dir():          # keep what the folder already holds

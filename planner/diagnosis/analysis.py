@@ -41,14 +41,23 @@ baseline and the models that pass both the BIC and the held-out checks: `probabi
 the ranking.
 
 Where the mesh's own error is estimated from a second mesh (`remove_mesh_error`: the gap's
-coefficient a on the direction r_ref - r_d), the fitted values are also extrapolated to the
-converged model (`mesh_extrapolated_theta`): the diagnosis mesh's response per unit of an
-effect differs from the converged model's as its baseline does (a coarse mesh is too stiff
-where the tissue bends), so the gap's Jacobian is extrapolated with the same coefficient,
-J_inf = J_d + kappa (J_ref - J_d), kappa = -a (kappa = 1 when the truth is the reference
-mesh's own prediction; Richardson extrapolation, Roache 1998, ch. 5), both Jacobians from the
-tangents at the two baselines, and the values are those whose response on J_inf reproduces the
-fitted response J_d (theta - theta_0) in weighted least squares.
+coefficient a on the direction r_ref - r_d, taken out of every gap), the effects are fitted on
+the converged model's response too (`mesh_corrections`): the diagnosis mesh responds to an
+effect otherwise than the converged model does (a coarse mesh is too stiff where the tissue
+bends; near a contact limit its tangent can even overstate a response many times), as its
+baseline does, so each parameter's column of the gap's Jacobian is extrapolated with the same
+coefficient, J_inf = J_d + kappa (J_ref - J_d), kappa = -a (kappa = 1 when the truth is the
+reference mesh's own prediction; Richardson extrapolation, Roache 1998, ch. 5), both Jacobians
+from the tangents at the two baselines. The gap of a full solve on the diagnosis mesh at theta
+is extrapolated the same way, r = r_d + kappa (r_ref - r_d), with the reference's response
+known to first order, r_ref(theta) = r_ref(theta_0) + J_ref (theta - theta_0): where every
+parameter of the effect has a reference tangent and no discrete choice shares the solve, with
+the solve's own change from the origin (r = (1 - kappa) r_d(theta) + kappa r_0 + kappa J_ref
+(theta - theta_0): a spurious nonlinearity of the diagnosis mesh, as near a contact limit,
+keeps only the weight 1 - kappa), else with its linear part (r = r_d(theta) + kappa (J_ref -
+J_d)(theta - theta_0)). The refinement, the cross-validation and the evidence all see that one
+model. Parameters without a tangent on both meshes (finite differences) and discrete choices
+keep the diagnosis mesh's response.
 """
 from __future__ import annotations
 
@@ -87,10 +96,13 @@ class CaseData:
     mesh_reference: str | None = None      # that mesh's resolution
     mesh_coef: float | None = None         # the gap's estimated coefficient on that direction
     # the second mesh's case model, baseline skin and tangent sensitivities {key: d skin/dp}
-    # (`mesh_extrapolated_theta`); None without them
+    # (`mesh_corrections`); None without them
     reference: object = None
     reference_skin: np.ndarray | None = None
     reference_sens: dict | None = None
+    # per parameter key kappa (dr_ref/dv - dr_d/dv) on the scan points, per unit of the value
+    # (`mesh_corrections`); empty without a second mesh
+    mesh_jac: dict = field(default_factory=dict)
 
     @property
     def folds(self) -> dict[str, np.ndarray]:
@@ -139,6 +151,13 @@ class Candidate:
     theta: list = field(default_factory=list)          # per case fitted coordinates
     anchor_r: list = field(default_factory=list)       # per case r at the anchor
     J: list = field(default_factory=list)              # per case dr/dtheta
+    C: list = field(default_factory=list)              # per case mesh correction of dr/dtheta
+    # per case kappa J_ref (the converged response's reference part) and kappa, where every
+    # parameter has a second mesh's tangent and no discrete choice shares the solves
+    # (`corrected`); None otherwise
+    KR: list = field(default_factory=list)
+    kappa: list = field(default_factory=list)
+    base_r: list = field(default_factory=list)         # per case gap at the parameters' origin
     free: np.ndarray | None = None
     se: np.ndarray | None = None
     failed: str | None = None
@@ -168,6 +187,21 @@ class Candidate:
 
     def strings(self, c: int, theta: np.ndarray | None = None) -> tuple[str, ...]:
         return effect_strings(self.values(c, theta))
+
+    def corrected(self, c: int, r: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """The gap r of a full solve at theta on the diagnosis mesh extrapolated to the
+        converged mesh (module text): r_d + kappa (r_ref - r_d) with the reference's response
+        linear, r_ref(theta) - r_ref(theta_0) = J_ref (theta - theta_0). Where every parameter
+        has a reference tangent and no discrete choice shares the solve, the diagnosis mesh's
+        own change from the origin is the solve's, r - r(theta_0); else its linear part,
+        J_d (theta - theta_0) (the correction C (theta - theta_0))."""
+        dtheta = np.asarray(theta, float) - self.origin
+        if self.KR and self.KR[c] is not None:
+            k = self.kappa[c]
+            return (1.0 - k) * r + k * self.base_r[c] + self.KR[c] @ dtheta
+        if not self.C or not np.any(self.C[c]):
+            return r
+        return r + self.C[c] @ dtheta
 
 
 def _rss(d: CaseData, r: np.ndarray, mask=None) -> float:
@@ -236,6 +270,7 @@ def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -
         cand.choices.append(tuple(choice))
         cand.anchor_r.append(anchor)
         J = np.zeros((len(d.r0), len(e.parameters)))
+        C = np.zeros_like(J)
         fd = _fd_params(e, tangent[c])
         skin0 = forward.baseline(c)
         for k, p in enumerate(e.parameters):
@@ -243,6 +278,8 @@ def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -
                 # d r / d theta = d r / d value * d value / d theta (value = exp(theta) for factors)
                 J[:, k] = d.gap.linearised(skin0, tangent[c][p.key]) * (p.none if p.log else 1.0)
                 methods.add("tangent")
+                if p.key in d.mesh_jac:
+                    C[:, k] = d.mesh_jac[p.key] * (p.none if p.log else 1.0)
         for k, a, b in _fd_points(e, fd):
             rs = []
             for off in (a, b):
@@ -256,7 +293,13 @@ def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -
                 rs.append(d.gap.distances(skin))
             J[:, k] = fit.finite_difference_jacobian(d.r0, [(a, b, rs[0], rs[1])])[:, 0]
             methods.add("finite differences")
-        cand.J.append(J)
+        cand.J.append(J + C)
+        cand.C.append(C)
+        exact = not e.choices and len(e.parameters) > 0 and all(p.key in d.mesh_jac for p in e.parameters)
+        kappa = -float(d.mesh_coef) if d.mesh_coef is not None else 0.0
+        cand.kappa.append(kappa)
+        cand.base_r.append(d.r0)
+        cand.KR.append(C + kappa * J if exact else None)
         cand.theta.append(cand.origin.copy())
     cand.sensitivity = " and ".join(sorted(methods)) if methods else "none (discrete choices)"
     return cand
@@ -348,7 +391,7 @@ def refine(cands: list[Candidate], data: list[CaseData], forward) -> None:
             cand.solves += len(g)
             if not all(_ok(s) for s in results):
                 continue            # that value cannot be solved: keep the anchor
-            rs = [data[c].gap.distances(s) for c, s in zip(g, results)]
+            rs = [cand.corrected(c, data[c].gap.distances(s), new) for c, s in zip(g, results)]
             old = sum(_rss(data[c], cand.anchor_r[c]) for c in g)
             newrss = sum(_rss(data[c], r) for c, r in zip(g, rs))
             for c, r in zip(g, rs):
@@ -468,8 +511,7 @@ class Scored:
     lpd_gain_se: float = np.nan                  # its standard error over the folds
     noise_shrink_pct: float = np.nan             # held-out shrinkage of the gap beyond the noise
     noise_spread_pct: float = np.inf             # its bootstrap spread
-    theta_mesh: list | None = None               # per case values extrapolated to the converged mesh
-    mesh_kappa: list | None = None               # per case extrapolation factor kappa
+    mesh_kappa: list | None = None               # per case kappa of the Jacobian's extrapolation
 
     def values(self, c: int) -> dict:
         return self.cand.values(c, self.theta[c] if self.theta else None)
@@ -521,71 +563,27 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
     return out
 
 
-def _gap_jacobians(cand: Candidate, d: CaseData, skin0, sens: dict):
-    """(J_d, J_ref) of the gap at the two meshes' baselines from their tangent sensitivities
-    (per fit coordinate: d value / d theta = value for log coordinates), or None where a
-    parameter has no tangent sensitivity on either mesh."""
-    keys = [p.key for p in cand.params]
-    if not isinstance(sens, dict) or not isinstance(d.reference_sens, dict) \
-            or any(k not in sens or k not in d.reference_sens for k in keys):
-        return None
+def mesh_corrections(d: CaseData, skin0, sens) -> dict:
+    """{key: kappa (dr_ref/dv - dr_d/dv)} on the case's scan points, per unit of each parameter
+    value with a tangent sensitivity on both meshes (module text); {} without a second mesh's
+    sensitivities or an estimated mesh-error coefficient (kappa = -a)."""
+    if d.mesh_coef is None or not isinstance(sens, dict) or not isinstance(d.reference_sens, dict):
+        return {}
+    keys = [k for k in sens if k in d.reference_sens]
+    if not keys:
+        return {}
+    kappa = -float(d.mesh_coef)
     ref = d.reference
     v_ref, f_ref = ref.predicted_surface(d.reference_skin)
-    Jd = np.zeros((len(d.r0), len(keys)))
-    Jr = np.zeros_like(Jd)
-    for k, p in enumerate(cand.params):
-        scale = p.none if p.log else 1.0
-        Jd[:, k] = d.gap.linearised(skin0, sens[p.key]) * scale
-        dv = d.reference_sens[p.key]
+    out = {}
+    for key in keys:
+        jd = d.gap.linearised(skin0, sens[key])
+        dv = d.reference_sens[key]
         dv = ref.surface.carry_velocity(dv) if ref.surface is not None else np.asarray(dv, float)
-        Jr[:, k] = d.gap.linearised_on(v_ref, f_ref, dv) * scale
-    return Jd, Jr
-
-
-def extrapolated_theta(Jd: np.ndarray, Jr: np.ndarray, kappa: float, theta: np.ndarray,
-                       origin: np.ndarray, free: np.ndarray, w: np.ndarray,
-                       lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """The coordinates whose linear response on the extrapolated Jacobian J_inf = Jd +
-    kappa (Jr - Jd) best reproduces (weights w) the response Jd (theta - origin) fitted on the
-    diagnosis mesh; the parameters that are not free stay at the origin; clipped to the bounds.
-    Jd, Jr: (n, k) over the stacked points of the cases the coordinates are shared by."""
-    theta_inf = np.array(origin, float)
-    if not np.any(free):
-        return theta_inf
-    J_inf = Jd + kappa * (Jr - Jd)
-    target = Jd[:, free] @ (np.asarray(theta, float)[free] - origin[free])
-    sw = np.sqrt(np.asarray(w, float))
-    delta = np.linalg.lstsq(J_inf[:, free] * sw[:, None], target * sw, rcond=None)[0]
-    theta_inf[free] += delta
-    return np.clip(theta_inf, lower, upper)
-
-
-def mesh_extrapolated_theta(s: Scored, data: list[CaseData], forward, sens: list) -> None:
-    """Set `s.theta_mesh` (per case) and `s.mesh_kappa` where every case has a second mesh's
-    tangent sensitivities and an estimated mesh-error coefficient (module text); the
-    candidate's discrete choices, if any, rule it out (their response is not a tangent)."""
-    cand = s.cand
-    if cand.free is None or not cand.free.any() or any(e.choices for e in cand.effects):
-        return
-    if any(d.mesh_coef is None for d in data):
-        return
-    jac = [_gap_jacobians(cand, d, forward.baseline(c), sens[c]) for c, d in enumerate(data)]
-    if any(j is None for j in jac):
-        return
-    kappas = [-d.mesh_coef for d in data]
-    theta = [np.asarray(t, float) for t in (s.theta or cand.theta)]
-    args = (cand.origin, cand.free)
-    if cand.shared and len(data) > 1:
-        # one set of coordinates for every case: the cases' rows stacked, each with its kappa
-        Jd = np.vstack([j[0] for j in jac])
-        Jr = np.vstack([j[0] + k * (j[1] - j[0]) for j, k in zip(jac, kappas)])
-        w = np.concatenate([d.gap.weights for d in data])
-        t = extrapolated_theta(Jd, Jr, 1.0, theta[0], *args, w, cand.lower, cand.upper)
-        s.theta_mesh = [t] * len(data)
-    else:
-        s.theta_mesh = [extrapolated_theta(j[0], j[1], k, t, *args, d.gap.weights, cand.lower, cand.upper)
-                        for j, k, t, d in zip(jac, kappas, theta, data)]
-    s.mesh_kappa = kappas
+        jr = d.gap.linearised_on(v_ref, f_ref, dv)
+        if np.all(np.isfinite(jd)) and np.all(np.isfinite(jr)):
+            out[key] = kappa * (jr - jd)
+    return out
 
 
 def heldout_lpd(cand: Candidate | None, data: list[CaseData], fits: list, heldout: list | None = None
@@ -645,6 +643,11 @@ def _pair(a: Candidate, b: Candidate, data: list[CaseData]) -> Candidate:
         cand.choices.append(tuple(a.choices[c] if a.choices else ()) + tuple(b.choices[c] if b.choices else ()))
         cand.theta.append(np.concatenate([a.theta[c], b.origin]))
         cand.J.append(np.concatenate([a.J[c], b.J[c]], axis=1))
+        cand.C.append(np.concatenate([a.C[c], b.C[c]], axis=1))
+        cand.kappa.append(a.kappa[c])
+        cand.base_r.append(a.base_r[c])
+        cand.KR.append(np.concatenate([a.KR[c], b.KR[c]], axis=1)
+                       if a.KR[c] is not None and b.KR[c] is not None else None)
         cand.anchor_r.append(a.anchor_r[c])
     cand.sensitivity = a.sensitivity
     return cand
@@ -681,6 +684,11 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
             if not isinstance(s, dict):
                 notes.append(f"{data[c].case.name}: {s}; finite differences instead")
                 say(f"  {notes[-1]}")
+    for c, d in enumerate(data):
+        d.mesh_jac = mesh_corrections(d, forward.baseline(c), sens[c])
+        if d.mesh_jac:
+            say(f"  {d.case.name}: {len(d.mesh_jac)} parameter(s) fitted on the response extrapolated to the "
+                f"converged mesh (kappa {-d.mesh_coef:.2f})")
     reqs = _sensitivity_requests(data, effects, sens)
     say(f"{len(set(reqs))} solve(s) for finite differences and discrete choices")
     forward.solve(reqs)                                             # one parallel batch
@@ -712,8 +720,8 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
     prob = probabilities(gp0, lpd0, scored + pairs)
     for s in scored + pairs:
         s.probability = prob[s.cand.name]
-        if s.identifiable:
-            mesh_extrapolated_theta(s, data, forward, sens)
+        if s.cand.C and all(np.any(C) for C in s.cand.C):
+            s.mesh_kappa = [-float(d.mesh_coef) for d in data]
     verdict = _verdict(data, best, pairs, prob, scored)
     return {"rms0": rms0, "bic0": bic0, "gp_bic0": gp0, "baseline_error": base_fits, "n_eff": n_eff, "scored": scored, "pairs": pairs, "notes": notes,
             "failed": failed, "verdict": verdict, "probabilities": prob, "best": best,

@@ -147,11 +147,6 @@ def _solve(case: CaseModel, strings: tuple[str, ...], guess=None):
                       progress=Progress(echo=False), guess=guess)
 
 
-def _unmet(pred) -> dict:
-    """The contacts a converged solve left deeper than twice their tolerance ({name: mm})."""
-    return dict((pred.solver.get("info") or {}).get("contact_unmet_mm") or {})
-
-
 def solve_skin(case: CaseModel, strings: tuple[str, ...], guess=None):
     """(skin vertex positions (n_skin, 3) of the prediction with the effects `strings`, or the
     error message (str) when the model cannot be solved there; the contacts it left unmet,
@@ -160,7 +155,7 @@ def solve_skin(case: CaseModel, strings: tuple[str, ...], guess=None):
         pred = _solve(case, strings, guess)
     except SolveError as exc:
         return f"{exc}", {}
-    return np.asarray(pred.predicted_nodes, float)[case.skin_ids], _unmet(pred)
+    return np.asarray(pred.predicted_nodes, float)[case.skin_ids], pred.contact_unmet
 
 
 def solve_with_sensitivities(case: CaseModel, names: tuple[str, ...]):
@@ -174,7 +169,7 @@ def solve_with_sensitivities(case: CaseModel, names: tuple[str, ...]):
         return f"{exc}", None, None, {}
     skin = np.asarray(pred.predicted_nodes, float)[case.skin_ids]
     u = np.asarray(pred.displacement, float)
-    unmet = _unmet(pred)
+    unmet = pred.contact_unmet
     try:
         from planner.pipeline import skin_sensitivities
     except ImportError:

@@ -100,7 +100,7 @@ def mesh_errors(data: list, references: list, runner: Runner | None, say, names:
     (`CaseData.mesh_error`, the direction of the discretisation error: `discrepancy`), on the
     same scan points and pose, and with `params` (effect parameter keys) the reference
     baseline's tangent sensitivities to them (`CaseData.reference_sens`: the fitted values'
-    extrapolation, `analysis.mesh_extrapolated_theta`). A reference that cannot be solved
+    extrapolation to the converged mesh, `analysis.mesh_corrections`). A reference that cannot be solved
     leaves the case without either."""
     idx = [i for i, r in enumerate(references) if r is not None]
     if not idx:
@@ -135,6 +135,8 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
                   reference_names: list | None = None, reference_forward: Forward | None = None) -> dict:
     """The diagnosis of prepared cases (`forward.CaseModel`) against their scans; returns
     {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}."""
+    from planner.pipeline import unmet_text
+
     t0 = time.perf_counter()
     forward = forward or Forward(cases, runner, say)
     moved = tuple(dict.fromkeys(s for c in cases for s in c.moved_segments))
@@ -156,8 +158,7 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
         gap = measure_gap(case, skin, scan)
         unmet = forward.contact_unmet(i)
         if unmet:
-            gap.warnings.append("the baseline prediction converged with "
-                                + ", ".join(f"{k} {v:.2f} mm" for k, v in sorted(unmet.items()))
+            gap.warnings.append("the baseline prediction converged with " + unmet_text(unmet)
                                 + " of penetration (beyond twice the contact tolerance): its lips "
                                 "or teeth overlap there, and the gap near the mouth includes it")
         r0 = gap.distances(skin)
@@ -194,13 +195,10 @@ def _r(x, n=4):
 def _params(s, thetas: list | None = None) -> dict | None:
     """Values in the form `--effect` takes them (per case when case-specific): by default the
     estimates under noise + discrepancy; `thetas` (per case coordinates): those, e.g. the
-    refined least-squares fit (`cand.theta`) or the values extrapolated to the converged mesh
-    (`theta_mesh`, None where not estimated)."""
+    refined least-squares fit (`cand.theta`)."""
     from planner.diagnosis.effects import collect_effects
 
     cand = s.cand
-    if thetas is not None and not thetas:
-        return None
     per_case = [collect_effects(s.values(c) if thetas is None else cand.values(c, thetas[c]))
                 for c in range(cand.n_cases)]
     if cand.shared or cand.n_cases == 1:
@@ -214,7 +212,6 @@ def _effect_entry(s: analysis.Scored) -> dict:
         "name": c.name,
         "params": _params(s),
         "params_least_squares": _params(s, c.theta),
-        "params_mesh_extrapolated": _params(s, s.theta_mesh or []),
         "mesh_extrapolation_factor": ([_r(k, 3) for k in s.mesh_kappa] if s.mesh_kappa else None),
         "identifiable": s.identifiable,
         "rms_after_mm": _r(s.rms_after),

@@ -116,7 +116,7 @@ def test_synth_command_writes_case_folders(tmp_path):
 
 
 @pytest.mark.parametrize("argv", [["--withheld-effect", "wind"], ["--withheld-effect", "swelling=9"],
-                                  ["--count", "0"], ["--seed", "-1"]])
+                                  ["--count", "0"], ["--seed", "-1"], ["--case-max-minutes", "0"]])
 def test_synth_refuses_bad_input(tmp_path, argv):
     from planner.cli import main
 

@@ -84,10 +84,10 @@ def test_fitted_values_extrapolated_with_the_truths_model_as_the_second_mesh(pat
     layers +-20 %), which responds to tone otherwise than the diagnosed one. Given that model
     as the second mesh (`references`: the mesh-error direction is then exactly the models'
     difference at the baseline), the gap's coefficient on it comes out near 1 (kappa within
-    0.5-1.5: the noise and the discrepancy share the gap) and the tone extrapolated with the
-    reference's tangent lies within 10 % of the truth: the fit's own scatter on this scan (a
-    few %, from the scan noise and the error model's estimates) and not the 25 % the issue
-    allows, as the reference here is the truth's own model."""
+    0.5-1.5: the noise and the discrepancy share the gap) and the tone fitted on the response
+    extrapolated with the reference's tangent lies within 10 % of the truth: the fit's own
+    scatter on this scan (a few %, from the scan noise and the error model's estimates) and
+    not the 25 % the issue allows, as the reference here is the truth's own model."""
     _diagnose(patient, forward, "tone", ["muscle_tone=0.15"], seed=1)      # makes and keeps the scan
     scan = _RESULTS["tone_scan"]
     ref = perturbed_case(patient, 1)
@@ -96,8 +96,7 @@ def test_fitted_values_extrapolated_with_the_truths_model_as_the_second_mesh(pat
     tone = next(e for e in rec["effects"] if e["name"] == "muscle_tone")
     kappa = tone["mesh_extrapolation_factor"][0]
     assert 0.5 <= kappa <= 1.5, kappa
-    extrapolated = tone["params_mesh_extrapolated"]["muscle_tone"]
-    assert extrapolated == pytest.approx(0.15, rel=0.10), (tone["params"], extrapolated)
+    assert tone["params"]["muscle_tone"] == pytest.approx(0.15, rel=0.10), tone["params"]
 
 
 def test_uniform_stiffness_is_not_identifiable(patient, forward):
@@ -316,34 +315,59 @@ def test_linearised_on_another_face_matches_finite_differences(patient, forward)
     assert np.mean(np.abs(on - fd) < 2e-2) > 0.98
 
 
-def test_fitted_values_are_extrapolated_to_the_converged_mesh():
+def test_fitted_values_are_those_of_the_converged_mesh():
     """The diagnosis mesh responds to an effect 30 % less than the converged model
     (J_true = 1.3 J_d on the gap) and the second mesh lies between them as a first-order
     Richardson pair does (J_ref = J_d + (J_true - J_d) / kappa, kappa = 4/3: a mesh twice as
-    fine). The least-squares fit on J_d finds 1.3x the true coordinates; extrapolated with
-    kappa it gives them back exactly (linear algebra: 1e-10), a fixed parameter stays at its
-    origin, kappa = 0 (no mesh error) changes nothing, and the bounds hold."""
-    from planner.diagnosis.analysis import extrapolated_theta
+    fine). On J_d alone the fit finds 1.3x the true coordinates; with the Jacobian's mesh
+    correction C = kappa (J_ref - J_d) the candidate's Jacobian is J_true and the fit gives the
+    true coordinates back exactly (linear algebra: 1e-10), a fixed parameter staying at its
+    origin. A full solve on the diagnosis mesh (here linear: r_d(theta) = r0 + J_d theta)
+    corrected by `Candidate.corrected` is the converged model's gap, r0 + J_true theta, in
+    both of its forms."""
+    from types import SimpleNamespace
+
+    from planner.diagnosis.analysis import Candidate, _fit_theta
+    from planner.diagnosis.effects import Parameter
 
     rng = np.random.default_rng(3)
-    Jd = rng.normal(size=(300, 3))
-    w = rng.uniform(0.5, 2.0, 300)
+    n = 300
+    Jd = rng.normal(size=(n, 3))
+    w = rng.uniform(0.5, 2.0, n)
     true = np.array([0.4, -0.25, 0.0])
     free = np.array([True, True, False])
-    origin = np.zeros(3)
     kappa = 4.0 / 3.0
     J_true = 1.3 * Jd
     Jr = Jd + (J_true - Jd) / kappa
-    r = J_true[:, free] @ true[free]                      # the gap the effect leaves
-    fitted = origin.copy()
-    fitted[free] = np.linalg.lstsq(Jd[:, free] * np.sqrt(w)[:, None], r * np.sqrt(w), rcond=None)[0]
-    assert np.allclose(fitted[free], 1.3 * true[free], atol=1e-10)
-    lo, hi = -np.ones(3), np.ones(3)
-    got = extrapolated_theta(Jd, Jr, kappa, fitted, origin, free, w, lo, hi)
+    r0 = -J_true @ true                       # the gap the effect leaves at the origin
+    params = tuple(Parameter(f"p{k}", 0.0, -1.0, 1.0, 0.01) for k in range(3))
+    data = [SimpleNamespace(gap=SimpleNamespace(weights=w))]
+
+    def candidate(C):
+        cand = Candidate("e", (), False, 1, params)
+        cand.theta, cand.anchor_r, cand.J, cand.C = [np.zeros(3)], [r0], [Jd + C], [C]
+        cand.free = free
+        return cand
+
+    plain = _fit_theta(candidate(np.zeros((n, 3))), data, [0])
+    assert np.allclose(plain[free], 1.3 * true[free], atol=1e-10)
+    cand = candidate(kappa * (Jr - Jd))
+    got = _fit_theta(cand, data, [0])
     assert np.allclose(got, true, atol=1e-10)
-    assert np.allclose(extrapolated_theta(Jd, Jr, 0.0, fitted, origin, free, w, lo, hi), fitted, atol=1e-10)
-    got = extrapolated_theta(Jd, Jr, kappa, fitted, origin, free, w, lo, np.array([0.3, 1.0, 1.0]))
-    assert got[0] == pytest.approx(0.3)
+    theta = np.array([0.3, 0.1, 0.0])
+    assert np.allclose(cand.corrected(0, r0 + Jd @ theta, theta), r0 + J_true @ theta, atol=1e-10)
+    # without a correction the gap is left as solved
+    assert candidate(np.zeros((n, 3))).corrected(0, r0, theta) is r0
+    # every parameter with a reference tangent and no discrete choice: the solve's own change
+    # from the origin is replaced, to the factor kappa, by the reference's linear one. On a
+    # linear response that is the same correction; a nonlinear part q of the diagnosis mesh's
+    # response is kept to the factor 1 - kappa (the converged response r_d + kappa (r_ref - r_d)
+    # with r_ref linear)
+    cand.KR, cand.kappa, cand.base_r = [kappa * Jr], [kappa], [r0]
+    assert np.allclose(cand.corrected(0, r0 + Jd @ theta, theta), r0 + J_true @ theta, atol=1e-10)
+    q = 0.05 * rng.normal(size=n)
+    assert np.allclose(cand.corrected(0, r0 + Jd @ theta + q, theta), r0 + J_true @ theta + (1 - kappa) * q,
+                       atol=1e-10)
 
 
 def test_linear_fit_recovers_parameters_within_bounds():

@@ -8,7 +8,7 @@ import pytest
 
 from facemodel import synthetic as sy
 from planner.commands import synth
-from planner.errors import InputError
+from planner.errors import InputError, SolveError
 
 
 def test_withheld_effect_forms():
@@ -236,3 +236,28 @@ def test_reduction_rule_and_its_limits():
     with pytest.raises(synth.SolveError):
         synth.solve_reducing(solve, fe.parse_effects(["swelling=3"]), None)
     assert seen == [3.0]
+
+
+def test_a_solve_over_its_time_budget_fails_naming_the_load_reached():
+    """`solve_plan(max_seconds=...)` hands the budget to Newton (`SolverControl.max_seconds`,
+    tests/solver/test_time_budget.py): the coarse generic face needs seconds, 10 ms of budget
+    ends it in its first iterations with a `SolveError` naming the budget and the load."""
+    import generic_mesh
+    from planner.pipeline import solve_plan
+    from planner.plan import parse_plan
+
+    plan = parse_plan({"faceplan": 1, "segments": {"maxilla": {"translation": [0.0, 4.0, 0.0]}},
+                       "model": {"resolution": "coarse", "contact": False}})
+    with pytest.raises(SolveError, match=r"wall-clock budget of 0\.01 s.*") as err:
+        solve_plan(generic_mesh.load("coarse"), plan, None, max_seconds=0.01)
+    assert "last converged 0" in str(err.value)
+
+
+def test_a_case_over_its_time_budget_fails_before_its_next_solve(tmp_path):
+    """`faceplan synth --case-max-minutes`: every truth solve of a case gets what is left of the
+    case's budget; a case whose budget is spent (here by its registration) fails naming it."""
+    opts = {"withheld": ("none", None), "truth_resolution": "coarse", "surface_size": 4.0,
+            "mesher": "sphere", "ct": False, "ct_spacing": 1.0, "contact": False,
+            "case_max_minutes": 1e-6}
+    with pytest.raises(SolveError, match="time budget is spent"):
+        synth.make_case(str(tmp_path), 23, opts)

@@ -57,7 +57,8 @@ the solve's own change from the origin (r = (1 - kappa) r_d(theta) + kappa r_0 +
 keeps only the weight 1 - kappa), else with its linear part (r = r_d(theta) + kappa (J_ref -
 J_d)(theta - theta_0)). The refinement, the cross-validation and the evidence all see that one
 model. Parameters without a tangent on both meshes (finite differences) and discrete choices
-keep the diagnosis mesh's response.
+keep the diagnosis mesh's response, and so do all effects when the second mesh is the coarser
+one (`mesh_corrections`).
 """
 from __future__ import annotations
 
@@ -103,6 +104,7 @@ class CaseData:
     # per parameter key kappa (dr_ref/dv - dr_d/dv) on the scan points, per unit of the value
     # (`mesh_corrections`); empty without a second mesh
     mesh_jac: dict = field(default_factory=dict)
+    reference_coarser: bool = False        # the second mesh has fewer nodes than the diagnosis one
 
     @property
     def folds(self) -> dict[str, np.ndarray]:
@@ -566,8 +568,12 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
 def mesh_corrections(d: CaseData, skin0, sens) -> dict:
     """{key: kappa (dr_ref/dv - dr_d/dv)} on the case's scan points, per unit of each parameter
     value with a tangent sensitivity on both meshes (module text); {} without a second mesh's
-    sensitivities or an estimated mesh-error coefficient (kappa = -a)."""
-    if d.mesh_coef is None or not isinstance(sens, dict) or not isinstance(d.reference_sens, dict):
+    sensitivities or an estimated mesh-error coefficient (kappa = -a), and with a coarser
+    second mesh: extrapolating away from a coarser mesh amplifies that mesh's own errors (near
+    a contact limit a coarse tangent can overstate a response several times) by a factor that
+    no fit checks, where the baseline's mesh-error coefficient is fitted under its prior."""
+    if d.mesh_coef is None or not isinstance(sens, dict) or not isinstance(d.reference_sens, dict) \
+            or d.reference_coarser:
         return {}
     keys = [k for k in sens if k in d.reference_sens]
     if not keys:

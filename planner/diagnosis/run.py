@@ -124,6 +124,7 @@ def mesh_errors(data: list, references: list, runner: Runner | None, say, names:
             d.mesh_error = r_ref - d.r0
             d.mesh_reference = name
             d.reference, d.reference_skin = references[i], skins[j]
+            d.reference_coarser = len(references[i].model.nodes) < len(d.case.model.nodes)
             d.reference_sens = sens[j] if isinstance(sens[j], dict) else None
             rms = float(np.sqrt(np.average(d.mesh_error ** 2, weights=d.gap.weights)))
             say(f"  {d.case.name}: the gap changes by {rms:.2f} mm RMS on the {name} mesh")

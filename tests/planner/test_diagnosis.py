@@ -368,6 +368,12 @@ def test_fitted_values_are_those_of_the_converged_mesh():
     q = 0.05 * rng.normal(size=n)
     assert np.allclose(cand.corrected(0, r0 + Jd @ theta + q, theta), r0 + J_true @ theta + (1 - kappa) * q,
                        atol=1e-10)
+    # a coarser second mesh corrects the baseline's gap only: the effects keep the diagnosis
+    # mesh's response (no extrapolation away from the coarser mesh)
+    from planner.diagnosis.analysis import mesh_corrections
+
+    coarser = SimpleNamespace(mesh_coef=-kappa, reference_sens={"p0": np.zeros((4, 3))}, reference_coarser=True)
+    assert mesh_corrections(coarser, None, {"p0": np.zeros((4, 3))}) == {}
 
 
 def test_linear_fit_recovers_parameters_within_bounds():

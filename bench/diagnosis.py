@@ -162,7 +162,9 @@ def _ceiling(r: dict):
 
 def _print_row(r: dict) -> None:
     print(f"{r['case']}: withheld {r['truth']} {json.dumps(r['value'])} -> {r['verdict']} "
-          f"(confidence {r['confidence']:.2f}); RMS gap {r['rms0']:.2f} mm, held-out shrink "
+          f"(confidence {r['confidence']:.2f}"
+          + (f"; supported, not named: {', '.join(r['supported'])}" if r.get("supported") else "")
+          + f"); RMS gap {r['rms0']:.2f} mm, held-out shrink "
           f"{r['heldout_shrink']}% (attributable {r['attributable']}%); discrepancy "
           f"{r['discrepancy0']} mm; fitted {json.dumps(r['fitted'])}"
           + (f" (on the response extrapolated to the converged mesh, kappa {r['kappa']})" if r.get("kappa") else "")
@@ -263,6 +265,7 @@ def main_bench(argv=None) -> int:
             shrink = d.get("shrinkage") or {}
             rows.append({"case": Path(rec["case"]).name, "truth": rec["effect"], "value": rec["value"],
                          "verdict": v["effect"], "confidence": v["confidence"],
+                         "supported": v.get("supported_not_named") or [],
                          "rms0": d["method"]["baseline_rms_mm"],
                          "heldout_after": (shrink.get("overall") or {}).get("heldout_after_mm"),
                          "heldout_shrink": (shrink.get("overall") or {}).get("heldout_shrink_pct"),

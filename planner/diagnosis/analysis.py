@@ -809,7 +809,12 @@ def _verdict(data, best, pairs, prob, scored=()) -> dict:
             break
     if winner is None:
         sig = _significant_regions(data, r0s)
-        return {"effect": "unexplained" if sig else None, "confidence": round(prob["baseline"], 4), "regions": sig}
+        # effects with strong evidence and a held-out density gain that remove too little of the
+        # held-out gap to be named: they hold the probability the baseline does not
+        supported = [s.cand.name for s in sorted(list(scored) + list(pairs), key=lambda s: -s.probability)
+                     if s.probability > 0.0 and not s.significant]
+        return {"effect": "unexplained" if sig else None, "confidence": round(prob["baseline"], 4), "regions": sig,
+                "supported_not_named": supported}
     # the probability that the named effect(s) are present: the total probability of every
     # model compared that contains them (a posterior inclusion probability, Barbieri & Berger,
     # Ann. Stat. 32:870, 2004), not only of the one model named

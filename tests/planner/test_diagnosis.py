@@ -162,6 +162,7 @@ def test_none_gives_null(patient, forward):
     assert rec["verdict"]["effect"] is None
     assert not any(r["significant"] for r in rec["localization"])
     assert not any(e["significant"] for e in rec["effects"])
+    _check_supported_not_named(rec)
     # the floor is the scan's noise (0.2 mm along the normals), as the superimposition sees it:
     # the roughness estimate of a noisy subdivided surface within 30 %
     assert 0.14 <= rec["noise_floor_mm"] <= 0.3
@@ -174,6 +175,19 @@ def test_perturbation_only_is_not_forced_onto_an_effect(patient, forward):
     rec = _diagnose(patient, forward, "perturbed", [], seed=4, modulus_pct=15.0, thickness_pct=20.0)["record"]
     v = rec["verdict"]
     assert v["effect"] in (None, "unexplained") or v["confidence"] <= 0.5
+    if v["effect"] in (None, "unexplained"):
+        _check_supported_not_named(rec)
+
+
+def _check_supported_not_named(rec):
+    """A verdict without an effect lists the effects that hold the probability the baseline
+    does not (strong evidence and held-out gain, too little held-out shrinkage to be named):
+    their probabilities and the confidence add up to 1 (pseudo-BMA+ weights; rounding 1e-3)."""
+    v = rec["verdict"]
+    prob = {e["name"]: e["probability"] for e in rec["effects"]}
+    assert set(v["supported_not_named"]) == {e["name"] for e in rec["effects"]
+                                             if e["probability"] and not e["significant"]}
+    assert v["confidence"] + sum(prob[n] for n in v["supported_not_named"]) == pytest.approx(1.0, abs=1e-3)
 
 
 def test_two_cases(patient, forward):

@@ -441,7 +441,6 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     Newton iteration); deadline: `time.perf_counter()` by which every truth solve must have
     ended (each gets what is left as its budget; a `SolveError` when it is spent)."""
     import dataclasses
-    import time
 
     import trimesh
     import yaml

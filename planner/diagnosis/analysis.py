@@ -154,12 +154,9 @@ class Candidate:
     anchor_r: list = field(default_factory=list)       # per case r at the anchor
     J: list = field(default_factory=list)              # per case dr/dtheta
     C: list = field(default_factory=list)              # per case mesh correction of dr/dtheta
-    # per case kappa J_ref (the converged response's reference part) and kappa, where every
-    # parameter has a second mesh's tangent and no discrete choice shares the solves
-    # (`corrected`); None otherwise
+    # per case kappa J_ref where every parameter has a second mesh's tangent and no discrete
+    # choice shares the solves (`corrected`); None otherwise
     KR: list = field(default_factory=list)
-    kappa: list = field(default_factory=list)
-    base_r: list = field(default_factory=list)         # per case gap at the parameters' origin
     free: np.ndarray | None = None
     se: np.ndarray | None = None
     failed: str | None = None
@@ -190,17 +187,17 @@ class Candidate:
     def strings(self, c: int, theta: np.ndarray | None = None) -> tuple[str, ...]:
         return effect_strings(self.values(c, theta))
 
-    def corrected(self, c: int, r: np.ndarray, theta: np.ndarray) -> np.ndarray:
-        """The gap r of a full solve at theta on the diagnosis mesh extrapolated to the
+    def corrected(self, c: int, d: "CaseData", r: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """The gap r of a full solve at theta on case d's diagnosis mesh extrapolated to the
         converged mesh (module text): r_d + kappa (r_ref - r_d) with the reference's response
         linear, r_ref(theta) - r_ref(theta_0) = J_ref (theta - theta_0). Where every parameter
         has a reference tangent and no discrete choice shares the solve, the diagnosis mesh's
-        own change from the origin is the solve's, r - r(theta_0); else its linear part,
-        J_d (theta - theta_0) (the correction C (theta - theta_0))."""
+        own change from the origin is the solve's, r - r0 (r0 the baseline gap); else its
+        linear part, J_d (theta - theta_0) (the correction C (theta - theta_0))."""
         dtheta = np.asarray(theta, float) - self.origin
         if self.KR and self.KR[c] is not None:
-            k = self.kappa[c]
-            return (1.0 - k) * r + k * self.base_r[c] + self.KR[c] @ dtheta
+            k = -float(d.mesh_coef)
+            return (1.0 - k) * r + k * d.r0 + self.KR[c] @ dtheta
         if not self.C or not np.any(self.C[c]):
             return r
         return r + self.C[c] @ dtheta
@@ -298,10 +295,7 @@ def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -
         cand.J.append(J + C)
         cand.C.append(C)
         exact = not e.choices and len(e.parameters) > 0 and all(p.key in d.mesh_jac for p in e.parameters)
-        kappa = -float(d.mesh_coef) if d.mesh_coef is not None else 0.0
-        cand.kappa.append(kappa)
-        cand.base_r.append(d.r0)
-        cand.KR.append(C + kappa * J if exact else None)
+        cand.KR.append(C - float(d.mesh_coef) * J if exact else None)      # kappa J_ref = C + kappa J_d
         cand.theta.append(cand.origin.copy())
     cand.sensitivity = " and ".join(sorted(methods)) if methods else "none (discrete choices)"
     return cand
@@ -393,7 +387,7 @@ def refine(cands: list[Candidate], data: list[CaseData], forward) -> None:
             cand.solves += len(g)
             if not all(_ok(s) for s in results):
                 continue            # that value cannot be solved: keep the anchor
-            rs = [cand.corrected(c, data[c].gap.distances(s), new) for c, s in zip(g, results)]
+            rs = [cand.corrected(c, data[c], data[c].gap.distances(s), new) for c, s in zip(g, results)]
             old = sum(_rss(data[c], cand.anchor_r[c]) for c in g)
             newrss = sum(_rss(data[c], r) for c, r in zip(g, rs))
             for c, r in zip(g, rs):
@@ -650,8 +644,6 @@ def _pair(a: Candidate, b: Candidate, data: list[CaseData]) -> Candidate:
         cand.theta.append(np.concatenate([a.theta[c], b.origin]))
         cand.J.append(np.concatenate([a.J[c], b.J[c]], axis=1))
         cand.C.append(np.concatenate([a.C[c], b.C[c]], axis=1))
-        cand.kappa.append(a.kappa[c])
-        cand.base_r.append(a.base_r[c])
         cand.KR.append(np.concatenate([a.KR[c], b.KR[c]], axis=1)
                        if a.KR[c] is not None and b.KR[c] is not None else None)
         cand.anchor_r.append(a.anchor_r[c])

@@ -355,7 +355,7 @@ def test_fitted_values_are_those_of_the_converged_mesh():
     Jr = Jd + (J_true - Jd) / kappa
     r0 = -J_true @ true                       # the gap the effect leaves at the origin
     params = tuple(Parameter(f"p{k}", 0.0, -1.0, 1.0, 0.01) for k in range(3))
-    data = [SimpleNamespace(gap=SimpleNamespace(weights=w))]
+    data = [SimpleNamespace(gap=SimpleNamespace(weights=w), r0=r0, mesh_coef=-kappa)]
 
     def candidate(C):
         cand = Candidate("e", (), False, 1, params)
@@ -369,18 +369,18 @@ def test_fitted_values_are_those_of_the_converged_mesh():
     got = _fit_theta(cand, data, [0])
     assert np.allclose(got, true, atol=1e-10)
     theta = np.array([0.3, 0.1, 0.0])
-    assert np.allclose(cand.corrected(0, r0 + Jd @ theta, theta), r0 + J_true @ theta, atol=1e-10)
+    assert np.allclose(cand.corrected(0, data[0], r0 + Jd @ theta, theta), r0 + J_true @ theta, atol=1e-10)
     # without a correction the gap is left as solved
-    assert candidate(np.zeros((n, 3))).corrected(0, r0, theta) is r0
+    assert candidate(np.zeros((n, 3))).corrected(0, data[0], r0, theta) is r0
     # every parameter with a reference tangent and no discrete choice: the solve's own change
     # from the origin is replaced, to the factor kappa, by the reference's linear one. On a
     # linear response that is the same correction; a nonlinear part q of the diagnosis mesh's
     # response is kept to the factor 1 - kappa (the converged response r_d + kappa (r_ref - r_d)
     # with r_ref linear)
-    cand.KR, cand.kappa, cand.base_r = [kappa * Jr], [kappa], [r0]
-    assert np.allclose(cand.corrected(0, r0 + Jd @ theta, theta), r0 + J_true @ theta, atol=1e-10)
+    cand.KR = [kappa * Jr]
+    assert np.allclose(cand.corrected(0, data[0], r0 + Jd @ theta, theta), r0 + J_true @ theta, atol=1e-10)
     q = 0.05 * rng.normal(size=n)
-    assert np.allclose(cand.corrected(0, r0 + Jd @ theta + q, theta), r0 + J_true @ theta + (1 - kappa) * q,
+    assert np.allclose(cand.corrected(0, data[0], r0 + Jd @ theta + q, theta), r0 + J_true @ theta + (1 - kappa) * q,
                        atol=1e-10)
     # a coarser second mesh corrects the baseline's gap only: the effects keep the diagnosis
     # mesh's response (no extrapolation away from the coarser mesh)

@@ -33,7 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 SEED_BASE = 9901
 
 
-def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minutes: float | None = None):
+def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minutes: float | None = None,
+               neck: str = "free"):
     """A subprocess writing one case with `faceplan synth` (its own folder and key), its truth
     solves within `max_minutes` (`--case-max-minutes`)."""
     import os
@@ -42,7 +43,7 @@ def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minu
     out = root / kind / str(seed)
     cmd = [sys.executable, "-m", "planner.cli", "synth", "--out", str(out), "--count", "1", "--seed", str(seed),
            "--withheld-effect", kind, "--key", str(root / kind / f"key_{seed}.json"),
-           "--truth-resolution", truth_resolution, "--workers", "1"]
+           "--truth-resolution", truth_resolution, "--workers", "1", "--truth-neck", neck]
     if max_minutes:
         cmd += ["--case-max-minutes", str(max_minutes)]
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]) + os.pathsep
@@ -53,7 +54,7 @@ def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minu
 
 def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: str,
                 truth_resolution: str, workers: int, skip: tuple[int, ...] = (), make: bool = True,
-                max_minutes: float | None = None) -> list[dict]:
+                max_minutes: float | None = None, neck: str = "free") -> list[dict]:
     """Case folders with post-op scans and their key, one `faceplan synth` per seed (`workers`
     at a time). A seed whose truth cannot be solved, or whose synth runs longer than
     `max_minutes` (a plan whose solve creeps at a limit point of the lips), is reported and
@@ -68,7 +69,7 @@ def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: s
     while todo or running:
         while todo and len(running) < max(workers, 1):
             kind, s = todo.pop(0)
-            running.append((kind, s, _synth_one(root, kind, s, truth_resolution, max_minutes),
+            running.append((kind, s, _synth_one(root, kind, s, truth_resolution, max_minutes, neck),
                             time.perf_counter()))
         time.sleep(2.0)
         for job in list(running):
@@ -200,6 +201,11 @@ def main_bench(argv=None) -> int:
                     help="each case's faceplan synth gets this many minutes for its truth solves "
                          "(its --case-max-minutes; a case over it fails and its seed is left out); "
                          "default: no limit")
+    ap.add_argument("--truth-neck", default="free", choices=("free", "held", "random"),
+                    help="the truths' neck cut (faceplan synth --truth-neck; held: a boundary condition "
+                         "the diagnosis's model does not share)")
+    ap.add_argument("--boundary-uncertainty", default="neck", choices=("neck", "none"),
+                    help="as faceplan diagnose --boundary-uncertainty")
     ap.add_argument("--skip-seeds", default="", help="comma-separated seeds whose truth synth cannot solve "
                     "(left out, and said so)")
     args = ap.parse_args(argv)
@@ -216,7 +222,7 @@ def main_bench(argv=None) -> int:
     key = make_cohort(root, args.random, args.none, args.seed, args.resolution,
                       args.truth_resolution or finer[args.resolution], args.workers,
                       tuple(int(x) for x in args.skip_seeds.split(",") if x.strip()), make=not args.no_make,
-                      max_minutes=args.synth_max_minutes)
+                      max_minutes=args.synth_max_minutes, neck=args.truth_neck)
     if args.skip_seeds:
         print(f"seeds left out (their truth could not be solved by synth): {args.skip_seeds}", flush=True)
     t_cohort = time.perf_counter() - t0
@@ -252,7 +258,7 @@ def main_bench(argv=None) -> int:
                 [ref], Runner(client), say, root / "solves", f"{Path(rec['case']).resolve()}|{ref_name}")
             out = diagnose_data([patient], [scan], forward=fwd, say=say,
                                 references=None if ref is None else [ref], reference_names=[ref_name],
-                                reference_forward=ref_fwd)
+                                reference_forward=ref_fwd, boundary=args.boundary_uncertainty == "neck")
             d = out["record"]
             if args.keep:
                 (Path(rec["case"]) / "diagnosis.json").write_text(json.dumps(d, indent=1, default=str))

@@ -19,6 +19,13 @@ u_t on a bone of curvature kappa, plus theta |u_t| for a bone rotation theta, e.
 bilateral) is exact on curved bone but its augmented re-solves cycled on the face. The static
 equilibrium is solved by `solver.newton.newton_solve` (Q1/P0 hexahedra, Newton with line
 search, load stepping, augmented Lagrangian contact).
+
+The mesh ends at a cut through the neck (node set "neck", its inferior border row). By default
+that cut is free (traction-free): the submental tissue hangs from the mandible's lower border
+and follows it. `neck="held"` holds the cut in place instead, the tissue continuing down a
+neck the operation does not move. The two bracket the truth (the hyoid and the tissue below
+follow a mandibular move in part); `planner.diagnosis` uses their difference as a
+model-uncertainty direction.
 """
 from __future__ import annotations
 
@@ -42,7 +49,10 @@ from solver.mechanics import SolidBody, von_mises
 from solver.mesh import HexMesh
 from solver.newton import newton_solve
 
-__all__ = ["simulate", "build_problem", "moved_constraints", "SimulationResult", "MUSCLES",
+NECK_CONDITIONS = ("free", "held")
+NECK_OWNER = "neck"          # the owner of the held cut's constraint: no segment moves it
+
+__all__ = ["simulate", "build_problem", "moved_constraints", "SimulationResult", "MUSCLES", "NECK_CONDITIONS",
            "lip_penetrations", "rigid_motion_ok", "teeth_advance"]
 
 log = logging.getLogger("facemodel.simulation")
@@ -129,7 +139,7 @@ def _shear_modulus(mat) -> float:
 
 def build_problem(model, motions=None, activations=None, *, contact=True, sliding=(),
                   sliding_nodes=None, materials=None, growth=None, body_force=None,
-                  penalty_factor=1.0, contact_tolerance=0.05):
+                  penalty_factor=1.0, contact_tolerance=0.05, neck="free"):
     """The FE problem `simulate` solves: (SolidBody, constraints, contact terms {name: term},
     other terms [body force], lip facet size or None); arguments as `simulate`'s. The body's
     `constraint_segments` names the segment each constraint follows."""
@@ -197,6 +207,20 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
         if len(tied):
             constraints.append(Prescribed(tied, _rigid_displacement(X[tied], T)))
             owners.append(seg)
+    if neck not in NECK_CONDITIONS:
+        raise ModelInputError(f"neck must be one of {', '.join(NECK_CONDITIONS)}, got {neck!r}")
+    if neck == "held":
+        # the neck cut held in place: the tissue goes on below it down the neck, which the
+        # operation does not move (attached nodes keep their bone's motion)
+        if "neck" not in model.node_sets:
+            raise ModelInputError("neck: held asked for, but the face model has no node set 'neck' "
+                                  "(its inferior border)")
+        held = np.setdiff1d(np.asarray(model.node_sets["neck"], dtype=np.int64),
+                            np.concatenate([np.asarray(v, dtype=np.int64) for v in attach.values()]
+                                           or [np.zeros(0, np.int64)]))
+        if len(held):
+            constraints.append(Prescribed(held, 0.0))
+            owners.append(NECK_OWNER)
 
     # --- contact: lips against each other, lip mucosa against the teeth
     lip_size = None
@@ -257,7 +281,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
              materials: dict | None = None, growth=None, body_force=None,
              n_steps: int = 4, log=None, penalty_factor: float = 1.0,
              contact_tolerance: float = 0.05, max_iterations: int = 25,
-             guess=None, max_seconds: float | None = None) -> SimulationResult:
+             guess=None, max_seconds: float | None = None, neck: str = "free") -> SimulationResult:
     """Solve the face for bone `motions` {segment: 4x4} and muscle `activations` {muscle: a}.
 
     contact: lip-lip and lip-teeth contact on/off. sliding: segments whose deep nodes slide
@@ -277,6 +301,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     nearby solution on this model (the same case with other effect values): the full load is
     solved from it first, the load stepped only if that fails (`solver.newton.newton_solve`).
     max_seconds: the solve's wall-clock budget (`SolverControl.max_seconds`; None: none).
+    neck: "free" (default) or "held", the boundary condition of the neck cut (module text).
     Raises `facemodel.errors.ModelInputError` (a
     ValueError) for motions, activations, materials or model parts it cannot use (contact
     asked of a model without lip contact surfaces) and `solver.errors.SolveFailed` if Newton
@@ -285,7 +310,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     body, constraints, terms, extra, lip_size = build_problem(
         model, motions, activations, contact=contact, sliding=sliding, sliding_nodes=sliding_nodes,
         materials=materials, growth=growth, body_force=body_force, penalty_factor=penalty_factor,
-        contact_tolerance=contact_tolerance)
+        contact_tolerance=contact_tolerance, neck=neck)
     X = np.asarray(model.nodes, dtype=float)
     labels = np.asarray(model.labels, dtype=np.int64)
     activations = dict(activations or {})

@@ -285,6 +285,9 @@ def build(resolution: str = "standard") -> FaceModel:
     border_cols[0] = border_cols[-1] = True
     border_cols[:, 0] = border_cols[:, -1] = True
     node_sets["border"] = grid[border_cols].ravel()
+    # the neck cut: the mesh's inferior border row (every layer), where the tissue goes on down
+    # the neck; free unless a plan holds it (`model.neck`, `facemodel.simulation.build_problem`)
+    node_sets["neck"] = grid[0].ravel()
 
     # ---------------------------------------------------------------- facet sets
     faces = hexes[:, HEX_FACES]                                        # (m, 6, 4)

@@ -278,7 +278,8 @@ def model_inputs(setup: dict, effects: Effects) -> dict:
     degloved = {s: ids for s, ids in setup["degloved"].items() if s not in sliding}
     return dict(motions=motions, activations=activations, contact=plan.model.contact,
                 sliding=sliding, sliding_nodes=degloved, materials=materials, growth=growth,
-                body_force=fe.gravity_density(effects.gravity, effects.gravity_pitch))
+                body_force=fe.gravity_density(effects.gravity, effects.gravity_pitch),
+                neck=plan.model.neck)
 
 
 def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,

@@ -53,7 +53,7 @@ _TOP_KEYS = ("faceplan", "frame", "segments", "muscles", "model", "limits", "des
 _SEGMENT_KEYS = ("translation", "rotation", "matrix", "itk_transform", "cut_planes", "from",
                  "description")
 _ROTATION_KEYS = ("axis", "angle_deg", "euler_deg", "order", "center")
-_MODEL_KEYS = ("resolution", "sliding", "contact", "materials", "effects")
+_MODEL_KEYS = ("resolution", "sliding", "contact", "materials", "effects", "neck")
 _LIMIT_KEYS = ("translation_mm", "rotation_deg")
 
 
@@ -95,6 +95,7 @@ class ModelOptions:
     contact: bool = True
     materials: dict[str, dict[str, float]] = field(default_factory=dict)
     effects: dict = field(default_factory=dict)   # flat {name: value} (facemodel.effects)
+    neck: str = "free"                     # the neck cut: "free" or "held" (facemodel.simulation)
 
 
 @dataclass(frozen=True)
@@ -127,7 +128,7 @@ class Plan:
             "muscles": dict(self.muscles),
             "model": {"resolution": self.model.resolution, "sliding": list(self.model.sliding),
                       "contact": self.model.contact, "materials": self.model.materials,
-                      "effects": dict(self.model.effects)},
+                      "effects": dict(self.model.effects), "neck": self.model.neck},
             "limits": {"translation_mm": self.max_translation_mm, "rotation_deg": self.max_rotation_deg},
         }
 
@@ -417,7 +418,10 @@ def parse_plan(data: Any, file: str = "plan.yaml", plan_dir: Path | None = None,
         effects = parse_effects(eff).as_dict()
     except EffectError as exc:
         r.fail(f"model.effects.{exc.field}", str(exc))
-    model = ModelOptions(resolution, sliding_t, contact, materials, effects)
+    neck = mt.get("neck", "free")
+    if neck not in ("free", "held"):
+        r.fail("model.neck", f"must be free or held, got {neck!r}")
+    model = ModelOptions(resolution, sliding_t, contact, materials, effects, neck)
     return Plan(file, int(version), frame, plans, muscles, model, max_t, max_r)
 
 

@@ -31,6 +31,10 @@ def add_arguments(p) -> None:
     p.add_argument("--mesh-reference", default="auto", choices=("auto", "none") + tuple(RESOLUTIONS),
                    help="second mesh whose baseline estimates the model mesh's own discretisation error "
                         "(default auto: the next coarser resolution, none at coarse)")
+    p.add_argument("--boundary-uncertainty", default="neck", choices=("neck", "none"),
+                   help="model boundary conditions whose other choice the error model carries as a "
+                        "discrepancy direction (default neck: the baseline is also solved with the "
+                        "neck cut's other condition, one more solve per case; none: not)")
     p.add_argument("--finite-differences", action="store_true",
                    help="sensitivities by finite differences of full solves instead of the model's "
                         "tangent (slower; a check of the tangent)")
@@ -97,7 +101,8 @@ def run(args) -> int:
     try:
         result = diagnose_cases(cases, resolution=args.resolution, runner=Runner(client), say=progress.say,
                                 effect_names=names, tangent=not args.finite_differences,
-                                reference=args.mesh_reference)
+                                reference=args.mesh_reference,
+                                boundary=args.boundary_uncertainty == "neck")
     finally:
         for obj in closing:
             obj.close()

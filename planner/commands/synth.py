@@ -89,6 +89,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--key", default=None, help="JSON file receiving the ground truth of every case")
     parser.add_argument("--truth-resolution", choices=("coarse", "standard", "fine"), default=TRUTH_RESOLUTION,
                         help=f"face model resolution of the post-op truth (default {TRUTH_RESOLUTION})")
+    parser.add_argument("--truth-neck", choices=("free", "held", "random"), default="free",
+                        help="boundary condition of the truth model's neck cut (default free, as the "
+                             "model faceplan predicts with; held: the cut held in place, a model-form "
+                             "difference the diagnosis does not share; random: either, per case)")
     parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
                         help="dask scheduler to run the cases on (default: a local cluster)")
     parser.add_argument("--workers", type=int, default=2, help="local cluster worker processes (default 2)")
@@ -429,7 +433,7 @@ def prolonged_patient(generic, companion_generic, companion):
 
 def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                 contact: bool = True, timings: dict | None = None, log=None,
-                deadline: float | None = None) -> dict:
+                deadline: float | None = None, neck: str = "free") -> dict:
     """Predict and write `folder`/postop/skin.stl (and plan_actual.yaml) for an existing case
     folder; return the key record's post-op fields. contact: lip contact in the truth model
     (on for every case the command makes; off only to keep tests on coarse meshes short).
@@ -439,7 +443,9 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     timings: a dict that receives the stages' times (s) and the solves' Newton counts (kept
     when a solve fails); log: a callable receiving the truth solves' progress lines (one per
     Newton iteration); deadline: `time.perf_counter()` by which every truth solve must have
-    ended (each gets what is left as its budget; a `SolveError` when it is spent)."""
+    ended (each gets what is left as its budget; a `SolveError` when it is spent); neck: the
+    truth model's neck cut, "free" (the predicting model's), "held" or "random" (either, drawn
+    from the seed on a stream of its own, so the rest of the case is the same)."""
     import dataclasses
 
     import trimesh
@@ -481,8 +487,10 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                                  dermis=dermis, deep=deep)
 
     overrides, mat_record = sy.perturbed_materials(rng)
+    if neck == "random":
+        neck = ("free", "held")[int(_rng(seed + 2 * 10**6).integers(2))]
     truth_plan = dataclasses.replace(plan, model=dataclasses.replace(plan.model, materials=overrides,
-                                                                     contact=bool(contact)))
+                                                                     contact=bool(contact), neck=neck))
     timings = {} if timings is None else timings
     companion = REGISTERED_AT.get(truth_resolution, truth_resolution)
     clock = time.perf_counter()
@@ -607,6 +615,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     return {"effect": name, "value": value if name else None,
             "perturbation": {"truth_resolution": truth_resolution, "registered_at": companion,
                              "layer_thickness_factors": {"dermis": round(dermis, 4), "deep": round(deep, 4)},
+                             "neck": neck,
                              **mat_record, "scan": scan},
             "plan_actual": plan_actual is not None, "value_reductions": reductions,
             "value_corrections": corrections,
@@ -642,7 +651,7 @@ def make_case(root: str, seed: int, options: dict) -> dict:
     if withheld is not None:
         budget = options.get("case_max_minutes")
         record.update(make_postop(str(target), seed, tuple(withheld), options["truth_resolution"],
-                                  contact=options.get("contact", True),
+                                  contact=options.get("contact", True), neck=options.get("truth_neck", "free"),
                                   deadline=None if budget is None else start + 60.0 * float(budget)))
     return record
 
@@ -685,7 +694,8 @@ def run(args) -> int:
         raise InputError("--out exists and is not a folder", file=str(out), field="--out")
     options = {"withheld": parse_withheld(args.withheld_effect), "truth_resolution": args.truth_resolution,
                "surface_size": args.surface_size, "mesher": args.mesher, "ct": args.ct,
-               "ct_spacing": args.ct_spacing, "case_max_minutes": args.case_max_minutes}
+               "ct_spacing": args.ct_spacing, "case_max_minutes": args.case_max_minutes,
+               "truth_neck": args.truth_neck}
     seeds = [args.seed + i for i in range(args.count)]
     with atomic_output_dir(out) as tmp:
         if out.is_dir():          # keep what the folder already holds

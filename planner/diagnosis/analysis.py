@@ -105,6 +105,10 @@ class CaseData:
     # (`mesh_corrections`); empty without a second mesh
     mesh_jac: dict = field(default_factory=dict)
     reference_coarser: bool = False        # the second mesh has fewer nodes than the diagnosis one
+    # change of the gap with the other boundary condition of the neck cut (`discrepancy`,
+    # "Boundary conditions"), and that condition; None when not solved
+    boundary: np.ndarray | None = None
+    boundary_condition: str | None = None
 
     @property
     def folds(self) -> dict[str, np.ndarray]:
@@ -115,7 +119,7 @@ class CaseData:
         """The noise + discrepancy error model on this case's scan points."""
         if self._error is None:
             self._error = discrepancy.ErrorModel(self.gap.points, self.gap.weights, self.gap.noise_floor_mm,
-                                                 mesh_error=self.mesh_error)
+                                                 mesh_error=self.mesh_error, boundary=self.boundary)
         return self._error
 
 
@@ -123,12 +127,13 @@ def remove_mesh_error(d: CaseData):
     """Take the mesh's estimated discretisation error out of the case's gap (`discrepancy`,
     "The mesh's own error"): its coefficient on the mesh-error direction is estimated on the
     baseline gap under noise + discrepancy (generalised least squares, the other parts of the
-    error model integrated out) and the field is subtracted from every gap the diagnosis
-    measures (`ScanGap.mesh_offset`), so that effects are fitted, ranked and their shrinkage
-    measured on what the model's physics leaves. The direction stays in the error model: a
-    model may still move its coefficient, under its prior, about the estimate. Returns the fit
-    (None without a mesh-error direction)."""
-    if d.mesh_error is None or d.error.N.shape[1] == 0:
+    error model, the boundary-condition direction among them, integrated out) and the field is
+    subtracted from every gap the diagnosis measures (`ScanGap.mesh_offset`), so that effects
+    are fitted, ranked and their shrinkage measured on what the model's physics leaves. The
+    direction stays in the error model: a model may still move its coefficient, under its
+    prior, about the estimate. The boundary-condition field is not taken out (`discrepancy`,
+    "Boundary conditions"). Returns the fit (None without a mesh-error direction)."""
+    if d.mesh_error is None or d.error.n_mesh == 0:
         return None
     f = d.error.fit(d.r0)
     off = np.asarray(d.mesh_error, float).reshape(len(d.r0), -1) @ f.mesh_coef
@@ -720,6 +725,7 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
         s.probability = prob[s.cand.name]
         if s.cand.C and all(np.any(C) for C in s.cand.C):
             s.mesh_kappa = [-float(d.mesh_coef) for d in data]
+    best = _leading(ranked, best)
     verdict = _verdict(data, best, pairs, prob, scored)
     return {"rms0": rms0, "bic0": bic0, "gp_bic0": gp0, "baseline_error": base_fits, "n_eff": n_eff, "scored": scored, "pairs": pairs, "notes": notes,
             "failed": failed, "verdict": verdict, "probabilities": prob, "best": best,
@@ -774,6 +780,20 @@ def _explained_regions(data, before, after) -> list[str]:
             if d.gap.significant(a, m, True) and b <= a * (1 - MIN_HELDOUT_SHRINK_PCT / 100) and name not in out:
                 out.append(name)
     return out
+
+
+def _leading(ranked: list, best):
+    """The significant effect the verdict names: the largest held-out shrinkage, unless another
+    significant effect's shrinkage is within the leader's bootstrap spread of it; among those
+    the shrinkage cannot tell apart, the one of highest (held-out) probability. Two effects
+    that remove the same share of the gap on unseen regions are told apart by how well they
+    predict them, and the verdict's effect is then never one whose confidence is near 0 while
+    another carries it."""
+    if best is None:
+        return None
+    tied = [s for s in ranked if s.significant
+            and s.heldout_shrink_pct >= best.heldout_shrink_pct - max(best.spread_pct, 0.0)]
+    return max(tied, key=lambda s: s.probability) if tied else best
 
 
 def _verdict(data, best, pairs, prob, scored=()) -> dict:

@@ -64,6 +64,20 @@ Sigma gains MESH_ERROR_SD^2 d d^T. Every model (the baseline and each effect) ca
 the mesh error is neither charged to an effect nor absorbed by a discrepancy amplitude large
 enough to hide the effects as well.
 
+Boundary conditions. The model's boundary conditions are choices, and an independent model of
+the same face makes other ones: the neck cut, free in faceplan's model, is held by models
+whose mesh goes on down the neck (`facemodel.simulation`). Where the gap is measured on the
+chin and the lower face, such a difference moves the skin as a sliding chin or a bone
+correction would, and an effect would be named for it. The baseline is therefore also solved
+with the other condition (`boundary`: the change b of the gap, on the same scan points and
+pose), and b enters the error model like the mesh error, one more Gaussian column with a
+coefficient c ~ N(0, BOUNDARY_SD^2): Sigma gains BOUNDARY_SD^2 b b^T. It is not taken out of
+the gap (nothing says which condition the patient's tissue is nearer, and an estimate on the
+baseline gap would take the part of a true effect that resembles it); every model carries it,
+so an effect is named only where it explains the gap beyond what the other boundary condition
+could (the structural discrepancy of Brynjarsdottir & O'Hagan, *Inverse Problems* 30:114007,
+2014, given as a known direction instead of left to the generic field).
+
 The likelihood is evaluated on an area-uniform subsample of the scan points (one per cube of
 side `spacing`, at most `MAX_POINTS`), small enough for a dense eigendecomposition of the
 correlation matrix per correlation length.
@@ -75,7 +89,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["ErrorModel", "Fit", "subsample", "matern32", "smooth_basis", "LENGTHS_MM", "MAX_POINTS",
-           "REGION_P", "MESH_ERROR_SD"]
+           "REGION_P", "MESH_ERROR_SD", "BOUNDARY_SD"]
 
 MAX_POINTS = 900                      # subsample size of the likelihood
 # prior standard deviation of the mesh-error coefficient (module text): the error of a mesh is
@@ -86,6 +100,10 @@ REGION_P = 1e-3                       # a region's gap beyond noise + discrepanc
 # 1/(2^p - 1) of its change to the next coarser mesh and 2^p/(2^p - 1) of its change to the next
 # finer one, p the order of convergence; 2 covers both for every p >= 0.6
 MESH_ERROR_SD = 2.0
+# prior standard deviation of a boundary-condition direction's coefficient: the direction is
+# the change from the model's condition to the other bracket (module text), so the truth lies
+# about 0..1 along it
+BOUNDARY_SD = 1.0
 # correlation lengths of the short scale (mm): from a few scan spacings to the size of a region
 LENGTHS_MM = (4.0, 6.0, 9.0, 13.0, 19.0, 28.0, 40.0)
 # short-scale amplitudes tried, relative to the gap's RMS (log grid; the maximum is unimodal in it)
@@ -153,12 +171,14 @@ class Fit:
     long_mm: float = 0.0          # RMS of the long-scale field over the points (s_L sqrt(m))
     mesh_mm: float = 0.0          # RMS of the estimated mesh error over the points
     mesh_coef: np.ndarray | None = None   # its coefficient(s) on the mesh-error direction(s)
+    boundary_mm: float = 0.0      # RMS of the estimated boundary-condition field over the points
+    boundary_coef: np.ndarray | None = None   # its coefficient(s) on the boundary direction(s)
 
     @property
     def discrepancy_mm(self) -> float:
-        """RMS of the whole discrepancy: both scales and the mesh error."""
+        """RMS of the whole discrepancy: both scales, the mesh error and the boundary field."""
         v = float(np.hypot(self.sigma_d, self.long_mm))
-        return float(np.hypot(v, self.mesh_mm)) if self.mesh_mm else v
+        return float(np.hypot(np.hypot(v, self.mesh_mm), self.boundary_mm))
 
     def bic(self, n_eff: float) -> float:
         return float(-2.0 * self.loglik + self.k * np.log(max(n_eff, 2.0)))
@@ -186,7 +206,8 @@ class ErrorModel:
 
     def __init__(self, points: np.ndarray, weights: np.ndarray, sigma_n: float,
                  lengths: tuple[float, ...] = LENGTHS_MM, max_points: int = MAX_POINTS,
-                 long_scale: bool = True, mesh_error: np.ndarray | None = None):
+                 long_scale: bool = True, mesh_error: np.ndarray | None = None,
+                 boundary: np.ndarray | None = None):
         self.idx = subsample(points, weights, max_points)
         self.points = np.asarray(points, float)[self.idx]
         self.area = float(np.sum(weights))
@@ -197,12 +218,19 @@ class ErrorModel:
         self.long_amplitudes = _LONG_AMPLITUDES if long_scale else np.zeros(1)
         # the mesh-error direction (module text, "The mesh's own error"): one column on the
         # subsample, its coefficient under a fixed Gaussian prior
-        self.N = np.zeros((len(self.idx), 0))
-        if mesh_error is not None:
-            m = np.asarray(mesh_error, float).reshape(len(points), -1)[self.idx]
-            if np.all(np.isfinite(m)) and np.sqrt(np.mean(m * m)) > 1e-9:
-                self.N = m
-        self._nsd2 = np.full(self.N.shape[1], MESH_ERROR_SD ** 2)
+        # and the boundary-condition directions (module text, "Boundary conditions"), after it
+        cols, sd2 = [], []
+        for field_, sd in ((mesh_error, MESH_ERROR_SD), (boundary, BOUNDARY_SD)):
+            m = np.zeros((len(self.idx), 0))
+            if field_ is not None:
+                m = np.asarray(field_, float).reshape(len(points), -1)[self.idx]
+                keep = np.all(np.isfinite(m), axis=0) & (np.sqrt(np.mean(m * m, axis=0)) > 1e-9)
+                m = m[:, keep]
+            cols.append(m)
+            sd2.append(np.full(m.shape[1], sd ** 2))
+        self.n_mesh = cols[0].shape[1]
+        self.N = np.concatenate(cols, axis=1)
+        self._nsd2 = np.concatenate(sd2)
         BN = np.concatenate([self.B, self.N], axis=1)
         self._eig = []
         for ell in self.lengths:
@@ -299,9 +327,12 @@ class ErrorModel:
             if nfree:
                 theta[free] = theta_a[free] + x
         long_mm = float(s_l * np.sqrt(np.mean(np.sum(self.B * self.B, axis=1)))) if self.B.size else 0.0
-        mesh_mm = float(np.sqrt(np.mean((self.N @ nu) ** 2))) if self.N.size else 0.0
+        nu = np.asarray(nu, float)
+        q = self.n_mesh
+        mesh_mm = float(np.sqrt(np.mean((self.N[:, :q] @ nu[:q]) ** 2))) if q else 0.0
+        boundary_mm = float(np.sqrt(np.mean((self.N[:, q:] @ nu[q:]) ** 2))) if self.N.shape[1] > q else 0.0
         return Fit(theta, float(s_d), float(ell), float(ll), nfree + int(extra_k), float(s_l), long_mm,
-                   mesh_mm, np.asarray(nu, float))
+                   mesh_mm, nu[:q], boundary_mm, nu[q:])
 
     def standard_errors(self, J: np.ndarray, fit: Fit) -> np.ndarray:
         """Standard errors of the parameters (columns of J) under the error model `fit`:

@@ -81,14 +81,15 @@ def load_diagnosis_case(case_dir: Path, resolution: str | None, say, reference: 
 
 def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runner: Runner | None = None,
                    say=lambda s: None, effect_names: tuple[str, ...] | None = None,
-                   tangent: bool = True, reference: str | None = "auto") -> dict:
+                   tangent: bool = True, reference: str | None = "auto", boundary: bool = True) -> dict:
     t0 = time.perf_counter()
     loaded = [load_diagnosis_case(Path(c), resolution, say, reference) for c in case_dirs]
     refs = [x[3] for x in loaded]
     out = diagnose_data([x[0] for x in loaded], [x[1] for x in loaded], runner=runner, say=say,
                         effect_names=effect_names, tangent=tangent,
                         references=refs if any(r is not None for r in refs) else None,
-                        reference_names=[mesh_reference(x[2], reference) for x in loaded])
+                        reference_names=[mesh_reference(x[2], reference) for x in loaded],
+                        boundary=boundary)
     out["record"]["resolution"] = sorted({x[2] for x in loaded})
     out["record"]["timings_s"]["total"] = round(time.perf_counter() - t0, 2)
     return out
@@ -130,10 +131,50 @@ def mesh_errors(data: list, references: list, runner: Runner | None, say, names:
             say(f"  {d.case.name}: the gap changes by {rms:.2f} mm RMS on the {name} mesh")
 
 
+def other_neck(case):
+    """The case model with the other boundary condition of the neck cut (free <-> held)."""
+    import dataclasses
+
+    neck = "held" if case.plan.model.neck == "free" else "free"
+    plan = dataclasses.replace(case.plan, model=dataclasses.replace(case.plan.model, neck=neck))
+    return dataclasses.replace(case, plan=plan)
+
+
+def boundary_errors(data: list, runner: Runner | None, say) -> None:
+    """Per case the change of the gap when the baseline is solved with the other boundary
+    condition of the neck cut (`CaseData.boundary`, a model-uncertainty direction of the
+    error model: `discrepancy`, "Boundary conditions"), on the same scan points and pose;
+    before the mesh error is taken out of the gap (its estimate then integrates this direction
+    out). A case whose model has no neck cut, or whose other condition cannot be solved, goes
+    without it."""
+    idx = [i for i, d in enumerate(data) if "neck" in d.case.model.node_sets]
+    if not idx:
+        return
+    alts = [other_neck(data[i].case) for i in idx]
+    say(f"baseline with the other neck condition of {len(idx)} case(s): a boundary-condition "
+        "uncertainty of the model")
+    skins = Forward(alts, runner, lambda s: None).solve([(j, ()) for j in range(len(idx))])
+    for j, i in enumerate(idx):
+        d, alt = data[i], alts[j]
+        if isinstance(skins[j], str):
+            say(f"  {d.case.name}: the baseline with the neck {alt.plan.model.neck} failed ({skins[j]}); "
+                "no boundary direction")
+            continue
+        v, f = alt.predicted_surface(skins[j])
+        r_alt = d.gap.distances_to(v, f)
+        if np.all(np.isfinite(r_alt)):
+            d.boundary = r_alt - d.r0
+            d.boundary_condition = f"neck {alt.plan.model.neck}"
+            d._error = None
+            rms = float(np.sqrt(np.average(d.boundary ** 2, weights=d.gap.weights)))
+            say(f"  {d.case.name}: the gap changes by {rms:.2f} mm RMS with the neck {alt.plan.model.neck}")
+
+
 def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say=lambda s: None,
                   effect_names: tuple[str, ...] | None = None, forward: Forward | None = None,
                   effects: list | None = None, tangent: bool = True, references: list | None = None,
-                  reference_names: list | None = None, reference_forward: Forward | None = None) -> dict:
+                  reference_names: list | None = None, reference_forward: Forward | None = None,
+                  boundary: bool = True) -> dict:
     """The diagnosis of prepared cases (`forward.CaseModel`) against their scans; returns
     {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}."""
     from planner.pipeline import unmet_text
@@ -169,6 +210,8 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
             f"scan roughness {gap.roughness_mm:.2f} mm); correlation length {gap.correlation_mm:.1f} mm")
         for w in gap.warnings:
             say(f"  warning: {w}")
+    if boundary:
+        boundary_errors(data, forward.runner, say)
     if references is not None:
         mesh_errors(data, references, forward.runner, say, reference_names, reference_forward,
                     params=names if tangent else ())
@@ -176,6 +219,12 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
             if analysis.remove_mesh_error(d) is not None:
                 say(f"  {d.case.name}: estimated mesh error {d.gap.mesh_error_mm:.2f} mm RMS taken out of "
                     f"the gap: {d.gap.rms(d.r0):.2f} mm left")
+    for d in data:
+        if d.boundary is not None:
+            f = d.error.fit(d.r0)
+            d.gap.boundary_mm = f.boundary_mm
+            say(f"  {d.case.name}: the baseline gap's estimated boundary field {f.boundary_mm:.2f} mm RMS "
+                "(integrated out, not taken out of the gap)")
     t_fit = time.perf_counter()
     result = analysis.analyse(data, effects, forward, say, tangent=tangent)
     record = build_record(data, result, effects)
@@ -332,6 +381,8 @@ def _error_entry(d, f) -> dict:
             "long_scale_mm": _r(f.long_mm), "long_scale_basis": "offset and tilts of the whole face (linear polynomial)",
             "mesh_error_mm": _r(d.gap.mesh_error_mm) if d.mesh_error is not None else None,
             "mesh_reference": d.mesh_reference,
+            "boundary_mm": _r(d.gap.boundary_mm) if d.boundary is not None else None,
+            "boundary_direction": d.boundary_condition,
             "level_mm": _r(float(np.hypot(f.discrepancy_mm, d.gap.noise_floor_mm))),
             "points": int(len(d.error.idx))}
 

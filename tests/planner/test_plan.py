@@ -124,6 +124,8 @@ def test_options_muscles_model_and_cut_planes():
     assert sp.cut_planes[0].keeps(np.array([[0, 0, -50.0], [0, 0, -30.0]])).tolist() == [True, False]
     assert plan.muscles == {"mentalis": 0.2}
     assert plan.model.resolution == "coarse" and plan.model.sliding == ("maxilla",)
+    assert plan.model.neck == "free"                      # the default: the cut is traction-free
+    assert plan_of({}, model={"neck": "held"}).model.neck == "held"
     assert set(plan.motions()) == {"chin"}
     assert plan_of({}).motions() == {}
 
@@ -148,6 +150,7 @@ BAD = [
     ({"faceplan": 1, "muscles": {"mentalis": 1.5}}, "muscles.mentalis"),
     ({"faceplan": 1, "muscles": {"masseter": 0.5}}, "muscles.masseter"),
     ({"faceplan": 1, "model": {"resolution": "ultra"}}, "model.resolution"),
+    ({"faceplan": 1, "model": {"neck": "fixed"}}, "model.neck"),
     ({"faceplan": 1, "segments": {"skull": {"translation": [0, 1, 0]}}}, "segments.skull"),
     ({"faceplan": 1, "segments": {"chin": {"matrix": [[1, 0, 0, 0]] * 4, "translation": [0, 1, 0]}}}, "segments.chin"),
     ({"faceplan": 1, "segments": {"chin": {"itk_transform": "missing.tfm"}}}, "segments.chin.itk_transform"),

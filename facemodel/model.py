@@ -26,6 +26,8 @@ MUSCLES = LABEL_NAMES[4:]
 SEGMENTS = ("skull", "maxilla", "mandible", "chin")
 ATTACHMENT_SETS = {"skull": "attach_skull", "maxilla": "attach_maxilla",
                    "mandible": "attach_mandible", "chin": "attach_chin"}
+# the boundary conditions of the mesh's cut through the neck (node set "neck"; `facemodel.simulation`)
+NECK_CONDITIONS = ("free", "held")
 LANDMARK_NAMES = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "ChL", "ChR", "Pog", "Me")
 FORMAT_VERSION = 1
 

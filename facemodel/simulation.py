@@ -38,7 +38,7 @@ import numpy as np
 from facemodel.attachments import bone_frames
 from facemodel.errors import ModelInputError
 from facemodel.materials import default_materials
-from facemodel.model import MUSCLES
+from facemodel.model import MUSCLES, NECK_CONDITIONS
 from facemodel.solver_settings import FACE_SOLVER
 from solver.bc import LocalFrame, Prescribed
 from solver.constitution.muscle import Muscle
@@ -49,7 +49,6 @@ from solver.mechanics import SolidBody, von_mises
 from solver.mesh import HexMesh
 from solver.newton import newton_solve
 
-NECK_CONDITIONS = ("free", "held")
 NECK_OWNER = "neck"          # the owner of the held cut's constraint: no segment moves it
 
 __all__ = ["simulate", "build_problem", "moved_constraints", "SimulationResult", "MUSCLES", "NECK_CONDITIONS",

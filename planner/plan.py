@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from facemodel.model import MUSCLES
+from facemodel.model import MUSCLES, NECK_CONDITIONS
 from planner.errors import InputError
 from planner.itk_transform import LPS_FROM_RAS, read_itk_transform
 
@@ -419,8 +419,8 @@ def parse_plan(data: Any, file: str = "plan.yaml", plan_dir: Path | None = None,
     except EffectError as exc:
         r.fail(f"model.effects.{exc.field}", str(exc))
     neck = mt.get("neck", "free")
-    if neck not in ("free", "held"):
-        r.fail("model.neck", f"must be free or held, got {neck!r}")
+    if neck not in NECK_CONDITIONS:
+        r.fail("model.neck", f"must be one of {', '.join(NECK_CONDITIONS)}, got {neck!r}")
     model = ModelOptions(resolution, sliding_t, contact, materials, effects, neck)
     return Plan(file, int(version), frame, plans, muscles, model, max_t, max_r)
 

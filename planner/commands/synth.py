@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from facemodel.model import NECK_CONDITIONS
 from planner.errors import InputError, SolveError
 
 # Ranges of the withheld effects (skin change at the scan, mm, or the parameter itself):
@@ -89,7 +90,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--key", default=None, help="JSON file receiving the ground truth of every case")
     parser.add_argument("--truth-resolution", choices=("coarse", "standard", "fine"), default=TRUTH_RESOLUTION,
                         help=f"face model resolution of the post-op truth (default {TRUTH_RESOLUTION})")
-    parser.add_argument("--truth-neck", choices=("free", "held", "random"), default="free",
+    parser.add_argument("--truth-neck", choices=(*NECK_CONDITIONS, "random"), default="free",
                         help="boundary condition of the truth model's neck cut (default free, as the "
                              "model faceplan predicts with; held: the cut held in place, a model-form "
                              "difference the diagnosis does not share; random: either, per case)")

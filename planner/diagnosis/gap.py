@@ -67,7 +67,6 @@ class ScanGap:
     discrepancy_mm: float = 0.0   # model-form discrepancy amplitude (`discrepancy`), once estimated
     discrepancy_ell_mm: float = 0.0
     mesh_error_mm: float = 0.0    # RMS of the estimated discretisation error (`discrepancy`), once estimated
-    boundary_mm: float = 0.0      # RMS of the boundary-condition field estimated on the baseline gap
     mesh_offset: np.ndarray | None = None  # that error on the points, taken out of every gap (`distances`)
     error_test: object = None     # (r, mask) -> p-value of the gap under noise + discrepancy
 

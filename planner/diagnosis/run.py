@@ -219,12 +219,6 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
             if analysis.remove_mesh_error(d) is not None:
                 say(f"  {d.case.name}: estimated mesh error {d.gap.mesh_error_mm:.2f} mm RMS taken out of "
                     f"the gap: {d.gap.rms(d.r0):.2f} mm left")
-    for d in data:
-        if d.boundary is not None:
-            f = d.error.fit(d.r0)
-            d.gap.boundary_mm = f.boundary_mm
-            say(f"  {d.case.name}: the baseline gap's estimated boundary field {f.boundary_mm:.2f} mm RMS "
-                "(integrated out, not taken out of the gap)")
     t_fit = time.perf_counter()
     result = analysis.analyse(data, effects, forward, say, tangent=tangent)
     record = build_record(data, result, effects)
@@ -381,7 +375,7 @@ def _error_entry(d, f) -> dict:
             "long_scale_mm": _r(f.long_mm), "long_scale_basis": "offset and tilts of the whole face (linear polynomial)",
             "mesh_error_mm": _r(d.gap.mesh_error_mm) if d.mesh_error is not None else None,
             "mesh_reference": d.mesh_reference,
-            "boundary_mm": _r(d.gap.boundary_mm) if d.boundary is not None else None,
+            "boundary_mm": _r(f.boundary_mm) if d.boundary is not None else None,
             "boundary_direction": d.boundary_condition,
             "level_mm": _r(float(np.hypot(f.discrepancy_mm, d.gap.noise_floor_mm))),
             "points": int(len(d.error.idx))}

@@ -123,10 +123,17 @@ def test_cohort_on_a_two_worker_cluster_matches_one_process(tmp_path):
 
     a = trimesh.load(tmp_path / "cluster" / "synth_0022" / "postop" / "skin.stl")
     b = trimesh.load(tmp_path / "single" / "synth_0022" / "postop" / "skin.stl")
-    # same draws, same solves: equal to what an STL stores, single precision (one float32 ulp
-    # at 128 mm is 7.6e-6 mm; 1e-4 mm allows a few ulps plus the solver's round-off, and is
-    # far below the 0.2 mm scan noise the cases carry)
-    assert a.vertices.shape == b.vertices.shape and np.abs(a.vertices - b.vertices).max() < 1e-4
+    # same draws, same solves, to the solves' own tolerance: a worker runs its BLAS and PARDISO
+    # on one thread, this process on several, so their sums are rounded in another order and
+    # Newton stops at another iterate of the same solution. The energy-norm test
+    # (|du . r| <= etol E0) leaves an error of about sqrt(etol) times the step's displacement,
+    # and no synthetic plan moves a bone 20 mm (mandible <= 10 mm, a genioplasty's correction
+    # on top); the STL's float32 rounding (7.6e-6 mm at 128 mm) is far below it. The scans
+    # of two different draws differ by the 0.2 mm scan noise, a hundred times more.
+    from facemodel.solver_settings import FACE_SOLVER
+
+    tol = 20.0 * np.sqrt(FACE_SOLVER.etol)
+    assert a.vertices.shape == b.vertices.shape and np.abs(a.vertices - b.vertices).max() < tol
     for r in (recs[1], one):
         r.pop("plan"), r.pop("shape")
     assert json.dumps(recs[1], sort_keys=True) == json.dumps(one, sort_keys=True)

@@ -456,6 +456,20 @@ def scan_like_surface(vertices, faces, landmarks: dict, rng, *, spacing: float =
     return pts, tri, record
 
 
+def scan_coverage(points, vertices, faces, landmarks: dict, *, tol: float = 1.0) -> np.ndarray:
+    """Which of `points` (near the surface `vertices`, `faces`: the nodes of a skin registered
+    onto it) the frontal scan of `scan_like_surface` sees (its window, crop, holes and grazing
+    rule): those within `tol` mm of a vertex of that scan made without noise or offset. The
+    scan's vertices lie on a 0.6 mm grid (x, z), so a point on the scanned surface is within
+    about 0.4 mm of one, more where the surface slopes away from the viewer."""
+    from scipy.spatial import cKDTree
+
+    V, _, _ = scan_like_surface(vertices, faces, landmarks, np.random.default_rng(0), noise=0.0,
+                                max_shift=0.0, max_angle_deg=0.0)
+    d, _ = cKDTree(V).query(np.asarray(points, float), distance_upper_bound=tol)
+    return np.isfinite(d)
+
+
 def displaced_surface(vertices, fe_nodes, fe_triangles, fe_displacement):
     """Vertices of a surface moved by the displacement of the FE skin it lies on: each
     vertex takes the displacement interpolated (barycentric) at its closest point on the FE

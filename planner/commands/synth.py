@@ -37,10 +37,13 @@ import numpy as np
 from facemodel.model import NECK_CONDITIONS
 from planner.errors import InputError, SolveError
 
-# Ranges of the withheld effects (skin change at the scan, mm, or the parameter itself):
+# Ranges of the withheld effects (skin change where the post-op scan sees the skin, the largest
+# over the effect's regions, mm, or the parameter itself). The published ranges are measured
+# on surface images, so a target is met where a frontal scan shows the face (`_region_ids`):
 # - posture: the upright face against the supine one differs by 0.8-1.4 mm over the lateral and
-#   lower face (cheeks, jowls; supine vs upright 3D photographs and CT/MRI, e.g. Ozsoy U. et
-#   al., 2015, and the soft-tissue sag reported between supine CT and upright surface scans);
+#   lower face (cheeks, jowls, lips and chin: subnasale to menton; supine vs upright 3D
+#   photographs and CT/MRI, e.g. Ozsoy U. et al., 2015, and the soft-tissue sag reported
+#   between supine CT and upright surface scans);
 # - swelling: residual oedema changes the skin by 0.5-2 mm at 3-12 months (van der Vlis et al.
 #   2014, J Oral Maxillofac Surg 72:2241; Kau et al. 2006);
 # - bone execution: planned-to-achieved differences of 0.5-2 mm and 1-3 deg (e.g. Hsu S.S. et
@@ -55,7 +58,7 @@ SKIN_CHANGE_MM = {"swelling": (0.5, 2.0), "gravity": (0.8, 1.4), "muscle_tone": 
 SKIN_CHANGE_REGIONS = {
     "swelling": None,                                                  # the whole skin
     "gravity": ("cheek_left", "cheek_right", "submandibular_left", "submandibular_right",
-                "submental", "chin", "preauricular_left", "preauricular_right"),
+                "submental", "upper_lip", "lower_lip", "chin", "preauricular_left", "preauricular_right"),
     "muscle_tone": ("upper_lip", "lower_lip", "chin"),
 }
 BONE_TRANSLATION_MM = (0.5, 2.0)
@@ -251,18 +254,32 @@ def draw_effect(name: str, rng, moved: tuple) -> tuple:
     return None, None, False
 
 
-def _region_ids(model, regions):
+def _region_ids(model, regions, seen):
+    """The model's skin nodes and the mask of those in `regions` (None: all) among `seen` (the
+    skin nodes the post-op scan sees, `_seen_nodes`): a skin-change target is a change a scan
+    can show."""
     from planner.pipeline import skin_surface
 
     _, _, ids = skin_surface(model)
-    if regions is None:
-        return ids, np.ones(len(ids), bool)
-    chosen = np.concatenate([np.asarray(model.regions[r], np.int64) for r in regions if r in model.regions])
-    return ids, np.isin(ids, chosen)
+    mask = np.asarray(seen, bool).copy()
+    if regions is not None:
+        chosen = np.concatenate([np.asarray(model.regions[r], np.int64) for r in regions if r in model.regions])
+        mask &= np.isin(ids, chosen)
+    return ids, mask
 
 
-def _skin_change(pred, base, regions=None) -> dict:
-    ids, mask = _region_ids(pred.model, regions)
+def _seen_nodes(model, case) -> np.ndarray:
+    """The model's skin nodes (pre-op, in `skin_surface` order) a frontal scan of the case's
+    pre-op skin sees (`facemodel.synthetic.scan_coverage`)."""
+    from facemodel import synthetic as sy
+    from planner.pipeline import skin_surface
+
+    x, _, _ = skin_surface(model)
+    return sy.scan_coverage(x, case.skin.vertices, case.skin.faces, case.landmarks)
+
+
+def _skin_change(pred, base, seen, regions=None) -> dict:
+    ids, mask = _region_ids(pred.model, regions, seen)
     d = np.linalg.norm(pred.displacement[ids] - base.displacement[ids], axis=1)[mask]
     return {"rms_mm": round(float(np.sqrt(np.mean(d * d))), 4), "max_mm": round(float(d.max()), 4)}
 
@@ -514,6 +531,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     timings["solve_base_s"] = time.perf_counter() - clock
     solves = [_solve_record("base", base)]
     timings["solves"] = solves
+    seen = _seen_nodes(base.model, case)
     target = None
     if name is not None and value is None:
         # the value that changes the skin by a target drawn from the published range, from
@@ -522,7 +540,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
         clock = time.perf_counter()
         ids, sens = skin_sensitivities(base, [name])
         timings["sensitivity_s"] = time.perf_counter() - clock
-        _, mask = _region_ids(base.model, SKIN_CHANGE_REGIONS[name])
+        _, mask = _region_ids(base.model, SKIN_CHANGE_REGIONS[name], seen)
         per_unit = float(np.linalg.norm(sens[name], axis=1)[mask].max())
         p = fe.parameters(name)[0]
         v = float(np.clip(p.none + target / max(per_unit, 1e-9), p.lower, p.upper))
@@ -563,7 +581,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                   f"failed; the effect was reduced to {value[name]} ({len(reductions)} reduction(s), "
                   "recorded in the key)", file=sys.stderr, flush=True)
     region = SKIN_CHANGE_REGIONS.get(name) if name else None
-    change = _skin_change(pred, base, region)
+    change = _skin_change(pred, base, seen, region)
     corrections = []
     if target is not None and not reductions:
         # the linear estimate misses where the response is not linear (muscle tone, contact):
@@ -584,7 +602,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                 else:
                     pred, effects = pred1, eff1
                     value = {name: round(v, 5)}
-                    change1 = _skin_change(pred, base, region)
+                    change1 = _skin_change(pred, base, seen, region)
                     corrections.append({"from": round(v0, 5), "to": round(v, 5),
                                         "max_mm_before": change["max_mm"]})
                     change = change1
@@ -621,7 +639,8 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
             "plan_actual": plan_actual is not None, "value_reductions": reductions,
             "value_corrections": corrections,
             "truth_contact_unmet_mm": {k: round(float(v), 4) for k, v in unmet.items()},
-            "effect_skin_change_mm": {"regions": list(region) if region else "skin", **change,
+            "effect_skin_change_mm": {"regions": list(region) if region else "skin", "where": "seen by the scan",
+                                      **change,
                                       "measured_at": companion,
                                       "target_max_mm": None if target is None else round(target, 4)}}
 

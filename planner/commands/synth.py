@@ -18,7 +18,7 @@ sees it (`facemodel.synthetic.scan_like_surface`: a range image on a 0.6 mm grid
 normals, a rigid offset up to 2 mm / 2 deg); case.yaml gets `follow_up_months` (3-12), and
 postop/plan_actual.yaml is written for a random half of the bone_execution cases. Effect
 values are drawn per case from published ranges (`draw_effect`; swelling, posture and tone from
-a skin-change target, with one secant correction when the change reached leaves the range, and
+a skin-change target met where the scan sees the skin, with one secant correction when the change reached leaves the range, and
 a recorded reduction when the truth solve fails, `solve_reducing`). The effect, its value and the
 perturbations go only to the --key file (a JSON list, one record per case, contract fields).
 The cases with post-op scans run as tasks on dask.distributed: a LocalCluster of `--workers`

@@ -172,8 +172,10 @@ def _print_row(r: dict) -> None:
           + (f" (on the response extrapolated to the converged mesh, kappa {r['kappa']})" if r.get("kappa") else "")
           + f"; {r['solves']} solves, "
           f"{r['time_s']:.0f} s", flush=True)
-    print("    held-out %, BIC gain, held-out log density gain: "
-          + "; ".join(f"{n} {h}% {b} {g}±{se}{' *' if sig else ''}" for n, h, b, g, se, sig in r["effects"]),
+    # (rows stored before the gain's probability was recorded have six fields)
+    print("    held-out %, BIC gain, held-out log density gain (P > 0): "
+          + "; ".join(f"{e[0]} {e[1]}% {e[2]} {e[3]}±{e[4]}" + (f" ({e[6]})" if len(e) > 6 else "")
+                      + (" *" if e[5] else "") for e in r["effects"]),
           flush=True)
 
 
@@ -283,7 +285,8 @@ def main_bench(argv=None) -> int:
                          "effects": [(e["name"], e["heldout_shrink_pct"],
                                       None if e["bic"] is None else round(d["method"]["baseline_bic"] - e["bic"], 1),
                                       e.get("heldout_lpd_gain"), e.get("heldout_lpd_gain_se"),
-                                      e["significant"]) for e in d["effects"]],
+                                      e["significant"], e.get("heldout_lpd_gain_probability"))
+                                     for e in d["effects"]],
                          "fitted": fitted, "kappa": kappa, "time_s": time.perf_counter() - t,
                          "solves": d["solves"]["count"], "sensitivity": d["method"]["sensitivity"]})
             if args.keep:

@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["linear_fit", "broyden", "standard_errors", "bic", "model_probabilities", "predictive_weights",
-           "finite_difference_points", "finite_difference_jacobian", "STRONG_EVIDENCE",
+           "gain_probability", "finite_difference_points", "finite_difference_jacobian", "STRONG_EVIDENCE",
            "IDENTIFIABLE_FRACTION"]
 
 STRONG_EVIDENCE = 6.0          # BIC difference for strong evidence (Kass & Raftery 1995)
@@ -115,12 +115,34 @@ def predictive_weights(lpd: dict[str, np.ndarray], draws: int = 1000, seed: int 
     n = L.shape[0]
     if n == 0:
         return {m: 1.0 / len(names) for m in names}
-    alpha = np.random.default_rng(seed).dirichlet(np.ones(n), size=draws)   # (draws, folds)
-    z = n * alpha @ L
+    z = _bootstrap_sums(L, draws, seed)                                       # (draws, models)
     z -= z.max(axis=1, keepdims=True)
     w = np.exp(z)
     w /= w.sum(axis=1, keepdims=True)
     return dict(zip(names, w.mean(axis=0).tolist()))
+
+
+def _bootstrap_sums(values: np.ndarray, draws: int, seed: int) -> np.ndarray:
+    """Bayesian-bootstrap draws (Rubin 1981) of the sum over folds of `values` (folds first):
+    n sum_i alpha_i v_i with alpha ~ Dirichlet(1, ..., 1), one row per draw."""
+    v = np.asarray(values, float)
+    alpha = np.random.default_rng(seed).dirichlet(np.ones(len(v)), size=draws)   # (draws, folds)
+    return len(v) * alpha @ v
+
+
+def gain_probability(diff: np.ndarray, draws: int = 4000, seed: int = 0) -> float:
+    """The probability that a summed held-out gain is positive, from its per-fold values: the
+    share of Bayesian-bootstrap draws of the sum (`_bootstrap_sums`) above zero. Unlike the
+    normal approximation sum +- 2 sqrt(n) sd, which holds for many exchangeable folds, it keeps
+    the skew of a few folds: a gain carried by the one region an effect acts on, with no fold
+    that loses, is not discounted for its concentration, and one large loss among many small
+    gains counts as the loss it is (Sivula, Magnusson, Matamoros & Vehtari, arXiv:2008.10296, on
+    the normal approximation's miscalibration with few folds). A fixed seed makes it a function
+    of the data alone; 4000 draws give it to about +-0.0025 near 0.975."""
+    d = np.asarray(diff, float)
+    if d.size == 0:
+        return 0.0
+    return float(np.mean(_bootstrap_sums(d, draws, seed) > 0.0))
 
 
 def finite_difference_points(theta0: np.ndarray, step: np.ndarray, lower: np.ndarray,

@@ -85,7 +85,8 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
              "spread %", "held-out shrink beyond noise %", "held-out log density gain", "probability", "significant"],
             [[e["name"], json.dumps(e["params"]), e["identifiable"], e["rms_after_mm"], e["shrink_pct"],
               e["heldout_shrink_pct"], e["heldout_shrink_spread_pct"], e.get("heldout_noise_shrink_pct"),
-              None if e.get("heldout_lpd_gain") is None else f"{e['heldout_lpd_gain']} ± {e['heldout_lpd_gain_se']}",
+              None if e.get("heldout_lpd_gain") is None else
+              f"{e['heldout_lpd_gain']} ± {e['heldout_lpd_gain_se']} (P > 0: {e.get('heldout_lpd_gain_probability')})",
               e["probability"], e["significant"]]
              for e in record["effects"]]),
             "Where the prediction misses (RMS gap per region)": (

@@ -127,6 +127,7 @@ def mesh_errors(data: list, references: list, runner: Runner | None, say, names:
             d.reference, d.reference_skin = references[i], skins[j]
             d.reference_coarser = len(references[i].model.nodes) < len(d.case.model.nodes)
             d.reference_sens = sens[j] if isinstance(sens[j], dict) else None
+            d.reference_forward, d.reference_index = fwd, j
             rms = float(np.sqrt(np.average(d.mesh_error ** 2, weights=d.gap.weights)))
             say(f"  {d.case.name}: the gap changes by {rms:.2f} mm RMS on the {name} mesh")
 
@@ -271,6 +272,7 @@ def _effect_entry(s: analysis.Scored) -> dict:
         "discrepancy_mm": _r(float(np.sqrt(np.mean([f.discrepancy_mm ** 2 for f in s.gp]))) if s.gp else None),
         "heldout_lpd_gain": _r(s.lpd_gain, 2),
         "heldout_lpd_gain_se": _r(s.lpd_gain_se, 2),
+        "heldout_lpd_gain_probability": _r(s.lpd_gain_prob, 4),
         "wins_heldout": s.wins_heldout,
         "probability": _r(s.probability, 4),
         "shared": c.shared,
@@ -339,8 +341,9 @@ def build_record(data: list, result: dict, effects) -> dict:
                                     "(a Matern-3/2 Gaussian process and a linear polynomial field with Gaussian "
                                     "coefficients; amplitudes and length by maximum likelihood per model)",
                              "heldout": "log predictive density of each region given the others, effect fitted "
-                                        "without it; an effect must beat the discrepancy alone by twice the "
-                                        "standard error of the difference",
+                                        "without it; an effect must beat the discrepancy alone by a summed gain "
+                                        "of at least 3, positive with a Bayesian-bootstrap probability over "
+                                        f"the regions of at least {analysis.HELDOUT_GAIN_PROBABILITY}",
                              "probability": "pseudo-BMA+ weights of the held-out log predictive densities "
                                             "(Bayesian bootstrap over the folds) among the baseline and the "
                                             "models passing both checks; 0 for the others",

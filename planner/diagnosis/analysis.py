@@ -622,14 +622,14 @@ def choice_corrections(data: list[CaseData], effects: list[Effect], forward, say
     (`mesh_corrections`): `CaseData.choice_mesh[key] = kappa (dr_ref - dr_d)`, dr the change of
     the gap the choice makes from the baseline on the second mesh (its own solve there) and on
     the diagnosis mesh. A switch has no derivative to extrapolate, and its response depends on
-    the mesh as the baseline's does (a coarse face slides less: a stiffer mesh spreads the
-    freed tissue's motion less far), so fitting the converged model's baseline with the
+    the mesh as the baseline's does (docs/diagnosis.md gives a coarse face's sliding against the
+    standard one's), so fitting the converged model's baseline with the
     diagnosis mesh's switch would mix two models. Only where the baseline's mesh error was
     estimated against a finer second mesh (`mesh_corrections`, the same rule); the choices of
     every case go to the second mesh in one batch. A choice the second mesh cannot solve keeps
     the diagnosis mesh's response."""
     todo = [(c, d) for c, d in enumerate(data) if d.mesh_coef is not None and d.reference_forward is not None
-            and d.reference_skin is not None and not d.reference_coarser]
+            and not d.reference_coarser]
     keys = sorted({effect_strings(dict(ch)) for e in effects for ch in e.choices} - {()})
     if not todo or not keys:
         return

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from planner.diagnosis import analysis
+from planner.diagnosis import analysis, fit
 from planner.diagnosis.effects import available_effects
 from planner.diagnosis.forward import Forward, Runner, prepare_case
 from planner.diagnosis.gap import measure_gap, region_table
@@ -336,13 +336,13 @@ def build_record(data: list, result: dict, effects) -> dict:
             "refinement": f"bounded Gauss-Newton with up to {analysis.MAX_REFINEMENTS} full solves per fit",
             "heldout": "spatial cross-validation over regions" if single else
                        "leave one case out (shared parameters); spatial cross-validation per case (case-specific)",
-            "significance": {"bic_strong_evidence": 6.0,
+            "significance": {"bic_strong_evidence": fit.STRONG_EVIDENCE,
                              "bic": "-2 log L + k ln(n_eff) under noise + two-scale model-form discrepancy "
                                     "(a Matern-3/2 Gaussian process and a linear polynomial field with Gaussian "
                                     "coefficients; amplitudes and length by maximum likelihood per model)",
                              "heldout": "log predictive density of each region given the others, effect fitted "
                                         "without it; an effect must beat the discrepancy alone by a summed gain "
-                                        "of at least 3, positive with a Bayesian-bootstrap probability over "
+                                        f"of at least {fit.STRONG_EVIDENCE / 2.0:g}, positive with a Bayesian-bootstrap probability over "
                                         f"the regions of at least {analysis.HELDOUT_GAIN_PROBABILITY}",
                              "probability": "pseudo-BMA+ weights of the held-out log predictive densities "
                                             "(Bayesian bootstrap over the folds) among the baseline and the "

@@ -2,7 +2,7 @@
 
 The cohort comes from seeds used nowhere else (default 9901..., the `none` cases from the seed +
 500; seeds already taken by reported runs: 9101-9103, 9201-9202, 9501-9510, 9601, 9701,
-9801-9804, 10001-10003, 10301-10302 and the cohorts of docs/diagnosis.md, 10401-15504, each
+9801-9804, 10001-10003, 10301-10302 and the cohorts of docs/diagnosis.md, 10401-16201, each
 with its `none` seeds): `--random` cases with a random
 withheld effect and `--none` cases without any, written by `faceplan synth --withheld-effect
 random|none --key KEY` (its perturbed generic model on a finer mesh, scan-like surfaces), one
@@ -35,7 +35,7 @@ SEED_BASE = 9901
 
 
 def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minutes: float | None = None,
-               neck: str = "free"):
+               neck: str = "free", family: str = "own"):
     """A subprocess writing one case with `faceplan synth` (its own folder and key), its truth
     solves within `max_minutes` (`--case-max-minutes`)."""
     import os
@@ -44,7 +44,8 @@ def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minu
     out = root / kind / str(seed)
     cmd = [sys.executable, "-m", "planner.cli", "synth", "--out", str(out), "--count", "1", "--seed", str(seed),
            "--withheld-effect", kind, "--key", str(root / kind / f"key_{seed}.json"),
-           "--truth-resolution", truth_resolution, "--workers", "1", "--truth-neck", neck]
+           "--truth-resolution", truth_resolution, "--workers", "1", "--truth-neck", neck,
+           "--head-family", family]
     if max_minutes:
         cmd += ["--case-max-minutes", str(max_minutes)]
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]) + os.pathsep
@@ -55,7 +56,7 @@ def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minu
 
 def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: str,
                 truth_resolution: str, workers: int, skip: tuple[int, ...] = (), make: bool = True,
-                max_minutes: float | None = None, neck: str = "free") -> list[dict]:
+                max_minutes: float | None = None, neck: str = "free", family: str = "own") -> list[dict]:
     """Case folders with post-op scans and their key, one `faceplan synth` per seed (`workers`
     at a time). A seed whose truth cannot be solved, or whose synth runs longer than
     `max_minutes` (a plan whose solve creeps at a limit point of the lips), is reported and
@@ -70,7 +71,7 @@ def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: s
     while todo or running:
         while todo and len(running) < max(workers, 1):
             kind, s = todo.pop(0)
-            running.append((kind, s, _synth_one(root, kind, s, truth_resolution, max_minutes, neck),
+            running.append((kind, s, _synth_one(root, kind, s, truth_resolution, max_minutes, neck, family),
                             time.perf_counter()))
         time.sleep(2.0)
         for job in list(running):
@@ -207,6 +208,9 @@ def main_bench(argv=None) -> int:
     ap.add_argument("--truth-neck", default="free", choices=("free", "held", "random"),
                     help="the truths' neck cut (faceplan synth --truth-neck; held: a boundary condition "
                          "the diagnosis's model does not share)")
+    ap.add_argument("--head-family", default="own", choices=("own", "alt"),
+                    help="the heads' generator (faceplan synth --head-family; alt: a second, "
+                         "differently built family without teeth, anatomy the method was not made on)")
     ap.add_argument("--boundary-uncertainty", default="neck", choices=("neck", "none"),
                     help="as faceplan diagnose --boundary-uncertainty")
     ap.add_argument("--skip-seeds", default="", help="comma-separated seeds whose truth synth cannot solve "
@@ -225,7 +229,7 @@ def main_bench(argv=None) -> int:
     key = make_cohort(root, args.random, args.none, args.seed, args.resolution,
                       args.truth_resolution or finer[args.resolution], args.workers,
                       tuple(int(x) for x in args.skip_seeds.split(",") if x.strip()), make=not args.no_make,
-                      max_minutes=args.synth_max_minutes, neck=args.truth_neck)
+                      max_minutes=args.synth_max_minutes, neck=args.truth_neck, family=args.head_family)
     if args.skip_seeds:
         print(f"seeds left out (their truth could not be solved by synth): {args.skip_seeds}", flush=True)
     t_cohort = time.perf_counter() - t0

@@ -4,7 +4,9 @@ Each case (seed S + i) is a head of `facemodel.synthetic` written as the contrac
 folder: preop/skin.stl (closed), preop/bone/<segment>.stl (skull, maxilla, mandible, chin),
 preop/teeth/<arch>.stl, preop/landmarks.json, a sample bimaxillary plan.yaml that corrects
 the head's jaw discrepancy (Le Fort I, BSSO, genioplasty when the chin is off), case.yaml,
-and with --ct a CT-like volume preop/ct.nii.gz of the same head.
+and with --ct a CT-like volume preop/ct.nii.gz of the same head. With `--head-family alt` the
+head comes from a second, differently built generator (`facemodel.synthetic_alt`: no teeth),
+its plan drawn from its bones and landmarks (`bone_plan`).
 
 With `--withheld-effect NAME[=VALUE] | random | none` each case also gets postop/skin.stl: the
 plan's prediction WITH that effect (none: without any), made on a model that is not the one a
@@ -81,6 +83,9 @@ REGISTERED_AT = {"fine": "standard"}
 CARRY_PASSES = 4
 CLEARANCE_HOLD_MM = 0.1
 LIP_GAP_TOL = 0.05
+# the head generators a case can come from: faceplan's own, and a second family built
+# otherwise (a model tuned on one must be judged on the other)
+HEAD_FAMILIES = ("own", "alt")
 
 
 def add_arguments(parser) -> None:
@@ -112,6 +117,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--mesher", choices=("sphere", "pygalmesh"), default="sphere",
                         help="skin mesher: projected geodesic sphere (default, reproducible) or "
                              "CGAL's Delaunay surface mesher via pygalmesh")
+    parser.add_argument("--head-family", choices=HEAD_FAMILIES, default="own",
+                        help="own (default): faceplan's head generator (facemodel.synthetic), "
+                             "with teeth; alt: another, differently built family "
+                             "(facemodel.synthetic_alt: superquadric skull and face, other "
+                             "soft-tissue thickness maps, no teeth), its plan drawn from its "
+                             "bones (bone_plan)")
 
 
 def parse_withheld(text: str | None):
@@ -152,6 +163,9 @@ def _check(args) -> None:
         raise InputError(f"--ct-spacing must be in [0.2, 5] mm, got {args.ct_spacing}", field="--ct-spacing")
     if not (1.0 <= args.surface_size <= 10.0):
         raise InputError(f"--surface-size must be in [1, 10] mm, got {args.surface_size}", field="--surface-size")
+    if args.head_family == "alt" and (args.surface_size != 1.0 or args.mesher != "sphere"):
+        raise InputError("--surface-size and --mesher apply to faceplan's own head family only",
+                         field="--head-family")
     if args.case_max_minutes is not None and not args.case_max_minutes > 0:
         raise InputError(f"--case-max-minutes must be > 0, got {args.case_max_minutes}",
                          field="--case-max-minutes")
@@ -182,9 +196,38 @@ def sample_plan(shape) -> dict:
             "model": {"resolution": "standard"}}
 
 
+def bone_plan(head, seed: int) -> dict:
+    """A bimaxillary plan from the head's bone surfaces and soft-tissue landmarks alone (no
+    shape parameters: for heads of another family, `facemodel.synthetic_alt`), drawn from the
+    seed on a stream of its own: maxillary advancement 2-6 mm with 0-2 mm impaction and a
+    2 deg pitch about the maxilla's point nearest subnasale (A point's neighbourhood); the
+    mandible follows the maxilla and corrects a discrepancy of -4..+4 mm of its own; a
+    genioplasty of 2-5 mm in half the cases (otherwise the chin moves with the mandible).
+    The ranges are the common one-jaw to bimaxillary corrections (sample_plan's, drawn rather
+    than read off a shape)."""
+    rng = np.random.default_rng([int(seed), 23])
+    adv, imp, own = rng.uniform(2.0, 6.0), rng.uniform(0.0, 2.0), rng.uniform(-4.0, 4.0)
+    genio = rng.uniform(2.0, 5.0) if rng.uniform() < 0.5 else 0.0
+    maxilla = np.asarray(head.bones["maxilla"].vertices, float)
+    sn = np.asarray(head.landmarks["Sn"], float)
+    a_point = maxilla[int(np.argmin(np.linalg.norm(maxilla - sn, axis=1)))]
+    mand = adv + own
+    segs = {
+        "maxilla": {"translation": [0.0, round(float(adv), 2), round(float(imp), 2)],
+                    "rotation": {"axis": [1, 0, 0], "angle_deg": -2.0,
+                                 "center": [round(float(c), 2) for c in a_point]}},
+        "mandible": {"translation": [0.0, round(float(mand), 2), 0.0]},
+        "chin": {"translation": [0.0, round(float(mand + genio), 2), 0.0]},
+    }
+    return {"faceplan": 1, "frame": "RAS", "segments": segs,
+            "muscles": {"orbicularis_oris": 0.0, "mentalis": 0.0},
+            "model": {"resolution": "standard"}}
+
+
 def write_case(folder: Path, head, *, ct: bool = False, ct_spacing: float = 1.0,
-               follow_up_months: float | None = None) -> dict:
-    """Write one synthetic head as a case folder (into an existing empty folder)."""
+               follow_up_months: float | None = None, plan: dict | None = None) -> dict:
+    """Write one synthetic head as a case folder (into an existing empty folder); plan: the
+    plan.yaml content (default `sample_plan` of the head's shape, faceplan's own family)."""
     import yaml
 
     preop = folder / "preop"
@@ -199,10 +242,13 @@ def write_case(folder: Path, head, *, ct: bool = False, ct_spacing: float = 1.0,
         trimesh.Trimesh(v, f, process=False).export(preop / "teeth" / f"{arch}.stl")
     (preop / "landmarks.json").write_text(json.dumps(
         {k: [round(float(x), 4) for x in v] for k, v in head.landmarks.items()}, indent=1))
-    plan = sample_plan(head.shape)
+    if plan is None:
+        plan = sample_plan(head.shape)
+    segs = plan["segments"]
+    genio = segs["chin"]["translation"] != segs["mandible"]["translation"]
     (folder / "plan.yaml").write_text(
         "# faceplan synth: sample bimaxillary plan (Le Fort I, BSSO"
-        + (", genioplasty" if abs(head.shape.chin_projection) > 1.5 else "") + ")\n"
+        + (", genioplasty" if genio else "") + ")\n"
         + yaml.safe_dump(plan, sort_keys=False))
     info = {"id": folder.name, "synthetic": True, "seed": int(head.seed)}
     if follow_up_months is not None:
@@ -662,10 +708,20 @@ def make_case(root: str, seed: int, options: dict) -> dict:
     fu = None
     if withheld is not None:
         fu = float(_rng(seed + 10**6).uniform(*FOLLOW_UP_MONTHS))
-    head = synthetic_head(seed, size=options["surface_size"], distance=options["surface_size"] / 12.0,
-                          mesher=options["mesher"])
-    rec = write_case(target, head, ct=options["ct"], ct_spacing=options["ct_spacing"], follow_up_months=fu)
-    record = {"case": name, "seed": int(seed), "effect": None, "value": None, "perturbation": None,
+    family = options.get("head_family", "own")
+    if family == "alt":
+        from facemodel.synthetic_alt import alt_head
+
+        head = alt_head(seed)
+        plan = bone_plan(head, seed)
+    else:
+        head = synthetic_head(seed, size=options["surface_size"], distance=options["surface_size"] / 12.0,
+                              mesher=options["mesher"])
+        plan = None
+    rec = write_case(target, head, ct=options["ct"], ct_spacing=options["ct_spacing"], follow_up_months=fu,
+                     plan=plan)
+    record = {"case": name, "seed": int(seed), "head_family": family,
+              "effect": None, "value": None, "perturbation": None,
               "follow_up_months": None if fu is None else round(fu, 2), "plan_actual": False,
               "shape": rec["shape"], "plan": rec["plan"]}
     if withheld is not None:
@@ -715,7 +771,7 @@ def run(args) -> int:
     options = {"withheld": parse_withheld(args.withheld_effect), "truth_resolution": args.truth_resolution,
                "surface_size": args.surface_size, "mesher": args.mesher, "ct": args.ct,
                "ct_spacing": args.ct_spacing, "case_max_minutes": args.case_max_minutes,
-               "truth_neck": args.truth_neck}
+               "truth_neck": args.truth_neck, "head_family": args.head_family}
     seeds = [args.seed + i for i in range(args.count)]
     with atomic_output_dir(out) as tmp:
         if out.is_dir():          # keep what the folder already holds

@@ -325,3 +325,44 @@ def test_a_case_over_its_time_budget_fails_before_its_next_solve(tmp_path):
             "case_max_minutes": 1e-6}
     with pytest.raises(SolveError, match="time budget is spent"):
         synth.make_case(str(tmp_path), 23, opts)
+
+
+def test_a_head_of_the_other_family_is_a_case_whose_plan_follows_its_bones(tmp_path):
+    """`faceplan synth --head-family alt`: a head of the second generator written as a case
+    folder that loads (no teeth), its plan drawn from its own bones within `bone_plan`'s
+    ranges and the same for the same seed (a cohort does not depend on the worker that makes
+    a case); the own family's mesh options refused for it."""
+    import argparse
+
+    import yaml
+
+    from planner.case import load_case
+    from planner.plan import load_plan
+
+    opts = {"withheld": None, "truth_resolution": "coarse", "surface_size": 1.0, "mesher": "sphere",
+            "ct": False, "ct_spacing": 1.0, "head_family": "alt"}
+    rec = synth.make_case(str(tmp_path / "a"), 16, opts)
+    assert rec["head_family"] == "alt"
+    folder = tmp_path / "a" / rec["case"]
+    case = load_case(folder, cache=False)
+    assert not case.teeth and set(case.bones) == {"skull", "maxilla", "mandible", "chin"}
+    plan = load_plan(folder / "plan.yaml")
+    raw = yaml.safe_load((folder / "plan.yaml").read_text())["segments"]
+    adv, imp = raw["maxilla"]["translation"][1:]
+    assert 2.0 <= adv <= 6.0 and 0.0 <= imp <= 2.0
+    # the mandible corrects its own discrepancy of at most 4 mm; a genioplasty adds 2-5 mm
+    assert abs(raw["mandible"]["translation"][1] - adv) <= 4.0 + 0.01
+    genio = raw["chin"]["translation"][1] - raw["mandible"]["translation"][1]
+    assert genio == 0.0 or 2.0 - 0.01 <= genio <= 5.0 + 0.01
+    # the maxilla's pitch is about a point of the maxilla (its nearest to subnasale): within
+    # the soft tissue's thickness there (the alt family's 5-20 mm) of the landmark
+    centre = np.asarray(raw["maxilla"]["rotation"]["center"])
+    assert np.linalg.norm(centre - np.asarray(case.landmarks["Sn"])) < 25.0
+    assert set(plan.motions()) == {"maxilla", "mandible", "chin"}
+    assert synth.bone_plan(case, 16) == synth.bone_plan(case, 16)
+    # the own family's mesh options do not apply to it: a clear error naming the option
+    args = argparse.Namespace(count=1, seed=0, withheld_effect=None, workers=1, ct_spacing=1.0,
+                              surface_size=2.0, mesher="sphere", case_max_minutes=None, head_family="alt")
+    with pytest.raises(InputError, match="own head family") as err:
+        synth._check(args)
+    assert err.value.field == "--head-family"

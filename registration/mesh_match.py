@@ -660,7 +660,7 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
     # and attached nodes stay where they are, so the fits below are those of the repair
     t5 = time.perf_counter()
     placed, teeth_info = place_teeth(model.teeth, model.bone_node_sets, np.asarray(model.nodes, float),
-                                     x, sim, teeth)
+                                     x, sim, teeth, skin_ids=skin_ids, clearance=opt.teeth_clearance_mm)
     clearance_report = None
     if placed:
         arches = [Arch(k, v, f, seg) for k, (v, f, seg) in placed.items()]

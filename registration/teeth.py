@@ -4,6 +4,13 @@ Placement: the teeth are rigid parts of their bone segment ("upper" -> maxilla, 
 mandible), so each arch is moved by the least-squares similarity (Umeyama, IEEE PAMI 13, 1991)
 that maps its segment's attachment nodes from their generic to their registered positions --
 not by the global alignment, which ignores how each jaw of the patient sits (class II / III).
+A jaw whose shape differs from the generic one (another anatomy: a wider ramus, a longer
+body) maps by no single similarity: the segment's fit, dominated by its far parts, can then
+put the arch through the face. The skin bounds the mouth, and no stage after this one may
+move it, so an arch reaching within the teeth clearance of a registered skin node is placed
+instead by the similarity of the attachment nodes near it (Gaussian weights exp(-(d/LOCAL_MM)^2),
+d the generic node's distance to the generic arch: the alveolar bone that carries the teeth),
+the placement that keeps it farther inside the skin kept (`info[arch]["placement"]`).
 When the patient's own teeth surfaces are given (e.g. from an intra-oral or CT scan) they are
 used as they are.
 
@@ -38,6 +45,9 @@ from registration.repair import repair_mesh
 from registration.surface import TargetSurface
 
 ARCH_SEGMENT = {"upper": "maxilla", "lower": "mandible"}
+# length scale (mm) of the local placement's weights: about an incisor's root plus the
+# alveolar bone around it, so that the jaw's far parts (ramus, angle) do not steer the arch
+LOCAL_MM = 10.0
 
 
 @dataclass
@@ -131,14 +141,27 @@ def teeth_arrays(surface, name: str):
     return v, f, seg
 
 
+def _skin_margin(v, f, points) -> float:
+    """Smallest signed distance (mm, positive outside the arch) of `points` to the arch (v, f)
+    (inf without points near it)."""
+    arch = Arch("arch", v, f, "")
+    p = np.asarray(points, float)
+    p = p[arch.near(p, 5.0)]
+    return float(arch.signed_distance(p)[0].min()) if len(p) else np.inf
+
+
 def place_teeth(generic_teeth: dict, attach: dict, generic_nodes: np.ndarray,
                 registered_nodes: np.ndarray, fallback: Similarity,
-                patient_teeth: dict | None = None) -> tuple[dict, dict]:
+                patient_teeth: dict | None = None, skin_ids=None,
+                clearance: float = 0.25) -> tuple[dict, dict]:
     """Arches in the patient frame and how each was placed.
 
     generic_teeth: name -> (vertices, faces, segment) in the generic frame; attach: segment ->
-    attached node ids; patient_teeth: name -> the patient's own surface (used as given). Returns
-    ({name: (vertices, faces, segment)}, {name: info})."""
+    attached node ids; patient_teeth: name -> the patient's own surface (used as given);
+    skin_ids: the registered skin's node ids: an arch placed by its segment's similarity that
+    reaches within `clearance` of them is placed by the local similarity instead where that
+    keeps it farther from the skin (module docstring). Returns ({name: (vertices, faces,
+    segment)}, {name: info})."""
     patient_teeth = patient_teeth or {}
     unknown = sorted(set(patient_teeth) - set(generic_teeth) - set(ARCH_SEGMENT))
     if unknown:
@@ -166,8 +189,26 @@ def place_teeth(generic_teeth: dict, attach: dict, generic_nodes: np.ndarray,
             tf = fallback
             info[name] = {"source": "global alignment", "segment": seg,
                           "attachment_nodes": int(len(ids))}
+        placed = tf.apply(v)
+        if len(ids) >= 4 and skin_ids is not None and len(skin_ids):
+            skin = registered_nodes[np.asarray(skin_ids, np.int64)]
+            margin = _skin_margin(placed, f, skin)
+            info[name].update(placement="segment", skin_margin_mm=round(margin, 4))
+            if margin < clearance:
+                from scipy.spatial import cKDTree
+
+                d = cKDTree(v).query(generic_nodes[ids])[0]
+                w = np.exp(-(d / LOCAL_MM) ** 2)
+                if w.sum() > 1e-6 * len(w):
+                    local = umeyama(generic_nodes[ids], registered_nodes[ids], weights=w)
+                    moved = local.apply(v)
+                    m_local = _skin_margin(moved, f, skin)
+                    if m_local > margin:
+                        tf, placed = local, moved
+                        info[name].update(placement="local", skin_margin_mm=round(m_local, 4),
+                                          segment_skin_margin_mm=round(margin, 4))
         info[name].update(scale=float(tf.scale), matrix=tf.matrix.tolist())
-        out[name] = (tf.apply(v), f, seg)
+        out[name] = (placed, f, seg)
     return out, info
 
 

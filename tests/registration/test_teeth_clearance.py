@@ -171,6 +171,48 @@ def test_point_caught_between_arches_in_occlusion_leaves_outward():
     assert q[0, 1] > 80.0 and np.linalg.norm(q - p) < 2.2 + 0.2 + 0.01  # out through the front face
 
 
+def test_an_arch_the_segment_fit_puts_through_the_skin_is_placed_by_its_alveolar_bone():
+    """A jaw of another shape: its far attachment nodes (a ramus 40-60 mm behind the arch)
+    registered 8 mm forward, the alveolar nodes around the arch not moved. The segment's
+    similarity carries the arch several mm forward, through a skin 2 mm in front of it; the
+    placement then keeps the local similarity of the alveolar nodes, which leaves the arch
+    where its own bone is (within the far nodes' residual pull, 0.5 mm: their Gaussian weights
+    at 40 mm and more are below 1e-7) and the skin outside it. With the skin far away, the
+    segment's similarity stays."""
+    from registration.alignment import Similarity
+    from registration.teeth import Arch, place_teeth
+
+    v, f = _box([-10, 70, -8], [10, 80, 0])
+    rng = np.random.default_rng(5)
+    near = np.column_stack([rng.uniform(-12, 12, 40), rng.uniform(66, 74, 40), rng.uniform(-12, -6, 40)])
+    far = np.column_stack([rng.choice([-45.0, 45.0], 60) + rng.uniform(-5, 5, 60),
+                           rng.uniform(10, 30, 60), rng.uniform(-30, 10, 60)])
+    generic_nodes = np.vstack([near, far])
+    registered = generic_nodes.copy()
+    registered[len(near):, 1] += 8.0
+    skin = np.column_stack([np.repeat(np.linspace(-15, 15, 16), 8), np.full(128, 82.0),
+                            np.tile(np.linspace(-9, 1, 8), 16)])
+    nodes_g = np.vstack([generic_nodes, skin])
+    nodes_r = np.vstack([registered, skin])
+    skin_ids = np.arange(len(generic_nodes), len(nodes_g))
+    teeth = {"lower": (v, f, "mandible")}
+    attach = {"mandible": np.arange(len(generic_nodes))}
+    ident = Similarity(1.0, np.eye(3), np.zeros(3))
+    out, info = place_teeth(teeth, attach, nodes_g, nodes_r, ident, skin_ids=skin_ids, clearance=0.25)
+    assert info["lower"]["placement"] == "local"
+    assert info["lower"]["segment_skin_margin_mm"] < 0.0          # the segment's fit pierces the skin
+    placed = out["lower"][0]
+    assert np.abs(placed - v).max() < 0.5
+    sd = Arch("lower", placed, f, "mandible").signed_distance(skin)[0]
+    assert sd.min() > 1.5 and abs(sd.min() - info["lower"]["skin_margin_mm"]) < 1e-3
+    # the skin 30 mm away: nothing to avoid, the segment's similarity as before
+    far_skin = nodes_r.copy()
+    far_skin[skin_ids, 1] += 30.0
+    out2, info2 = place_teeth(teeth, attach, nodes_g, far_skin, ident, skin_ids=skin_ids, clearance=0.25)
+    assert info2["lower"]["placement"] == "segment"
+    assert np.abs(out2["lower"][0] - v).max() > 3.0
+
+
 def test_unknown_arch_name_is_refused(generic):
     from registration.errors import RegistrationInputError
 

@@ -246,7 +246,9 @@ def main_bench(argv=None) -> int:
                                dashboard_address=":0", silence_logs=logging.ERROR)
         client = Client(cluster)
         closing = [client, cluster]
-    rows = []
+    from planner.errors import InputError, SolveError
+
+    rows, not_diagnosed = [], []
     try:
         for rec in key:
             t = time.perf_counter()
@@ -256,8 +258,15 @@ def main_bench(argv=None) -> int:
                 _print_row(rows[-1])
                 continue
             say = (lambda m: print(m, file=sys.stderr, flush=True)) if args.verbose else (lambda m: None)
-            patient, scan, res, ref = load_diagnosis_case(Path(rec["case"]), args.resolution, say,
-                                                          args.mesh_reference)
+            try:
+                patient, scan, res, ref = load_diagnosis_case(Path(rec["case"]), args.resolution, say,
+                                                              args.mesh_reference)
+            except (SolveError, InputError) as exc:
+                # a case faceplan cannot register or load is a failure of the method on that
+                # head, counted and named, not a reason to stop the cohort
+                not_diagnosed.append((Path(rec["case"]).name, rec["effect"], str(exc)))
+                print(f"{Path(rec['case']).name}: not diagnosed: {exc}", flush=True)
+                continue
             fwd = _StoredForward([patient], Runner(client), say, root / "solves",
                                  f"{Path(rec['case']).resolve()}|{res}")
             ref_name = mesh_reference(res, args.mesh_reference)
@@ -336,6 +345,9 @@ def main_bench(argv=None) -> int:
           f"{sum(r['verdict'] not in (None, 'unexplained') and r['confidence'] > 0.5 for r in none_rows)}/{len(none_rows)}; "
           "fitted values within 25% of the key: "
           f"{sum(e <= 0.25 for e in errs)}/{len(errs)}")
+    if not_diagnosed:
+        print(f"not diagnosed (faceplan could not register or load the case): {len(not_diagnosed)}: "
+              + "; ".join(f"{c} ({t}): {why}" for c, t, why in not_diagnosed))
     times = [r["time_s"] for r in rows]
     print(f"cohort made in {t_cohort:.0f} s; diagnosis per case median {np.median(times) if times else 0:.0f} s, "
           f"max {max(times) if times else 0:.0f} s, sum {sum(times):.0f} s (cases read back with --resume count "

@@ -2,7 +2,7 @@
 
 The cohort comes from seeds used nowhere else (default 9901..., the `none` cases from the seed +
 500; seeds already taken by reported runs: 9101-9103, 9201-9202, 9501-9510, 9601, 9701,
-9801-9804, 10001-10003, 10301-10302 and the cohorts of docs/diagnosis.md, 10401-16201, each
+9801-9804, 10001-10003, 10301-10302 and the cohorts of docs/diagnosis.md, 10401-16212, each
 with its `none` seeds): `--random` cases with a random
 withheld effect and `--none` cases without any, written by `faceplan synth --withheld-effect
 random|none --key KEY` (its perturbed generic model on a finer mesh, scan-like surfaces), one

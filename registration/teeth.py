@@ -141,13 +141,21 @@ def teeth_arrays(surface, name: str):
     return v, f, seg
 
 
-def _skin_margin(v, f, points) -> float:
-    """Smallest signed distance (mm, positive outside the arch) of `points` to the arch (v, f)
-    (inf without points near it)."""
-    arch = Arch("arch", v, f, "")
-    p = np.asarray(points, float)
-    p = p[arch.near(p, 5.0)]
-    return float(arch.signed_distance(p)[0].min()) if len(p) else np.inf
+def _skin_margin(v, f, skin) -> float:
+    """Smallest signed distance (mm, positive outside the arch) of the skin nodes to the arch
+    (v, f); inf without skin near it."""
+    return float(union_distance([Arch("arch", v, f, "")], skin, 5.0)[0].min())
+
+
+def _alveolar_similarity(v, ids, generic_nodes, registered_nodes):
+    """The similarity of the attachment nodes `ids` weighted by their nearness to the generic
+    arch v (exp(-(d/LOCAL_MM)^2)); None when none of them is near it."""
+    from scipy.spatial import cKDTree
+
+    w = np.exp(-(cKDTree(v).query(generic_nodes[ids])[0] / LOCAL_MM) ** 2)
+    if w.sum() <= 1e-6 * len(w):
+        return None
+    return umeyama(generic_nodes[ids], registered_nodes[ids], weights=w)
 
 
 def place_teeth(generic_teeth: dict, attach: dict, generic_nodes: np.ndarray,
@@ -194,19 +202,12 @@ def place_teeth(generic_teeth: dict, attach: dict, generic_nodes: np.ndarray,
             skin = registered_nodes[np.asarray(skin_ids, np.int64)]
             margin = _skin_margin(placed, f, skin)
             info[name].update(placement="segment", skin_margin_mm=round(margin, 4))
-            if margin < clearance:
-                from scipy.spatial import cKDTree
-
-                d = cKDTree(v).query(generic_nodes[ids])[0]
-                w = np.exp(-(d / LOCAL_MM) ** 2)
-                if w.sum() > 1e-6 * len(w):
-                    local = umeyama(generic_nodes[ids], registered_nodes[ids], weights=w)
-                    moved = local.apply(v)
-                    m_local = _skin_margin(moved, f, skin)
-                    if m_local > margin:
-                        tf, placed = local, moved
-                        info[name].update(placement="local", skin_margin_mm=round(m_local, 4),
-                                          segment_skin_margin_mm=round(margin, 4))
+            local = _alveolar_similarity(v, ids, generic_nodes, registered_nodes) if margin < clearance else None
+            m_local = -np.inf if local is None else _skin_margin(local.apply(v), f, skin)
+            if m_local > margin:
+                tf, placed = local, local.apply(v)
+                info[name].update(placement="local", skin_margin_mm=round(m_local, 4),
+                                  segment_skin_margin_mm=round(margin, 4))
         info[name].update(scale=float(tf.scale), matrix=tf.matrix.tolist())
         out[name] = (placed, f, seg)
     return out, info

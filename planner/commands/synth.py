@@ -191,7 +191,12 @@ def sample_plan(shape) -> dict:
     # (distal segment); with one (chin off by more than 1.5 mm) it is also brought back
     chin = mand - float(shape.chin_projection) if abs(shape.chin_projection) > 1.5 else mand
     segs["chin"] = {"translation": [0.0, round(chin, 2), 0.0]}
-    return {"faceplan": 1, "frame": "RAS", "segments": segs,
+    return _plan(segs)
+
+
+def _plan(segments: dict) -> dict:
+    """A synthetic case's plan.yaml content: the segments' motions, muscles at rest."""
+    return {"faceplan": 1, "frame": "RAS", "segments": segments,
             "muscles": {"orbicularis_oris": 0.0, "mentalis": 0.0},
             "model": {"resolution": "standard"}}
 
@@ -219,9 +224,7 @@ def bone_plan(head, seed: int) -> dict:
         "mandible": {"translation": [0.0, round(float(mand), 2), 0.0]},
         "chin": {"translation": [0.0, round(float(mand + genio), 2), 0.0]},
     }
-    return {"faceplan": 1, "frame": "RAS", "segments": segs,
-            "muscles": {"orbicularis_oris": 0.0, "mentalis": 0.0},
-            "model": {"resolution": "standard"}}
+    return _plan(segs)
 
 
 def write_case(folder: Path, head, *, ct: bool = False, ct_spacing: float = 1.0,

@@ -9,8 +9,9 @@ level (lattice spacing h) and iteration, correspondences are formed
   * landmarks (optional): landmark nodes -> the patient's landmarks, with a small weight;
 and pairs are rejected when the closest point lies on an open border of the other surface (a
 hole, the edge of a partial scan, the border of the generic face mask), when the normals
-disagree by more than 60 degrees, or when the distance is an outlier (beyond the median by
-four robust standard deviations, and more than 1 mm). The FFD fitted to the surviving pairs
+disagree by more than 60 degrees, or when the distance is an outlier: beyond the median by
+four robust standard deviations, more than 1 mm, and more than half the level's lattice
+spacing h (a mismatch the level's lattice can follow is shape, not an outlier). The FFD fitted to the surviving pairs
 moves every node of the volume mesh; composing the per-iteration diffeomorphic FFDs gives the
 smooth, fold-free volumetric transform of the Mesh-Match step (Couteau et al., "Finite element
 mesh generation by a mesh-matching method", Comput. Methods Programs Biomed. 63, 2000; Bucki,
@@ -81,12 +82,21 @@ def vertex_normals(x: np.ndarray, tris: np.ndarray) -> np.ndarray:
 
 
 def _outlier_gate(dist: np.ndarray, spacing: float) -> float:
-    """Distances above median + 4 robust sigmas (1.4826 MAD) are outliers (floor 1 mm)."""
+    """Distances above median + 4 robust sigmas (1.4826 MAD) are outliers, but never those
+    below 1 mm nor below half the lattice spacing.
+
+    The statistical gate alone tightens to about 1 mm once most of the face fits, and a local
+    difference of shape larger than that (a deeper nasion, a longer ramus: anatomy other than
+    the generic face's) would then be left out of every later level. The snap reaches only a
+    few mm, so such nodes stayed far off the surface, or were snapped piecewise and inverted
+    the elements between. A mismatch of up to half the spacing is one the level's B-spline
+    lattice can follow smoothly (a control point moves a region of about the spacing); what
+    is larger is left to the coarser levels, whose floor is larger."""
     if len(dist) == 0:
         return np.inf
     med = float(np.median(dist))
     mad = float(np.median(np.abs(dist - med)))
-    return max(med + 4.0 * 1.4826 * mad, 1.0)
+    return max(med + 4.0 * 1.4826 * mad, 1.0, 0.5 * spacing)
 
 
 def _correspondences(x, skin: SurfaceGroup, skin_tris, bones, landmarks, samples, spacing, sched):

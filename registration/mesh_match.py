@@ -826,15 +826,17 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
         # the nose off the scan is the same misplacement as the nose not brought onto it
         kind = (_NoseNotPlaced if align_info.get("method") == "surfaces"
                 and {NOSE_REGION, "nasal_root"} & set(off_regions) else RegistrationFailure)
-        hint = ("the skin and bones alone did not place the face on the scan: give at least "
-                "four landmarks (landmarks.json)"
-                if align_info.get("method") == "surfaces" else
-                "check the landmarks and that the skin is the patient's face")
+        # placed by the surfaces, the face slid along the scan; placed by landmarks, either a
+        # landmark is wrong or the skin there has a shape the elastic stage did not reach
+        why = ("the model is misplaced along the scan; the skin and bones alone did not place "
+               "the face on the scan: give at least four landmarks (landmarks.json)"
+               if align_info.get("method") == "surfaces" else
+               "the model does not follow the patient skin there, though it is placed by the "
+               "landmarks: check those landmarks and that the skin is the patient's face")
         raise kind(
             f"{len(off)} skin node(s) of the face model{where} lie up to "
             f"{report['fit']['skin_off_scan']['max_mm']:.1f} mm off the patient skin where the scan "
-            f"covers them (gate {opt.skin_off_scan_gate_mm:g} mm): the model is misplaced along "
-            f"the scan; {hint}", report)
+            f"covers them (gate {opt.skin_off_scan_gate_mm:g} mm): {why}", report)
     q = min_scaled_jacobian(x, hexes)
     if q.min() < opt.threshold:
         raise RegistrationFailure(

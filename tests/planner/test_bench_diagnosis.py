@@ -1,0 +1,34 @@
+"""`bench/diagnosis.py` counts a case it cannot load or register as not diagnosed and goes on.
+
+A cohort of many heads must not stop at the first one faceplan fails on: the failure is a
+figure of the method (reported with the case, its withheld effect and why) and the remaining
+cases are diagnosed. Checked on a cohort kept on disk (`--keep --no-make`) whose only case
+folder is empty, so that no solve runs.
+"""
+import importlib.util
+import json
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("bench_diagnosis", REPO / "bench" / "diagnosis.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_a_case_that_cannot_be_loaded_is_counted_not_diagnosed(tmp_path, capsys):
+    seed = 424242
+    (tmp_path / "random" / str(seed) / "case_0").mkdir(parents=True)
+    (tmp_path / "random" / f"key_{seed}.json").write_text(json.dumps(
+        [{"case": "case_0", "effect": "sliding", "value": {"sliding": 1.0}}]))
+    rc = _bench().main_bench(["--keep", str(tmp_path), "--no-make", "--random", "1", "--none", "0",
+                              "--seed", str(seed), "--workers", "0"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "case_0: not diagnosed:" in out
+    # the summary names it, with its withheld effect, and counts no verdict for it
+    assert "not diagnosed (faceplan could not register or load the case): 1: case_0 (sliding)" in out
+    assert "named 0/0" in out

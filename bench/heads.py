@@ -2,9 +2,11 @@
 
 Heads of the superquadric family (`facemodel.synthetic_alt`), each with its skin cut to the
 face region (in front of the ears, down under the chin) at several heights (`--cuts`: a face
-scan to the forehead, a CBCT ending below the eyes, one ending at mid-nose), registered with
+scan to the forehead, a CBCT ending below the eyes, one ending at mid-nose; `whole`: the
+head's whole skin uncut, as `faceplan synth --head-family alt` writes it), registered with
 their landmarks (and, with `--no-landmarks`, also without them) at each resolution. One line
-per run: success, minimum scaled Jacobian, inverted elements, skin fit (mean / p95 / max mm
+per run: success, minimum scaled Jacobian, inverted elements (after the registration, and
+before its repair: how many the elastic stage and the snap left for it), skin fit (mean / p95 / max mm
 over the covered skin nodes), bone fit mean, landmark error (max over the model's landmark
 nodes against the head's true landmarks: given or located), coverage, surface nodes the repair released, regions
 not fitted, time; a summary per resolution.
@@ -12,7 +14,7 @@ not fitted, time; a summary per resolution.
 With `--family own` the heads come from faceplan's own generator (`facemodel.synthetic`),
 cut the same way: the comparison.
 
-Usage: python bench/heads.py [--heads 6] [--first 100] [--cuts scan,below_eyes,mid_nose]
+Usage: python bench/heads.py [--heads 6] [--first 100] [--cuts scan,below_eyes,mid_nose,whole]
                              [--resolutions coarse,standard] [--fine] [--no-landmarks]
                              [--family alt|own]
 """
@@ -76,6 +78,7 @@ def run_one(model, head, landmarks: bool):
            "min_sj": float(q.min()) if q is not None else
            (rep.get("quality", {}) or {}).get("min_scaled_jacobian"),
            "inverted": int((q <= 0).sum()) if q is not None else (rep.get("quality", {}) or {}).get("n_inverted"),
+           "inverted_before_repair": (rep.get("repair") or {}).get("elements_inverted_before"),
            "skin_mean": (fit.get("skin") or {}).get("mean_mm"), "skin_p95": (fit.get("skin") or {}).get("p95_mm"),
            "bone_mean": (fit.get("bone") or {}).get("mean_mm"),
            "lm_max": max(truth.values(), default=None),
@@ -90,6 +93,11 @@ def run_one(model, head, landmarks: bool):
            # a located stomion set aside because its partner was
            "partner_set_aside": sorted((rep.get("landmark_search") or {}).get("not_used_partner_set_aside") or [])}
     return row
+
+
+def _median(values):
+    values = [v for v in values if v is not None]
+    return float(np.median(values)) if values else None
 
 
 def fmt(v, spec=".3f"):
@@ -127,13 +135,13 @@ def main(argv=None) -> int:
 
                 head = synthetic.synthetic_head(seed)
             for cut in cuts:
-                cropped = synthetic_alt.crop_face(head, cut)
+                cropped = head if cut == "whole" else synthetic_alt.crop_face(head, cut)
                 for with_lm in modes:
                     r = run_one(model, cropped, with_lm)
                     r.update(res=res, seed=seed, cut=cut, landmarks=with_lm)
                     rows.append(r)
                     print(f"{res:8s} head {seed} {cut:10s} lm={'y' if with_lm else 'n'} {r['status']:5s} "
-                          f"minSJ {fmt(r['min_sj'])} inv {fmt(r['inverted'], 'd')} "
+                          f"minSJ {fmt(r['min_sj'])} inv {fmt(r['inverted'], 'd')} (before repair {fmt(r['inverted_before_repair'], 'd')}) "
                           f"skin {fmt(r['skin_mean'])}/{fmt(r['skin_p95'])}/{fmt(r['skin_max'], '.1f')} mm bone {fmt(r['bone_mean'])} "
                           f"lm_max {fmt(r['lm_max'], '.2f')} (profile {fmt(r['lm_mid'], '.2f')}, Me {fmt(r['me'], '.2f')}, corners {fmt(r['ch_max'], '.2f')}) cover {fmt(r['coverage'], '.2f')} released {fmt(r['released'], 'd')} "
                           f"not_fitted [{','.join(r['unfitted'])}]{' profile-pose-retry' if r['retried'] else ''}"
@@ -146,7 +154,9 @@ def main(argv=None) -> int:
         ok = [r for r in sel if r["status"] == "ok"]
         sj = [r["min_sj"] for r in ok]
         print(f"{res}: {len(ok)}/{len(sel)} registered; crashes {sum(r['status'] == 'CRASH' for r in sel)}; "
-              f"min SJ {fmt(min(sj) if sj else None)}; inverted {sum((r['inverted'] or 0) for r in ok)}; "
+              f"min SJ {fmt(min(sj) if sj else None)}; inverted {sum((r['inverted'] or 0) for r in ok)} "
+              f"(before repair: median {fmt(_median([r['inverted_before_repair'] for r in sel]), '.0f')}); "
+              f"skin node max off the skin: median {fmt(_median([r['skin_max'] for r in ok]), '.1f')} mm; "
               f"skin mean max {fmt(max((r['skin_mean'] for r in ok), default=None))} mm; "
               f"landmark error max {fmt(max((r['lm_max'] for r in ok if r['lm_max'] is not None), default=None), '.2f')} mm; "
               f"time median {np.median([r['time_s'] for r in sel]):.1f} s max {max(r['time_s'] for r in sel):.1f} s")

@@ -64,8 +64,10 @@ def test_no_node_inside_the_teeth(generic, registered):
         assert sd[lips].min() >= clearance - 0.01, (name, sd[lips].min())
     tc = report["teeth_clearance"]
     assert tc["min_signed_distance_after_mm"] >= clearance and tc["nodes_inside_after"] == 0
-    # both heads had the defect: lip nodes inside an arch before the clearance stage
-    assert tc["nodes_inside_before"] > 0 and tc["max_depth_before_mm"] > 0.2
+    # the stage had work on both heads (the test is not vacuous): nodes inside an arch before
+    # it, deeper than this test's 0.01 mm tolerance by an order of magnitude (how deep depends
+    # on how closely the stages before fit the lips: 0.16-2.2 mm on these heads)
+    assert tc["nodes_inside_before"] > 0 and tc["max_depth_before_mm"] > 0.1
     # and the contact start of facemodel.teeth (its default clearance) has nothing left to do
     from facemodel.teeth import clear_teeth as start_clear
 

@@ -10,8 +10,9 @@ level (lattice spacing h) and iteration, correspondences are formed
 and pairs are rejected when the closest point lies on an open border of the other surface (a
 hole, the edge of a partial scan, the border of the generic face mask), when the normals
 disagree by more than 60 degrees, or when the distance is an outlier: beyond the median by
-four robust standard deviations, more than 1 mm, and more than half the level's lattice
-spacing h (a mismatch the level's lattice can follow is shape, not an outlier). The FFD fitted to the surviving pairs
+four robust standard deviations, more than 1 mm and, with landmarks given, more than half the
+level's lattice spacing h (a mismatch the level's lattice can follow is then shape, not an
+outlier). The FFD fitted to the surviving pairs
 moves every node of the volume mesh; composing the per-iteration diffeomorphic FFDs gives the
 smooth, fold-free volumetric transform of the Mesh-Match step (Couteau et al., "Finite element
 mesh generation by a mesh-matching method", Comput. Methods Programs Biomed. 63, 2000; Bucki,
@@ -63,6 +64,12 @@ class ElasticSchedule:
     smoothness: tuple[float, ...] = (5.0, 2.0, 1.0, 0.5)  # bending weight per level
     reverse_samples: int = 6000
     landmark_weight: float = 0.5
+    # no pair closer than this fraction of the level's lattice spacing is an outlier
+    # (`_outlier_gate`); 0: the robust statistics alone. Meant for landmarks given with the
+    # case: they hold the features, so a pair left far off is a difference of shape. Without
+    # them a far pair may as well be a feature slid onto another along a smooth profile (the
+    # lips onto the labiomental fold), and following it misplaces the face.
+    shape_floor: float = 0.5
 
 
 @dataclass
@@ -81,9 +88,9 @@ def vertex_normals(x: np.ndarray, tris: np.ndarray) -> np.ndarray:
     return vn / np.maximum(norm, 1e-300)[:, None]
 
 
-def _outlier_gate(dist: np.ndarray, spacing: float) -> float:
+def _outlier_gate(dist: np.ndarray, spacing: float, floor: float = 0.0) -> float:
     """Distances above median + 4 robust sigmas (1.4826 MAD) are outliers, but never those
-    below 1 mm nor below half the lattice spacing.
+    below 1 mm nor below `floor` times the lattice spacing.
 
     The statistical gate alone tightens to about 1 mm once most of the face fits, and a local
     difference of shape larger than that (a deeper nasion, a longer ramus: anatomy other than
@@ -91,12 +98,13 @@ def _outlier_gate(dist: np.ndarray, spacing: float) -> float:
     few mm, so such nodes stayed far off the surface, or were snapped piecewise and inverted
     the elements between. A mismatch of up to half the spacing is one the level's B-spline
     lattice can follow smoothly (a control point moves a region of about the spacing); what
-    is larger is left to the coarser levels, whose floor is larger."""
+    is larger is left to the coarser levels, whose floor is larger (ElasticSchedule.shape_floor
+    0.5 says when it applies)."""
     if len(dist) == 0:
         return np.inf
     med = float(np.median(dist))
     mad = float(np.median(np.abs(dist - med)))
-    return max(med + 4.0 * 1.4826 * mad, 1.0, 0.5 * spacing)
+    return max(med + 4.0 * 1.4826 * mad, 1.0, floor * spacing)
 
 
 def _correspondences(x, skin: SurfaceGroup, skin_tris, bones, landmarks, samples, spacing, sched):
@@ -106,7 +114,7 @@ def _correspondences(x, skin: SurfaceGroup, skin_tris, bones, landmarks, samples
     ids = skin.node_ids
     cl = skin.target.closest(x[ids])
     ok = ~cl.on_boundary & (np.einsum("ij,ij->i", normals[ids], cl.normal) > COS_NORMAL)
-    ok &= cl.distance <= _outlier_gate(cl.distance[ok], spacing)
+    ok &= cl.distance <= _outlier_gate(cl.distance[ok], spacing, sched.shape_floor)
     n_f = max(int(ok.sum()), 1)
     pts.append(x[ids][ok]); res.append(cl.points[ok] - x[ids][ok]); wts.append(np.full(ok.sum(), skin.weight / n_f))
     stats["skin_forward_mean_mm"] = float(cl.distance[ok].mean()) if ok.any() else np.nan
@@ -115,7 +123,7 @@ def _correspondences(x, skin: SurfaceGroup, skin_tris, bones, landmarks, samples
     mesh_surface = TargetSurface(x[np.unique(skin_tris)], _reindex(skin_tris), "generic skin")
     rc = mesh_surface.closest(samples.points)
     ok_r = ~rc.on_boundary & (np.einsum("ij,ij->i", rc.normal, samples.normal) > COS_NORMAL)
-    ok_r &= rc.distance <= _outlier_gate(rc.distance[ok_r], spacing)
+    ok_r &= rc.distance <= _outlier_gate(rc.distance[ok_r], spacing, sched.shape_floor)
     n_r = max(int(ok_r.sum()), 1)
     pts.append(rc.points[ok_r]); res.append(samples.points[ok_r] - rc.points[ok_r])
     wts.append(np.full(ok_r.sum(), skin.weight / n_r))
@@ -124,7 +132,7 @@ def _correspondences(x, skin: SurfaceGroup, skin_tris, bones, landmarks, samples
     for g in bones:
         cb = g.target.closest(x[g.node_ids])
         okb = g.accept(x, cb)
-        okb &= cb.distance <= _outlier_gate(cb.distance[okb], spacing)
+        okb &= cb.distance <= _outlier_gate(cb.distance[okb], spacing, sched.shape_floor)
         n_b = max(int(okb.sum()), 1)
         pts.append(x[g.node_ids][okb]); res.append(cb.points[okb] - x[g.node_ids][okb])
         wts.append(np.full(okb.sum(), g.weight / n_b))

@@ -552,7 +552,9 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
                                      ("Pog", "Pog")) if k in model.landmark_nodes]
         guide = (np.array([model.landmark_nodes[k] for k, _ in pairs], np.int64),
                  inv.apply(np.array([feats[f] for _, f in pairs], float)))
-    x, elog = elastic_register(x, skin_group, skin_tris, groups, guide, opt.schedule, seed=opt.seed)
+    # the shape floor of the outlier gate only where given landmarks hold the features
+    schedule = opt.schedule if lm is not None else dataclasses.replace(opt.schedule, shape_floor=0.0)
+    x, elog = elastic_register(x, skin_group, skin_tris, groups, guide, schedule, seed=opt.seed)
     times["elastic_s"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()

@@ -4,7 +4,8 @@ A block's top face is registered onto a plane with a smooth dent (Gaussian, 12 m
 wide), as the generic face's nasal root onto a patient's deeper one. Once the flat part fits,
 the robust statistics of the distances alone would call the dent's pairs outliers (about 1 mm)
 and leave the dent out of every finer level; a mismatch the level's lattice can follow is
-kept, so the top face reaches the dent's bottom.
+kept (`ElasticSchedule.shape_floor`, with landmarks given), so the top face reaches the
+dent's bottom.
 """
 import numpy as np
 
@@ -68,3 +69,8 @@ def test_a_dent_beyond_the_statistical_outlier_gate_is_followed():
     # the dent's pairs took part in the last level: no node of the dent was left out as an
     # outlier while the rest fitted
     assert log.levels[-1]["skin_forward_used"] == len(top)
+    # the robust statistics alone (`shape_floor=0`, a registration without landmarks, where
+    # a far pair may be a feature slid onto another): the dent's pairs are dropped and its
+    # bottom stays beyond 4 mm
+    x0, _ = elastic_register(nodes, skin, tris, [], None, ElasticSchedule(shape_floor=0.0), seed=0)
+    assert target.closest(x0[top]).distance.max() > 4.0

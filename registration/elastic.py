@@ -92,14 +92,13 @@ def _outlier_gate(dist: np.ndarray, spacing: float, floor: float = 0.0) -> float
     """Distances above median + 4 robust sigmas (1.4826 MAD) are outliers, but never those
     below 1 mm nor below `floor` times the lattice spacing.
 
-    The statistical gate alone tightens to about 1 mm once most of the face fits, and a local
-    difference of shape larger than that (a deeper nasion, a longer ramus: anatomy other than
-    the generic face's) would then be left out of every later level. The snap reaches only a
-    few mm, so such nodes stayed far off the surface, or were snapped piecewise and inverted
-    the elements between. A mismatch of up to half the spacing is one the level's B-spline
-    lattice can follow smoothly (a control point moves a region of about the spacing); what
-    is larger is left to the coarser levels, whose floor is larger (ElasticSchedule.shape_floor
-    0.5 says when it applies)."""
+    The statistical gate alone tightens to about 1 mm once most of the face fits, and would
+    leave a larger local difference of shape (a deeper nasion, a longer ramus: anatomy other
+    than the generic face's) out of every later level. The snap reaches only a few mm, so such
+    nodes would stay far off the surface, or be snapped piecewise and invert the elements
+    between. A mismatch of up to half the spacing is one the level's B-spline lattice can
+    follow smoothly (a control point moves a region of about the spacing); a larger one is left
+    to the coarser levels, whose floor is larger. `floor` is ElasticSchedule.shape_floor."""
     if len(dist) == 0:
         return np.inf
     med = float(np.median(dist))

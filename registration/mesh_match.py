@@ -13,7 +13,8 @@ skin nodes so that the bilinear facets, not only the nodes, lie on the patient s
 (5) the teeth placed with their bone segments
 (or the patient's own) and the soft tissue cleared of them (`registration.teeth`), (6) the lips
 kept at least `lip_gap_mm` apart across the mouth slit (`registration.lips`; the teeth cleared
-again if that pushed a lip node towards them), then fit
+again if that pushed a lip node towards them, alternating while each pass brings the deepest
+node nearer the teeth clearance), then fit
 errors (mean / 95th percentile / max of the distances from the registered skin -- its nodes and points inside its facets -- to the
 patient skin where the patient surface covers the model, the reverse distances, and the
 bone-attachment node distances) and quality figures.
@@ -376,6 +377,12 @@ class _NoseNotPlaced(RegistrationFailure):
     patient's (`match_and_repair_arrays` tries the profile pose then)."""
 
 
+def _shortfall(x: np.ndarray, hexes: np.ndarray, threshold: float) -> float:
+    """sum over elements of max(0, threshold - minimum scaled Jacobian): how far a mesh is
+    from the quality gate (the measure `registration.repair` lowers)."""
+    return float(np.sum(np.maximum(threshold - min_scaled_jacobian(x, hexes), 0.0)))
+
+
 def stomia_as_one(found: dict, wanted, report: dict) -> None:
     """Set aside a located stomion whose partner was set aside. The two stomia are one
     detection, the mouth slit's two ends (`landmark_search`): where one of them was not used
@@ -642,7 +649,10 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
     x_in = x
     x, rep = repair_mesh(x_in, hexes, threshold=opt.threshold, constraints=constraints, fixed=pin)
     if len(pin) and rep["elements_still_below_threshold"]:
-        x, rep = repair_mesh(x_in, hexes, threshold=opt.threshold, constraints=constraints)
+        y, free_rep = repair_mesh(x_in, hexes, threshold=opt.threshold, constraints=constraints)
+        # the result nearer the threshold goes on (the stages below repair what is left)
+        if _shortfall(y, hexes, opt.threshold) < _shortfall(x, hexes, opt.threshold):
+            x, rep = y, free_rep
     rep["landmark_nodes_held"] = bool(len(pin)) and bool(np.array_equal(x[pin], x_in[pin]))
     times["repair_s"] = time.perf_counter() - t3
 
@@ -697,6 +707,7 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
             if passes:
                 released = [int(i) for i in np.intersect1d(held_lm, lip_nodes)]
             fixed = np.union1d(attached, held)
+            best_short = np.inf
             for _ in range(6):
                 x, rep_l = separate_lips(x, hexes, up, low, fixed, skin_nodes=skin_ids, skin=skin,
                                          gap=opt.lip_gap_mm, threshold=opt.threshold,
@@ -704,13 +715,29 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
                                          teeth_clearance=opt.teeth_clearance_mm,
                                          skin_release_mm=opt.lip_skin_release_mm)
                 passes.append(rep_l)
-                if not placed or union_distance(arches, x[movable], opt.teeth_clearance_mm + 1.0)[0].min() \
-                        >= opt.teeth_clearance_mm - 1e-6:
+                if not placed:
+                    break
+                short = opt.teeth_clearance_mm - \
+                    union_distance(arches, x[movable], opt.teeth_clearance_mm + 1.0)[0].min()
+                if short <= 1e-6:
                     break  # lips apart and every movable node clear of the teeth
+                # a pass that leaves the deepest node no nearer the clearance ends the
+                # alternation: the lips and the teeth then take each other's room (tissue
+                # thinner than the clearances allow), and each further pass only deforms the
+                # mesh more; the depth left is reported, and the prediction's contact start
+                # moves the arch back from it (`facemodel.teeth.clear_teeth`)
+                if short > best_short - 0.01:
+                    break
+                best_short = short
                 # lip nodes pushed out of the teeth preferably not back into the other lip
                 x, again = clear_teeth(x, hexes, arches, keep, clearance=opt.teeth_clearance_mm,
                                        threshold=opt.threshold, away=_lip_away(model, x))
                 clearance_report.setdefault("after_lip_separation", []).append(again)
+        if placed:
+            # where the movable tissue ends against the teeth (negative: inside an arch by so
+            # much, which the prediction's contact start resolves by moving the arch)
+            clearance_report["min_signed_distance_final_mm"] = float(
+                union_distance(arches, x[movable], opt.teeth_clearance_mm + 1.0)[0].min())
         lip_report = {"gap_mm": opt.lip_gap_mm, "before": lip_before, "after": lip_overlap(x, up, low),
                       "landmark_nodes_released": released,
                       "nodes_pushed": int(sum(p["nodes_pushed"] for p in passes)),

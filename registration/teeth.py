@@ -29,7 +29,8 @@ tissue by harmonic extension over the mesh graph with skin and attached nodes fi
 of `registration.elastic`), and the elements this leaves below the scaled-Jacobian threshold
 are repaired by `registration.repair` with skin and attached nodes fixed. Rounds repeat until
 no movable node is closer than the clearance (a node the repair takes back towards a tooth is
-pushed again).
+pushed again), or until rounds stop bringing the deepest node nearer it (tissue between the
+fixed skin and an arch too thin for the clearance).
 """
 from __future__ import annotations
 
@@ -291,13 +292,19 @@ def escape_outward(arches: list[Arch], points: np.ndarray, clearance: float, cen
 
 def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.ndarray, *,
                 clearance: float = 0.2, threshold: float = 0.2, max_rounds: int = 8,
-                tol: float = 0.01, away: np.ndarray | None = None, reach: float = 20.0):
+                tol: float = 0.01, away: np.ndarray | None = None, reach: float = 20.0,
+                stall_rounds: int = 2):
     """Move movable nodes to at least `clearance` mm outside every arch (module docstring).
 
     `fixed`: nodes that never move (skin, attached); `away` (n, 3): optional per-node
     directions a push must not go against (zero rows: any; the lip-surface nodes, kept from
     moving into the other lip); nodes farther than `reach` mm from the arches' bounding boxes
-    are held. Returns (new nodes, report)."""
+    are held. The search ends early after `stall_rounds` rounds in a row that do not bring
+    the deepest node at least `tol` nearer the clearance: the repair then keeps taking the
+    pushes back (tissue between a fixed skin and an arch thinner than the clearance allows),
+    and more rounds only spend time; the node's depth left is reported, and the contact start
+    of the prediction moves the arch back from it (`facemodel.teeth.clear_teeth`).
+    Returns (new nodes, report)."""
     hexes = np.asarray(hexes)
     x = np.array(x, dtype=float)
     n = len(x)
@@ -319,6 +326,7 @@ def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.
     inside0 = sd0 < 0.0
     held = np.zeros(n, bool)
     rounds, repaired = 0, 0
+    best, stalled, shortfalls = np.inf, 0, []
     for rounds in range(1, max_rounds + 1):
         ids = np.flatnonzero(movable)
         sd = measure(ids)
@@ -326,6 +334,15 @@ def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.
         if not bad.any():
             rounds -= 1
             break
+        short = float(clearance - sd[bad].min())
+        shortfalls.append(short)
+        if short < best - tol:
+            best, stalled = short, 0
+        else:
+            stalled += 1
+            if stalled >= stall_rounds:
+                rounds -= 1
+                break
         push_ids = ids[bad]
         # a margin `tol` beyond the clearance, so that the small moves of the repair that
         # follows do not bring a node back below it
@@ -359,6 +376,9 @@ def clear_teeth(x: np.ndarray, hexes: np.ndarray, arches: list[Arch], fixed: np.
         "nodes_moved": int((moved > 1e-3).sum()),  # by more than 1 micrometre
         "max_push_mm": float(moved.max()) if n else 0.0,
         "rounds": int(rounds),
+        # the deepest node's shortfall from the clearance at the start of each round
+        "shortfall_per_round_mm": [round(v, 4) for v in shortfalls],
+        "stalled": bool(stalled >= stall_rounds),
         "elements_repaired": int(repaired),
         "min_signed_distance_after_mm": float(sd_end[movable & finite].min()) if (movable & finite).any() else None,
         "min_signed_distance_fixed_nodes_mm": float(sd_end[~movable & finite].min()) if (~movable & finite).any() else None,

@@ -21,6 +21,13 @@ held; edge weights 1/|e|^2, so that the thin layers under the skin move with it)
 farther than `max_distance_mm` from the patient skin are not skin landmarks, and landmarks
 the registered skin misses by more than `max_correction_mm` contradict the surfaces: both are
 left out (and reported). The repair stage then restores element quality.
+
+Before any of this (`contradicting_landmarks`, on the model as the similarity placed it): two
+landmarks given on nearly one point whose nodes the model holds well apart (given closer than
+CLASH_RATIO of the nodes' distance, and by more than CLASH_MM) contradict each other for the
+model -- a labrale inferius taken at the stomion of a lower lip without a prominence: pulling
+both nodes there folds the tissue between them into elements no repair can restore -- and the
+one farther from its node is not used.
 """
 from __future__ import annotations
 
@@ -30,6 +37,16 @@ from scipy.sparse import csgraph
 
 from registration.elastic import harmonic_extension, mesh_laplacian
 from registration.surface import TargetSurface
+
+# a pair of given landmarks contradicts the model when their points are closer than this
+# fraction of their nodes' distance on the registered skin: the face's own proportions vary
+# by about a factor of two around the generic face's (a lower lip's vermilion 5-13 mm high
+# against 8 mm), a fourfold compression is two landmarks put on one point
+CLASH_RATIO = 0.25
+# ... and closer by more than this (mm): twice the 1.5 mm with which a soft-tissue landmark
+# is placed by hand, so that a pair the model holds a few mm apart (the two stomia, across
+# the mouth slit) may close freely
+CLASH_MM = 3.0
 
 
 def skin_edge_graph(x: np.ndarray, skin_quads: np.ndarray, skin_ids: np.ndarray) -> sp.csr_matrix:
@@ -102,3 +119,28 @@ def landmark_correction(x: np.ndarray, hexes: np.ndarray, skin_quads: np.ndarray
     u = harmonic_extension(len(x), hexes, fixed, vals, mesh_laplacian(len(x), hexes, x))
     report["skin_nodes_moved"] = int(moving.sum())
     return x + u, report
+
+
+def contradicting_landmarks(node_points: np.ndarray, given: np.ndarray) -> tuple[np.ndarray, list]:
+    """Which given landmarks to use: the pairs given on nearly one point whose model nodes lie
+    well apart (module docstring) lose the one farther from its node.
+
+    node_points (k, 3): the landmark nodes of the model as placed; given (k, 3): the given
+    landmarks in the same frame. Returns (use (k,) bool, clashes: one dict per pair set aside,
+    indices into the k landmarks)."""
+    node_points = np.asarray(node_points, float).reshape(-1, 3)
+    given = np.asarray(given, float).reshape(-1, 3)
+    k = len(given)
+    use = np.ones(k, bool)
+    off = np.linalg.norm(given - node_points, axis=1)
+    pairs = sorted((float(np.linalg.norm(given[a] - given[b])), a, b)
+                   for a in range(k) for b in range(a + 1, k))
+    clashes = []
+    for apart, a, b in pairs:           # the closest pair first
+        model_apart = float(np.linalg.norm(node_points[a] - node_points[b]))
+        if use[a] and use[b] and apart < CLASH_RATIO * model_apart and model_apart - apart > CLASH_MM:
+            drop = a if off[a] >= off[b] else b
+            use[drop] = False
+            clashes.append({"pair": [a, b], "given_apart_mm": round(apart, 3),
+                            "model_apart_mm": round(model_apart, 3), "not_used": drop})
+    return use, clashes

@@ -1,7 +1,10 @@
 """Mesh-Match-and-Repair on plain arrays: align, register elastically, snap, repair, measure.
 
 The stages follow Bucki, Lobos and Payan (Med. Image Anal. 14, 2010): (1) a similarity from
-landmarks (Umeyama) or from the surfaces (principal axes + trimmed ICP), (2) the joint elastic
+landmarks (Umeyama) or from the surfaces (principal axes + trimmed ICP); of two given
+landmarks that contradict each other for the model (given on one point, their nodes well
+apart: `registration.landmark_fit.contradicting_landmarks`) the one farther from its node is
+not used by the stages below (`landmarks_contradicting` in the report), (2) the joint elastic
 registration of skin and bone-attachment nodes by a composed multilevel B-spline FFD
 (`registration.elastic`), (3) a snap of the surface nodes onto the patient surfaces with a
 harmonic spread into the volume, (3b) with given landmarks, the landmark nodes moved onto them
@@ -35,7 +38,7 @@ from registration.alignment import Similarity, align_surfaces, trimmed_icp, umey
 from registration.elastic import (ElasticSchedule, SurfaceGroup, elastic_register, mesh_laplacian,
                                   snap_to_surfaces, vertex_normals)
 from registration.errors import RegistrationFailure, RegistrationInputError
-from registration.landmark_fit import landmark_correction
+from registration.landmark_fit import contradicting_landmarks, landmark_correction
 from registration.landmark_search import LOCATED, locate_landmarks, mirror_pairs
 from registration.lips import lip_overlap, quad_vertex_normals, separate_lips
 from registration.profile_pose import FEATURES, profile_pose
@@ -536,11 +539,19 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
     groups = _bone_groups(model, bones_g)
     skin_group = SurfaceGroup("skin", skin_ids, skin_g, weight=1.0, tris=skin_tris, facing=1.0)
     lm = None
+    clashes = []
     if landmarks and opt.use_landmarks:
         common = [k for k in model.landmark_nodes if k in landmarks]
         if common:
             lm = (np.array([model.landmark_nodes[k] for k in common]),
                   inv.apply(np.array([landmarks[k] for k in common], dtype=float)))
+            # landmarks given on one point that the model holds apart: the one farther from
+            # its node is not used (`registration.landmark_fit.contradicting_landmarks`)
+            use, clashes = contradicting_landmarks(x[lm[0]], lm[1])
+            clashes = [{**c, "pair": [common[i] for i in c["pair"]], "not_used": common[c["not_used"]]}
+                       for c in clashes]
+            lm = (lm[0][use], lm[1][use])
+            used_names = [k for k, u in zip(common, use) if u]
     # without landmarks, where the profile pose replaced the surface pose (the bulk fit put the
     # features elsewhere), or where a first registration located landmarks that disagree with
     # the features (`profile_guide`), the features the profile pose found on the skin guide the
@@ -571,10 +582,12 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
 
     # the landmarks the case does not give, located on the patient skin by their definitions
     lm_given = lm
-    lm_names = [k for k in model.landmark_nodes if k in landmarks] if lm is not None else []
+    lm_names = list(used_names) if lm is not None else []
     search_report = None
     located: list[str] = []
-    missing = [k for k in model.landmark_nodes if k not in lm_names and k in LOCATED]
+    # (a given landmark set aside as contradicting another is not sought either)
+    missing = [k for k in model.landmark_nodes if k not in lm_names and k in LOCATED
+               and not (landmarks and k in landmarks and opt.use_landmarks)]
     if opt.locate_landmarks and opt.landmark_correction and missing:
         t_s = time.perf_counter()
         carried = {k: x[i] for k, i in model.landmark_nodes.items()}
@@ -814,11 +827,14 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
                                       "max_mm": float(cl.distance[valid].max()) if valid.any() else None,
                                       "regions": off_regions}
     if lm_given is not None:
-        lm = lm_given
         # distance from each carried landmark node to the given landmark, in the patient frame
+        # (those set aside as contradicting another included)
         names = [k for k in model.landmark_nodes if k in landmarks]
-        err = np.linalg.norm(x[lm[0]] - np.array([landmarks[k] for k in names], dtype=float), axis=1)
+        err = np.linalg.norm(x[[model.landmark_nodes[k] for k in names]]
+                             - np.array([landmarks[k] for k in names], dtype=float), axis=1)
         report["landmarks"] = {n: {"error_mm": float(e)} for n, e in zip(names, err)}
+        if clashes:
+            report["landmarks_contradicting"] = clashes
     times["measure_s"] = time.perf_counter() - t4
     times["total_s"] = time.perf_counter() - t0
     report["time"] = times

@@ -8,7 +8,8 @@ their landmarks (and, with `--no-landmarks`, also without them) at each resoluti
 per run: success, minimum scaled Jacobian, inverted elements (after the registration, and
 before its repair: how many the elastic stage and the snap left for it), skin fit (mean / p95 / max mm
 over the covered skin nodes), bone fit mean, landmark error (max over the model's landmark
-nodes against the head's true landmarks: given or located), coverage, surface nodes the repair released, regions
+nodes against the head's true landmarks: given or located; a given landmark the registration
+sets aside as contradicting another is listed apart with its distance), coverage, surface nodes the repair released, regions
 not fitted, time; a summary per resolution.
 
 With `--family own` the heads come from faceplan's own generator (`facemodel.synthetic`),
@@ -64,12 +65,15 @@ def run_one(model, head, landmarks: bool):
         # every landmark node against the head's true landmark (given or located alike)
         truth = {k: float(np.linalg.norm(patient.nodes[i] - np.asarray(head.landmarks[k], float)))
                  for k, i in model.landmarks.items() if k in head.landmarks}
+        # given landmarks set aside as contradicting another are measured apart
+        aside = {c["not_used"] for c in rep.get("landmarks_contradicting") or []}
+        set_aside = {k: truth.pop(k) for k in sorted(aside) if k in truth}
         status, err = "ok", ""
     except (RegistrationFailure, RegistrationInputError) as exc:
         rep = getattr(exc, "report", None) or {}
-        q, status, err, truth = None, "FAIL", str(exc), {}
+        q, status, err, truth, set_aside = None, "FAIL", str(exc), {}, {}
     except Exception as exc:  # noqa: BLE001 -- a crash is a result of the bench too
-        rep, q, status, err, truth = {}, None, "CRASH", f"{type(exc).__name__}: {exc}", {}
+        rep, q, status, err, truth, set_aside = {}, None, "CRASH", f"{type(exc).__name__}: {exc}", {}, {}
     dt = time.perf_counter() - t0
     fit = rep.get("fit", {})
     regions = rep.get("regions") or {}
@@ -86,6 +90,7 @@ def run_one(model, head, landmarks: bool):
            "me": truth.get("Me"),
            "ch_max": max((v for k, v in truth.items() if k in CHEILIA), default=None),
            "skin_max": (fit.get("skin_nodes") or {}).get("max_mm"),
+           "set_aside": set_aside,
            "coverage": rep.get("coverage"), "unfitted": unfitted,
            "released": (rep.get("repair") or {}).get("nodes_released_from_surfaces"),
            # registered from the profile pose after the surface pose left the nose off
@@ -145,7 +150,8 @@ def main(argv=None) -> int:
                           f"skin {fmt(r['skin_mean'])}/{fmt(r['skin_p95'])}/{fmt(r['skin_max'], '.1f')} mm bone {fmt(r['bone_mean'])} "
                           f"lm_max {fmt(r['lm_max'], '.2f')} (profile {fmt(r['lm_mid'], '.2f')}, Me {fmt(r['me'], '.2f')}, corners {fmt(r['ch_max'], '.2f')}) cover {fmt(r['coverage'], '.2f')} released {fmt(r['released'], 'd')} "
                           f"not_fitted [{','.join(r['unfitted'])}]{' profile-pose-retry' if r['retried'] else ''}"
-                          f"{' partner-set-aside:' + ','.join(r['partner_set_aside']) if r['partner_set_aside'] else ''} "
+                          f"{' partner-set-aside:' + ','.join(r['partner_set_aside']) if r['partner_set_aside'] else ''}"
+                          f"{' contradicting-set-aside:' + ','.join(f'{k}={v:.1f}mm' for k, v in r['set_aside'].items()) if r['set_aside'] else ''} "
                           f"{r['time_s']:.1f} s {r['error'][:120]}",
                           flush=True)
     print()
@@ -158,7 +164,8 @@ def main(argv=None) -> int:
               f"(before repair: median {fmt(_median([r['inverted_before_repair'] for r in sel]), '.0f')}); "
               f"skin node max off the skin: median {fmt(_median([r['skin_max'] for r in ok]), '.1f')} mm; "
               f"skin mean max {fmt(max((r['skin_mean'] for r in ok), default=None))} mm; "
-              f"landmark error max {fmt(max((r['lm_max'] for r in ok if r['lm_max'] is not None), default=None), '.2f')} mm; "
+              f"landmark error max {fmt(max((r['lm_max'] for r in ok if r['lm_max'] is not None), default=None), '.2f')} mm "
+              f"(given landmarks set aside as contradicting another: {sum(len(r['set_aside']) for r in ok)}); "
               f"time median {np.median([r['time_s'] for r in sel]):.1f} s max {max(r['time_s'] for r in sel):.1f} s")
         free = [r for r in sel if not r["landmarks"]]
         if free:

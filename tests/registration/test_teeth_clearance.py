@@ -189,8 +189,11 @@ def test_a_clearance_the_fixed_tissue_makes_unreachable_ends_the_search_early():
     fixed = np.setdiff1d(np.arange(len(nodes)), free)
     x, rep = clear_teeth(nodes, hexes, [arch], fixed, clearance=0.25, threshold=0.2)
     assert rep["stalled"] and rep["rounds"] <= 4
-    # the shortfalls of the stalled rounds agree within the stall tolerance (0.01 mm)
-    assert np.ptp(rep["shortfall_per_round_mm"][-3:]) < 0.01
+    # the last two rounds brought the node no nearer than the best before them by the stall
+    # tolerance, 0.01 mm (the repair's round-off moves their shortfalls by about as much, up
+    # or down)
+    short = rep["shortfall_per_round_mm"]
+    assert min(short[-2:]) > min(short[:-2]) - 0.01
     assert min_scaled_jacobian(x, hexes).min() >= 0.2
     sd = union_distance([arch], x[free], 2.0)[0]
     assert sd[0] < 0.0 and abs(sd[0] - rep["min_signed_distance_after_mm"]) < 1e-9

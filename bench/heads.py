@@ -66,7 +66,7 @@ def run_one(model, head, landmarks: bool):
         truth = {k: float(np.linalg.norm(patient.nodes[i] - np.asarray(head.landmarks[k], float)))
                  for k, i in model.landmarks.items() if k in head.landmarks}
         # given landmarks set aside as contradicting another are measured apart
-        aside = {c["not_used"] for c in rep.get("landmarks_contradicting") or []}
+        aside = {c["not_used"] for c in rep.get("landmarks_contradicting") or [] if c.get("set_aside")}
         set_aside = {k: truth.pop(k) for k in sorted(aside) if k in truth}
         status, err = "ok", ""
     except (RegistrationFailure, RegistrationInputError) as exc:

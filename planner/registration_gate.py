@@ -6,7 +6,7 @@ cause, one when the landmarks were located on the skin without the head's frame 
 fit refused: `registration.mesh_match._head_frame`) and the face not placed by its profile's
 features, and one when, without landmarks, the profile's features could not be found
 (`registration.profile_pose`): the placement then rests on the surfaces' bulk fit alone, and
-one per pair of given landmarks set aside as contradicting each other. On consistent cases (the synthetic heads,
+one per pair of given landmarks that contradict each other for the model (set aside or not). On consistent cases (the synthetic heads,
 the demo head) the skin fit has a p95 below 1 mm and a maximum below 3 mm, the bone fit a mean
 below 0.5 mm and a maximum below ~10 mm (the chin's edge), and the repair touches 1-2 % of the
 elements; the limits below are two to three times those, so a note means that something in the
@@ -61,9 +61,11 @@ def registration_notes(report: dict) -> list[str]:
                      "give at least four landmarks (landmarks.json)")
     for clash in report.get("landmarks_contradicting") or []:
         a, b = clash["pair"]
+        done = (f"{clash['not_used']} was not used (the registration failed with both)"
+                if clash.get("set_aside") else "both were followed")
         notes.append(f"landmarks {a} and {b} are given {clash['given_apart_mm']:.1f} mm apart where the face "
-                     f"model holds them {clash['model_apart_mm']:.1f} mm apart: {clash['not_used']} was not "
-                     "used; check it in landmarks.json")
+                     f"model holds them {clash['model_apart_mm']:.1f} mm apart: {done}; check them in "
+                     "landmarks.json")
     why = _get(report, "alignment", "profile_pose", "refused")
     if why and _get(report, "alignment", "method") == "surfaces":
         notes.append(f"the face was placed on the skin by its surfaces alone, its profile's features not "

@@ -22,12 +22,13 @@ farther than `max_distance_mm` from the patient skin are not skin landmarks, and
 the registered skin misses by more than `max_correction_mm` contradict the surfaces: both are
 left out (and reported). The repair stage then restores element quality.
 
-Before any of this (`contradicting_landmarks`, on the model as the similarity placed it): two
-landmarks given on nearly one point whose nodes the model holds well apart (given closer than
-CLASH_RATIO of the nodes' distance, and by more than CLASH_MM) contradict each other for the
-model -- a labrale inferius taken at the stomion of a lower lip without a prominence: pulling
-both nodes there folds the tissue between them into elements no repair can restore -- and the
-one farther from its node is not used.
+`contradicting_landmarks` (on the model as the similarity placed it): two landmarks given on
+nearly one point whose nodes the model holds well apart (given closer than CLASH_RATIO of the
+nodes' distance, and by more than CLASH_MM) contradict each other for the model -- a labrale
+inferius taken at the stomion of a lower lip without a prominence. Pulling both nodes there
+compresses the tissue between them; most registrations still repair it, but where one fails,
+it is made again with the one farther from its node set aside
+(`registration.mesh_match.match_and_repair_arrays`).
 """
 from __future__ import annotations
 

@@ -1,10 +1,11 @@
 """Mesh-Match-and-Repair on plain arrays: align, register elastically, snap, repair, measure.
 
 The stages follow Bucki, Lobos and Payan (Med. Image Anal. 14, 2010): (1) a similarity from
-landmarks (Umeyama) or from the surfaces (principal axes + trimmed ICP); of two given
-landmarks that contradict each other for the model (given on one point, their nodes well
-apart: `registration.landmark_fit.contradicting_landmarks`) the one farther from its node is
-not used by the stages below (`landmarks_contradicting` in the report), (2) the joint elastic
+landmarks (Umeyama) or from the surfaces (principal axes + trimmed ICP); where a
+registration fails with two given landmarks that contradict each other for the model (given
+on one point, their nodes well apart: `registration.landmark_fit.contradicting_landmarks`),
+it is made again with the one farther from its node set aside (`match_and_repair_arrays`),
+(2) the joint elastic
 registration of skin and bone-attachment nodes by a composed multilevel B-spline FFD
 (`registration.elastic`), (3) a snap of the surface nodes onto the patient surfaces with a
 harmonic spread into the volume, (3b) with given landmarks, the landmark nodes moved onto them
@@ -104,6 +105,10 @@ class MatchOptions:
     # the profile's features guide the elastic stage whichever pose placed the face (set for
     # the second attempt of a registration whose located landmarks disagree with them)
     profile_guide: bool = False
+    # given landmarks that contradict each other for the model set aside (the one farther
+    # from its node of each pair: `registration.landmark_fit.contradicting_landmarks`); set
+    # for the second attempt of a registration that failed with such a pair followed
+    set_aside_contradicting: bool = False
     seed: int = 0
 
 
@@ -414,6 +419,31 @@ def _far_from_features(before: str, far: dict, after: str, report: dict) -> Regi
 def match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
                             landmarks: dict | None = None, options: MatchOptions | None = None,
                             files: dict | None = None, teeth: dict | None = None):
+    """Register the generic mesh onto the patient surfaces (`_match_and_repair_arrays`).
+
+    A registration that fails with two given landmarks that contradict each other for the
+    model (given on one point, their nodes well apart: pulling both there can fold the
+    tissue between them beyond repair) is made once more with the one farther from its node
+    set aside (`landmarks_contradicting[*].set_aside` in the report, which lists such pairs
+    whether set aside or not); if that fails too, the first failure stands."""
+    opt = options or MatchOptions()
+    try:
+        return _match_and_repair_arrays(model, skin, bones, landmarks, opt, files, teeth)
+    except RegistrationFailure as exc:
+        if opt.set_aside_contradicting or not (exc.report or {}).get("landmarks_contradicting"):
+            raise
+        first = exc
+    try:
+        return _match_and_repair_arrays(model, skin, bones, landmarks,
+                                        dataclasses.replace(opt, set_aside_contradicting=True),
+                                        files, teeth)
+    except RegistrationFailure:
+        raise first from None
+
+
+def _match_and_repair_arrays(model: MatchInput, skin: TargetSurface, bones: dict,
+                             landmarks: dict | None = None, options: MatchOptions | None = None,
+                             files: dict | None = None, teeth: dict | None = None):
     """Register the generic mesh onto the patient surfaces.
 
     Returns (nodes, similarity, report, teeth): `teeth` maps each arch to (vertices, faces,
@@ -545,11 +575,14 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
         if common:
             lm = (np.array([model.landmark_nodes[k] for k in common]),
                   inv.apply(np.array([landmarks[k] for k in common], dtype=float)))
-            # landmarks given on one point that the model holds apart: the one farther from
-            # its node is not used (`registration.landmark_fit.contradicting_landmarks`)
+            # landmarks given on one point that the model holds apart: found always, the one
+            # farther from its node set aside only on the second attempt
+            # (`registration.landmark_fit.contradicting_landmarks`)
             use, clashes = contradicting_landmarks(x[lm[0]], lm[1])
-            clashes = [{**c, "pair": [common[i] for i in c["pair"]], "not_used": common[c["not_used"]]}
-                       for c in clashes]
+            clashes = [{**c, "pair": [common[i] for i in c["pair"]], "not_used": common[c["not_used"]],
+                        "set_aside": bool(opt.set_aside_contradicting)} for c in clashes]
+            if not opt.set_aside_contradicting:
+                use = np.ones(len(common), bool)
             lm = (lm[0][use], lm[1][use])
             used_names = [k for k, u in zip(common, use) if u]
     # without landmarks, where the profile pose replaced the surface pose (the bulk fit put the

@@ -35,12 +35,16 @@ def test_landmarks_located_without_the_head_frame_are_flagged():
     assert "47.8 deg" in note and "landmarks" in note
 
 
-def test_a_landmark_set_aside_as_contradicting_another_is_named():
+def test_landmarks_that_contradict_each_other_are_named():
     """`registration.landmark_fit.contradicting_landmarks`: the user learns which landmark
     was not used, against which, and where to look."""
     rep = _report()
     rep["landmarks_contradicting"] = [{"pair": ["Stmi", "Li"], "given_apart_mm": 0.157,
-                                       "model_apart_mm": 8.454, "not_used": "Li"}]
+                                       "model_apart_mm": 8.454, "not_used": "Li", "set_aside": True}]
     (note,) = registration_notes(rep)
     assert "Li was not used" in note and "Stmi" in note and "0.2 mm" in note and "8.5 mm" in note
     assert "landmarks.json" in note
+    # found, but the registration succeeded with both followed: still worth a check
+    rep["landmarks_contradicting"][0]["set_aside"] = False
+    (note,) = registration_notes(rep)
+    assert "both were followed" in note and "not used" not in note

@@ -3,8 +3,8 @@
 A labrale inferius taken at the stomion (a lower lip without a prominence, where "the lower
 lip's most anterior point" is its top) puts two landmarks on one point whose nodes the model
 holds a lower vermilion (about 8 mm) apart; pulling both nodes there folds the lip's
-elements beyond repair. `contradicting_landmarks` sets aside the one farther from its node,
-and leaves alone what faces do: lips that close (stomia given together, model nodes 2 mm
+elements beyond repair on some heads. `contradicting_landmarks` names the one farther from
+its node (set aside when a registration following both fails), and leaves alone what faces do: lips that close (stomia given together, model nodes 2 mm
 apart across the slit) and proportions within a factor of two of the generic face's.
 """
 import numpy as np
@@ -55,14 +55,16 @@ def test_each_bound_alone_keeps_a_pair():
     assert contradicting_landmarks(nodes, given)[0].all()
 
 
-def test_a_registration_given_li_at_the_stomion_sets_it_aside_and_reports_it(generic):
-    """Coarse, own head seed 7 (3 mm skin), Li given 0.15 mm from Stmi: the registration
-    succeeds (an invalid mesh is never returned), names the pair in its report and measures
-    the set-aside landmark's error like the others (its node stays on the lower lip, several
-    mm from the point given)."""
+def test_a_registration_given_li_at_the_stomion_reports_it_and_can_set_it_aside(generic):
+    """Coarse, own head seed 7 (3 mm skin), Li given 0.15 mm from Stmi. This head's lip takes
+    the compression: the registration follows both and names the pair. Made with the pair
+    set aside (as `match_and_repair_arrays` retries a failed registration), Li is not used:
+    its node stays on the lower lip, several mm from the point given, and the other
+    landmarks are placed."""
     import pytest
 
     from registration import mesh_match_and_repair
+    from registration.mesh_match import MatchOptions
 
     synthetic = pytest.importorskip("facemodel.synthetic")
     head = synthetic.synthetic_head(7, size=3.0, zoom=1.0)
@@ -71,6 +73,11 @@ def test_a_registration_given_li_at_the_stomion_sets_it_aside_and_reports_it(gen
     _, rep = mesh_match_and_repair(generic, head.skin, head.bones, lm, cache=False)
     (clash,) = rep["landmarks_contradicting"]
     assert sorted(clash["pair"]) == ["Li", "Stmi"] and clash["not_used"] == "Li"
+    assert clash["set_aside"] is False
+    _, rep = mesh_match_and_repair(generic, head.skin, head.bones, lm, cache=False,
+                                   options=MatchOptions(set_aside_contradicting=True))
+    (clash,) = rep["landmarks_contradicting"]
+    assert clash["set_aside"] is True
     assert rep["landmarks"]["Li"]["error_mm"] > CLASH_MM
     # the landmarks used are placed: within the snap's closest-point precision
     assert max(v["error_mm"] for k, v in rep["landmarks"].items() if k != "Li") < 0.05

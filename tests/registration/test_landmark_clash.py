@@ -4,8 +4,9 @@ A labrale inferius taken at the stomion (a lower lip without a prominence, where
 lip's most anterior point" is its top) puts two landmarks on one point whose nodes the model
 holds a lower vermilion (about 8 mm) apart; pulling both nodes there folds the lip's
 elements beyond repair on some heads. `contradicting_landmarks` names the one farther from
-its node (set aside when a registration following both fails), and leaves alone what faces do: lips that close (stomia given together, model nodes 2 mm
-apart across the slit) and proportions within a factor of two of the generic face's.
+its node (set aside when a registration following both fails), and leaves alone what faces
+do: lips that close (stomia given together, model nodes 2 mm apart across the slit) and
+proportions within a factor of two of the generic face's.
 """
 import numpy as np
 

@@ -44,7 +44,7 @@ from registration.landmark_search import LOCATED, locate_landmarks, mirror_pairs
 from registration.lips import lip_overlap, quad_vertex_normals, separate_lips
 from registration.profile_pose import FEATURES, profile_pose
 from registration.quality import min_scaled_jacobian, quality_summary
-from registration.repair import SurfaceConstraint, repair_mesh
+from registration.repair import SurfaceConstraint, repair_holding
 from registration.surface import TargetSurface
 from registration.surface_fit import facet_fit
 from registration.teeth import Arch, union_distance, clear_teeth, place_teeth
@@ -385,12 +385,6 @@ class _NoseNotPlaced(RegistrationFailure):
     patient's (`match_and_repair_arrays` tries the profile pose then)."""
 
 
-def _shortfall(x: np.ndarray, hexes: np.ndarray, threshold: float) -> float:
-    """sum over elements of max(0, threshold - minimum scaled Jacobian): how far a mesh is
-    from the quality gate (the measure `registration.repair` lowers)."""
-    return float(np.sum(np.maximum(threshold - min_scaled_jacobian(x, hexes), 0.0)))
-
-
 def stomia_as_one(found: dict, wanted, report: dict) -> None:
     """Set aside a located stomion whose partner was set aside. The two stomia are one
     detection, the mouth slit's two ends (`landmark_search`): where one of them was not used
@@ -578,13 +572,13 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
             # landmarks given on one point that the model holds apart: found always, the one
             # farther from its node set aside only on the second attempt
             # (`registration.landmark_fit.contradicting_landmarks`)
-            use, clashes = contradicting_landmarks(x[lm[0]], lm[1])
+            keep, clashes = contradicting_landmarks(x[lm[0]], lm[1])
             clashes = [{**c, "pair": [common[i] for i in c["pair"]], "not_used": common[c["not_used"]],
                         "set_aside": bool(opt.set_aside_contradicting)} for c in clashes]
-            if not opt.set_aside_contradicting:
-                use = np.ones(len(common), bool)
-            lm = (lm[0][use], lm[1][use])
-            used_names = [k for k, u in zip(common, use) if u]
+            if opt.set_aside_contradicting:
+                lm = (lm[0][keep], lm[1][keep])
+                common = [k for k, u in zip(common, keep) if u]
+            used_names = common
     # without landmarks, where the profile pose replaced the surface pose (the bulk fit put the
     # features elsewhere), or where a first registration located landmarks that disagree with
     # the features (`profile_guide`), the features the profile pose found on the skin guide the
@@ -691,15 +685,9 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
     constraints += [SurfaceConstraint(g.name, snapped[g.name], g.target) for g in groups]
     # landmark nodes placed on given landmarks stay there (the repair moves their neighbours);
     # should that leave an element below the threshold, the repair runs again with them free
+    # (the stages below repair what is left)
     pin = np.asarray(landmark_report["nodes"] if landmark_report else [], np.int64)
-    x_in = x
-    x, rep = repair_mesh(x_in, hexes, threshold=opt.threshold, constraints=constraints, fixed=pin)
-    if len(pin) and rep["elements_still_below_threshold"]:
-        y, free_rep = repair_mesh(x_in, hexes, threshold=opt.threshold, constraints=constraints)
-        # the result nearer the threshold goes on (the stages below repair what is left)
-        if _shortfall(y, hexes, opt.threshold) < _shortfall(x, hexes, opt.threshold):
-            x, rep = y, free_rep
-    rep["landmark_nodes_held"] = bool(len(pin)) and bool(np.array_equal(x[pin], x_in[pin]))
+    x, rep = repair_holding(x, hexes, pin, threshold=opt.threshold, constraints=constraints)
     times["repair_s"] = time.perf_counter() - t3
 
     x = sim.apply(x)  # back to the patient frame; measured against the patient's own surfaces

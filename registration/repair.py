@@ -175,6 +175,18 @@ def _optimise_patch(x, hexes, patch_elems, free, basis, tau, mu, h, maxiter=50, 
     return xw
 
 
+def quality_shortfall(q: np.ndarray, threshold: float) -> float:
+    """sum over elements of max(0, threshold - q_e), q the elements' minimum scaled Jacobians:
+    how far a mesh is from the quality gate, the measure `repair_mesh` lowers round by round
+    and by which two repaired meshes are compared."""
+    return float(np.sum(np.maximum(threshold - np.asarray(q, float), 0.0)))
+
+
+def mesh_shortfall(x: np.ndarray, hexes: np.ndarray, threshold: float) -> float:
+    """`quality_shortfall` of the mesh (x, hexes)."""
+    return quality_shortfall(min_scaled_jacobian(x, hexes), threshold)
+
+
 def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
                 constraints: list[SurfaceConstraint] = (), fixed: np.ndarray | None = None,
                 margin: float = 0.1, rings: int = 1, max_rounds: int = 8, mu: float = 1e-4,
@@ -221,7 +233,7 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
     rounds, total, undone = 0, 0, 0
 
     def shortfall(qq):
-        return float(np.sum(np.maximum(threshold - qq, 0.0)))
+        return quality_shortfall(qq, threshold)
 
     def run(n_rounds, first_round):
         nonlocal x, q, total, undone
@@ -299,7 +311,27 @@ def repair_mesh(nodes: np.ndarray, hexes: np.ndarray, *, threshold: float = 0.2,
                                mu=mu, stall_rounds=stall_rounds, release=release,
                                release_rounds=release_rounds, bound_margin=bound_margin,
                                bound_weight=bound_weight, bound_first=True)
-        if shortfall(min_scaled_jacobian(y, hexes)) < shortfall(q):
+        if mesh_shortfall(y, hexes, threshold) < shortfall(q):
             other["rounds"] += report["rounds"]
             return y, other
     return x, report
+
+
+def repair_holding(nodes: np.ndarray, hexes: np.ndarray, held, *, threshold: float = 0.2,
+                   constraints=()) -> tuple[np.ndarray, dict]:
+    """`repair_mesh` with the `held` nodes fixed (landmark nodes placed on given landmarks: the
+    repair moves their neighbours instead); when that leaves an element below the threshold
+    (the held nodes leave no room for a valid element), the repair is made once more with
+    them free, and the result nearer the threshold (`mesh_shortfall`) is kept: freeing them
+    widens the search but does not always end nearer. The report's `landmark_nodes_held`
+    says whether the held nodes stayed where they were."""
+    x0 = np.asarray(nodes, float)
+    held = np.asarray(held, np.int64)
+    x, rep = repair_mesh(x0, hexes, threshold=threshold, constraints=constraints, fixed=held)
+    if len(held) and rep["elements_still_below_threshold"]:
+        y, free_rep = repair_mesh(x0, hexes, threshold=threshold, constraints=constraints)
+        if mesh_shortfall(y, hexes, threshold) < mesh_shortfall(x, hexes, threshold):
+            x, rep = y, free_rep
+    rep["landmark_nodes_held"] = bool(len(held)) and bool(np.array_equal(x[held], x0[held]))
+    return x, rep
+

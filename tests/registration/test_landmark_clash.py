@@ -82,3 +82,58 @@ def test_a_registration_given_li_at_the_stomion_reports_it_and_can_set_it_aside(
     assert rep["landmarks"]["Li"]["error_mm"] > CLASH_MM
     # the landmarks used are placed: within the snap's closest-point precision
     assert max(v["error_mm"] for k, v in rep["landmarks"].items() if k != "Li") < 0.05
+
+
+def _attempts(monkeypatch, outcomes):
+    """match_and_repair_arrays with its single attempt replaced: each call takes the next of
+    `outcomes` (an exception to raise or a value to return); returns the options of each call."""
+    import registration.mesh_match as mm
+
+    seen = []
+
+    def attempt(model, skin, bones, landmarks, opt, files, teeth):
+        seen.append(opt)
+        out = outcomes[len(seen) - 1]
+        if isinstance(out, BaseException):
+            raise out
+        return out
+
+    monkeypatch.setattr(mm, "_match_and_repair_arrays", attempt)
+    return mm.match_and_repair_arrays, seen
+
+
+def _failure(text, clashes):
+    from registration.errors import RegistrationFailure
+
+    return RegistrationFailure(text, {"landmarks_contradicting": clashes} if clashes else {})
+
+
+CLASH = [{"pair": ["Stmi", "Li"], "not_used": "Li", "set_aside": False}]
+
+
+def test_a_failure_with_contradicting_landmarks_is_tried_once_more_setting_them_aside(monkeypatch):
+    run, seen = _attempts(monkeypatch, [_failure("folded", CLASH), "registered"])
+    assert run(None, None, {}, {"Li": (0, 0, 0)}) == "registered"
+    assert [o.set_aside_contradicting for o in seen] == [False, True]
+
+
+def test_a_failure_without_contradicting_landmarks_is_not_tried_again(monkeypatch):
+    import pytest
+
+    from registration.errors import RegistrationFailure
+
+    run, seen = _attempts(monkeypatch, [_failure("folded", []), "registered"])
+    with pytest.raises(RegistrationFailure, match="folded"):
+        run(None, None, {}, {"Li": (0, 0, 0)})
+    assert len(seen) == 1
+
+
+def test_when_the_second_attempt_fails_too_the_first_failure_is_reported(monkeypatch):
+    import pytest
+
+    from registration.errors import RegistrationFailure
+
+    run, seen = _attempts(monkeypatch, [_failure("first", CLASH), _failure("second", CLASH)])
+    with pytest.raises(RegistrationFailure, match="first"):
+        run(None, None, {}, {"Li": (0, 0, 0)})
+    assert len(seen) == 2

@@ -77,3 +77,56 @@ def test_penalty_gradient_matches_vectorised_chain_rule():
     # the same closed-form derivative evaluated two ways: equal to round-off
     assert abs(f - np.sum(short**2)) < 1e-10 * max(f, 1.0)
     assert np.allclose(g, want, rtol=1e-9, atol=1e-12)
+
+
+def test_held_nodes_that_block_the_repair_are_freed_on_a_second_attempt(warped):
+    from registration.repair import mesh_shortfall, repair_holding
+
+    x, hexes, skin, bone, skin_ids, bone_ids = warped
+    cons = [SurfaceConstraint("skin", skin_ids, skin), SurfaceConstraint("bone", bone_ids, bone)]
+    q = min_scaled_jacobian(x, hexes)
+    # every node of the worst element held: no move of the others can lift that element
+    held = np.unique(hexes[np.argmin(q)])
+    y, rep = repair_holding(x, hexes, held, threshold=0.2, constraints=cons)
+    assert min_scaled_jacobian(y, hexes).min() >= 0.2
+    assert rep["landmark_nodes_held"] is False
+    assert mesh_shortfall(y, hexes, 0.2) == 0.0
+
+
+def test_held_nodes_away_from_the_damage_stay_put(warped):
+    from registration.repair import repair_holding
+
+    x, hexes, skin, bone, skin_ids, bone_ids = warped
+    cons = [SurfaceConstraint("skin", skin_ids, skin), SurfaceConstraint("bone", bone_ids, bone)]
+    q = min_scaled_jacobian(x, hexes)
+    near = np.unique(hexes[q < 0.5])
+    held = np.setdiff1d(skin_ids, near)[:10]
+    y, rep = repair_holding(x, hexes, held, threshold=0.2, constraints=cons)
+    assert min_scaled_jacobian(y, hexes).min() >= 0.2
+    assert rep["landmark_nodes_held"] is True and np.array_equal(y[held], x[held])
+
+
+def test_the_attempt_nearer_the_threshold_is_kept(warped, monkeypatch):
+    import registration.repair as rp
+
+    x, hexes, skin, bone, skin_ids, bone_ids = warped
+    cons = [SurfaceConstraint("skin", skin_ids, skin), SurfaceConstraint("bone", bone_ids, bone)]
+    q = min_scaled_jacobian(x, hexes)
+    held = np.unique(hexes[np.argmin(q)])   # that element cannot be lifted while held
+    real = rp.repair_mesh
+    calls = []
+
+    def free_attempt_does_nothing(nodes, hexes_, *, fixed=None, **kw):
+        calls.append(fixed is not None)
+        if fixed is None:   # the second attempt, made worse than the first: the mesh as given
+            return np.array(nodes, float), {"elements_still_below_threshold": int((q < 0.2).sum())}
+        return real(nodes, hexes_, fixed=fixed, **kw)
+
+    monkeypatch.setattr(rp, "repair_mesh", free_attempt_does_nothing)
+    y, rep = rp.repair_holding(x, hexes, held, threshold=0.2, constraints=cons)
+    # (the held attempt's own second order of penalties calls repair_mesh again, held)
+    assert calls[0] and calls.count(False) == 1
+    # the held attempt lifted every element it could: it is kept, the held nodes unmoved
+    assert rp.mesh_shortfall(y, hexes, 0.2) < rp.mesh_shortfall(x, hexes, 0.2)
+    assert rep["landmark_nodes_held"] is True and np.array_equal(y[held], x[held])
+    assert rp.quality_shortfall(min_scaled_jacobian(y, hexes), 0.2) == rp.mesh_shortfall(y, hexes, 0.2)

@@ -199,6 +199,34 @@ def test_a_clearance_the_fixed_tissue_makes_unreachable_ends_the_search_early():
     assert sd[0] < 0.0 and abs(sd[0] - rep["min_signed_distance_after_mm"]) < 1e-9
 
 
+def test_lips_and_teeth_stop_alternating_when_the_tissue_has_no_room_for_the_clearance(generic):
+    """A teeth clearance of 1.5 mm (six times the default) on a registered head: the lip
+    mucosa is thinner than that in places, so separating the lips and clearing the teeth push
+    the same nodes back and forth. The alternation ends after the first pass that brings the
+    deepest movable node no nearer the clearance, well inside its cap of six passes (each pass
+    a full separation and clearance), with a valid mesh, the lips apart, and the depth left
+    reported as measured on the result."""
+    from registration.mesh_match import MatchOptions
+    from registration.teeth import Arch, union_distance
+
+    head = synthetic.synthetic_head(7, size=3.0, zoom=1.0)
+    patient, report = mesh_match_and_repair(generic, head.skin, head.bones, head.landmarks,
+                                            cache=False, options=MatchOptions(teeth_clearance_mm=1.5))
+    tc, lips = report["teeth_clearance"], report["lip_separation"]
+    assert 1 <= len(lips["passes"]) <= 3
+    fixed = np.unique(np.concatenate([generic.node_sets["skin"]] + [generic.node_sets[f"attach_{s}"]
+                                                                     for s in generic.segments]))
+    movable = np.setdiff1d(np.arange(len(patient.nodes)), fixed)
+    arches = [Arch(k, v, f, seg) for k, (v, f, seg) in patient.teeth.items()]
+    depth = union_distance(arches, patient.nodes[movable], 2.5)[0].min()
+    # the clearance is not met (the case has no room for it) and the depth left is the one
+    # reported (the same distance function on the same nodes: round-off)
+    assert depth < 1.5 and abs(depth - tc["min_signed_distance_final_mm"]) < 1e-9
+    assert min_scaled_jacobian(patient.nodes, patient.hexes).min() >= 0.2
+    # apart to the separation's own tolerance (its 0.1 mm gap, pushed to within 0.05 mm)
+    assert lips["after"]["min_gap_mm"] >= 0.05
+
+
 def test_an_arch_the_segment_fit_puts_through_the_skin_is_placed_by_its_alveolar_bone():
     """A jaw of another shape: its far attachment nodes (a ramus 40-60 mm behind the arch)
     registered 8 mm forward, the alveolar nodes around the arch not moved. The segment's

@@ -354,30 +354,3 @@ def crop_face(head, cut: str = "below_eyes", *, ear_y: float = 30.0, chin_margin
     best = min(parts, key=lambda m: float(np.min(np.linalg.norm(m.vertices - prn, axis=1))))
     best = trimesh.Trimesh(np.asarray(best.vertices), np.asarray(best.faces), process=False)
     return type(head)(**{**{k: getattr(head, k) for k in head.__dataclass_fields__}, "skin": best})
-
-
-def write_alt_case(folder, head, plan: dict | None = None) -> dict:
-    """Write the head as a case folder (the layout of `planner/commands/synth.py`: preop/skin.stl,
-    preop/bone/<segment>.stl, preop/landmarks.json, plan.yaml, case.yaml) into an existing
-    empty folder. plan: the plan mapping (default: a 3 mm maxillary advance)."""
-    import json
-    from pathlib import Path
-
-    import yaml
-
-    folder = Path(folder)
-    (folder / "preop" / "bone").mkdir(parents=True)
-    head.skin.export(folder / "preop" / "skin.stl")
-    for seg, mesh in head.bones.items():
-        mesh.export(folder / "preop" / "bone" / f"{seg}.stl")
-    (folder / "preop" / "landmarks.json").write_text(json.dumps(
-        {k: [round(float(c), 4) for c in v] for k, v in head.landmarks.items()}, indent=1))
-    plan = plan or {"faceplan": 1, "frame": "RAS",
-                    "segments": {"maxilla": {"translation": [0.0, 3.0, 0.0]},
-                                 "mandible": {"translation": [0.0, 3.0, 0.0]},
-                                 "chin": {"translation": [0.0, 3.0, 0.0]}}}
-    (folder / "plan.yaml").write_text(yaml.safe_dump(plan, sort_keys=False))
-    (folder / "case.yaml").write_text(yaml.safe_dump({"id": folder.name, "synthetic": True, "seed": int(head.seed),
-                                                      "notes": "superquadric head family (facemodel.synthetic_alt)"},
-                                                     sort_keys=False))
-    return {"id": folder.name, "seed": int(head.seed), "shape": head.shape.as_dict()}

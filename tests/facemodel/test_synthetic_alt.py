@@ -55,10 +55,12 @@ def test_crop_is_open_face_below_the_cut(head, cut):
 
 def test_written_case_loads(tmp_path, head):
     from planner.case import load_case
+    from planner.commands import synth
 
     folder = tmp_path / "alt_case"
     folder.mkdir()
-    sa.write_alt_case(folder, sa.crop_face(head, "below_eyes"))
+    # the writer of `faceplan synth --head-family alt`, with the plan it draws for such heads
+    synth.write_case(folder, sa.crop_face(head, "below_eyes"), plan=synth.bone_plan(head, head.seed))
     case = load_case(folder)
     assert set(case.bones) == {"skull", "maxilla", "mandible", "chin"}
     assert set(case.landmarks) == set(head.landmarks)

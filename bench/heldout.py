@@ -24,7 +24,11 @@ lm_median_mm=.. lm_max_mm=.. registration_median_s=.. predict_median_s=..`.
 Flags: `--count N` patients (default 30), `--first-seed S` (default 1000), `--seeds A,B,..`
 (these seeds instead, e.g. the cohort's failures run again), `--log FILE` (the solver's
 per-step log, logger "solver.newton" at INFO, appended to FILE), `--resolutions
-coarse,standard`, `--given-landmarks` (the cases give their true landmarks; by default they
+coarse,standard`, `--cuts whole,scan,below_eyes,mid_nose` (the skins: the whole head's, default, or cut to the
+face as a face scan, a CBCT ending below the eyes or one ending at mid-nose sees it --
+`facemodel.synthetic_alt.crop_face`, as `bench/heads.py` cuts them; the plan is the same for
+every cut; the regions the registration reports not fitted are listed), `--given-landmarks`
+(the cases give their true landmarks; by default they
 give none and the registration locates them on the skin, so that the landmark errors measure
 the located landmarks' settings too), `--json FILE` (every record, rewritten after each case),
 `--summarise FILE...` (run nothing: the summaries of records written by --json, e.g. a cohort
@@ -108,8 +112,10 @@ def _predicted_quality(folder: Path) -> float:
     return float(q.min())
 
 
-def run_case(seed: int, resolution: str, root: Path, landmarks: bool) -> dict:
-    """Register and predict patient `seed` at `resolution`; a record of what happened."""
+def run_case(seed: int, resolution: str, root: Path, landmarks: bool, cut: str = "whole") -> dict:
+    """Register and predict patient `seed` at `resolution`, its skin cut to the face at `cut`
+    ("whole": uncut; `facemodel.synthetic_alt.crop_face`'s heights otherwise); a record of what
+    happened."""
     import generic_mesh
     import yaml
 
@@ -119,13 +125,17 @@ def run_case(seed: int, resolution: str, root: Path, landmarks: bool) -> dict:
     from planner.pipeline import Progress, predict_case, register_case
     from registration.quality import min_scaled_jacobian
 
-    rec: dict = {"seed": seed, "resolution": resolution, "ok": False}
+    rec: dict = {"seed": seed, "resolution": resolution, "cut": cut, "ok": False}
     t0 = time.perf_counter()
     head = synthetic_head(seed)
-    folder = root / f"heldout_{seed:04d}_{resolution}"
+    plan, drawn = draw_plan(head, seed)     # from the whole head: the same plan for every cut
+    if cut != "whole":
+        from facemodel.synthetic_alt import crop_face
+
+        head = crop_face(head, cut)
+    folder = root / f"heldout_{seed:04d}_{resolution}_{cut}"
     folder.mkdir()
     write_case(folder, head)
-    plan, drawn = draw_plan(head, seed)
     (folder / "plan.yaml").write_text("# bench/heldout.py: a plan drawn over the clinical range\n"
                                       + yaml.safe_dump(plan, sort_keys=False))
     if not landmarks:
@@ -147,9 +157,11 @@ def run_case(seed: int, resolution: str, root: Path, landmarks: bool) -> dict:
         rec["head_frame_rotation_deg"] = search.get("head_frame_rotation_deg")
         rec["landmark_error_mm"] = {k: float(np.linalg.norm(patient.nodes[i] - head.landmarks[k]))
                                     for k, i in generic.landmarks.items() if k in head.landmarks}
+        rec["regions_not_fitted"] = sorted(k for k, v in (reg.get("regions") or {}).items()
+                                           if not v.get("fitted", True))
         stage = "prediction"
         t2 = time.perf_counter()
-        out = predict_case(folder, root / f"predict_{seed:04d}_{resolution}", resolution=resolution,
+        out = predict_case(folder, root / f"predict_{seed:04d}_{resolution}_{cut}", resolution=resolution,
                            render=False, echo=False)
         rec["times_s"]["predict"] = time.perf_counter() - t2
         report = json.loads((out / "report.json").read_text())
@@ -180,8 +192,9 @@ def _median(v):
     return float(np.median(v)) if len(v) else float("nan")
 
 
-def summarise(records: list[dict], resolution: str) -> str:
-    rs = [r for r in records if r["resolution"] == resolution]
+def summarise(records: list[dict], resolution: str, cut: str = "whole") -> str:
+    rs = [r for r in records if r["resolution"] == resolution and r.get("cut", "whole") == cut]
+    label = resolution if cut == "whole" else f"{resolution}/{cut}"
     ok = [r for r in rs if r["ok"]]
     its = [r["newton_iterations"] for r in ok if r.get("newton_iterations") is not None]
     cut = [r["cutbacks"] or 0 for r in ok]
@@ -189,7 +202,7 @@ def summarise(records: list[dict], resolution: str) -> str:
     inv = sum(r.get("predicted_inverted", 0) for r in ok)
     folded = sum(r.get("predicted_folded_corners", 0) for r in ok)
     lm = [e for r in rs for e in r.get("landmark_error_mm", {}).values()]
-    print(f"\n== {resolution}: {len(ok)}/{len(rs)} succeeded")
+    print(f"\n== {label}: {len(ok)}/{len(rs)} succeeded")
     for r in rs:
         if not r["ok"]:
             print(f"  FAILED seed {r['seed']} in {r['failed_in']}: {r['error']} [{r.get('where', '')}] plan {r['plan']}")
@@ -226,7 +239,11 @@ def summarise(records: list[dict], resolution: str) -> str:
             stages.setdefault(f"predict.{k}", []).append(v)
     print("  time per stage (median / max s): " + ", ".join(
         f"{k} {_median(v):.1f}/{max(v):.1f}" for k, v in stages.items()))
-    line = (f"heldout {resolution}: ok={len(ok)}/{len(rs)} "
+    unfit = sorted({k for r in rs for k in r.get("regions_not_fitted", [])})
+    if unfit:
+        print("  regions reported not fitted (cases): " + ", ".join(
+            f"{k} ({sum(k in r.get('regions_not_fitted', []) for r in rs)})" for k in unfit))
+    line = (f"heldout {label}: ok={len(ok)}/{len(rs)} "
             f"newton_median={_median(its):.0f} newton_max={max(its) if its else 'nan'} "
             f"cutbacks={sum(cut)} contact_unmet={sum(bool(r.get('contact_unmet_mm')) for r in ok)} min_sj={min(sj) if sj else float('nan'):.3f} inverted={inv} folded={folded} "
             f"lm_median_mm={_median(lm):.2f} lm_max_mm={max(lm) if lm else float('nan'):.2f} "
@@ -247,6 +264,9 @@ def main() -> int:
     parser.add_argument("--given-landmarks", action="store_true",
                         help="the cases give their true landmarks (default: none given, the "
                              "registration locates them on the skin)")
+    parser.add_argument("--cuts", default="whole",
+                        help="comma-separated skins: whole (default), and partial ones cut to the "
+                             "face as bench/heads.py cuts them: scan, below_eyes, mid_nose")
     parser.add_argument("--json", help="write every record to this file")
     parser.add_argument("--summarise", nargs="+", metavar="JSON",
                         help="run nothing: print the summaries of the records in these files "
@@ -255,12 +275,20 @@ def main() -> int:
     if args.summarise:
         records = [r for f in args.summarise for r in json.loads(Path(f).read_text())]
         order = [r for r in ("coarse", "standard", "fine") if any(x["resolution"] == r for x in records)]
-        lines = [summarise(records, res) for res in order]
+        cuts = list(dict.fromkeys(x.get("cut", "whole") for x in records))
+        lines = [summarise(records, res, c) for res in order for c in cuts
+                 if any(x["resolution"] == res and x.get("cut", "whole") == c for x in records)]
         print()
         for ln in lines:
             print(ln)
         return 0 if all(r["ok"] for r in records) else 1
     resolutions = [r.strip() for r in args.resolutions.split(",") if r.strip()]
+    cuts = [c.strip() for c in args.cuts.split(",") if c.strip()]
+    from facemodel.synthetic_alt import CUTS
+
+    bad_cuts = [c for c in cuts if c != "whole" and c not in CUTS]
+    if bad_cuts or not cuts:
+        parser.error(f"--cuts: unknown cut(s) {bad_cuts} (whole, {', '.join(CUTS)})")
     bad = [r for r in resolutions if r not in ("coarse", "standard", "fine")]
     if bad or args.count < 1:
         parser.error(f"unknown resolution(s) {bad}" if bad else "--count must be at least 1")
@@ -279,29 +307,29 @@ def main() -> int:
         newton_log.addHandler(handler)
         newton_log.setLevel(logging.INFO)
     print(f"held-out patients: seeds {', '.join(map(str, seeds)) if args.seeds else f'{seeds[0]}-{seeds[-1]}'}, resolutions {', '.join(resolutions)}, "
-          f"landmarks {'given' if args.given_landmarks else 'located'}", flush=True)
+          f"skins {', '.join(cuts)}, landmarks {'given' if args.given_landmarks else 'located'}", flush=True)
     records: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="faceplan-heldout-") as tmp:
         root = Path(tmp)
         os.environ["XDG_CACHE_HOME"] = str(root / "cache")   # registrations of this run only
         for res in resolutions:
-            for seed in seeds:
-                rec = run_case(seed, res, root, landmarks=args.given_landmarks)
+            for seed, cut in [(s, c) for s in seeds for c in cuts]:
+                rec = run_case(seed, res, root, landmarks=args.given_landmarks, cut=cut)
                 records.append(rec)
                 if rec["ok"]:
                     lm = rec["landmark_error_mm"]
                     worst = max(lm, key=lm.get)
-                    print(f"  {res} seed {seed}: ok, Newton {rec['newton_iterations']} its "
+                    print(f"  {res} {cut} seed {seed}: ok, Newton {rec['newton_iterations']} its "
                           f"({rec['load_steps']} steps, {rec['cutbacks']} cut-backs), min SJ reg "
                           f"{rec['registered_min_sj']:.3f} / pred {rec['predicted_min_sj']:.3f}, "
                           f"landmarks max {lm[worst]:.2f} mm ({worst}), registration "
                           f"{rec['times_s']['registration']:.1f} s, predict {rec['times_s']['predict']:.1f} s",
                           flush=True)
                 else:
-                    print(f"  {res} seed {seed}: FAILED in {rec['failed_in']}: {rec['error']}", flush=True)
+                    print(f"  {res} {cut} seed {seed}: FAILED in {rec['failed_in']}: {rec['error']}", flush=True)
                 if args.json:  # every record so far (a long run can be read while it goes on)
                     Path(args.json).write_text(json.dumps(records, indent=1, default=float))
-    lines = [summarise(records, res) for res in resolutions]
+    lines = [summarise(records, res, c) for res in resolutions for c in cuts]
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print()
     for ln in lines:

@@ -47,6 +47,7 @@ from solver.contact._geometry import triangulate
 from solver.loads import BodyForce
 from solver.mechanics import SolidBody, von_mises
 from solver.mesh import HexMesh
+from solver.errors import SolveFailed
 from solver.newton import newton_solve
 
 NECK_OWNER = "neck"          # the owner of the held cut's constraint: no segment moves it
@@ -138,10 +139,14 @@ def _shear_modulus(mat) -> float:
 
 def build_problem(model, motions=None, activations=None, *, contact=True, sliding=(),
                   sliding_nodes=None, materials=None, growth=None, body_force=None,
-                  penalty_factor=1.0, contact_tolerance=0.05, neck="free"):
+                  penalty_factor=1.0, contact_tolerance=0.05, neck="free", lip_penalty=None,
+                  uzawa_schedule="carried"):
     """The FE problem `simulate` solves: (SolidBody, constraints, contact terms {name: term},
     other terms [body force], lip facet size or None); arguments as `simulate`'s. The body's
-    `constraint_segments` names the segment each constraint follows."""
+    `constraint_segments` names the segment each constraint follows. lip_penalty: factor on
+    the lip-lip penalty (None: `FACE_SOLVER.lip_penalty`); uzawa_schedule: the contact terms'
+    augmentation schedule (`solver.contact._uzawa.UzawaLoop`)."""
+    lip_penalty = FACE_SOLVER.lip_penalty if lip_penalty is None else float(lip_penalty)
     motions = dict(motions or {})
     activations = dict(activations or {})
     segments = tuple(model.segments)
@@ -234,8 +239,8 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
         h = lip_size = _typical_size(X, np.vstack([up, lo]))
         mu = _local_shear_modulus(model, by_label, np.vstack([up, lo]))
         terms["lip_contact"] = SurfaceContact(
-            X, up, lo, penalty=penalty_factor * FACE_SOLVER.lip_penalty * 3.0 * mu / h,
-            tolerance=contact_tolerance,
+            X, up, lo, penalty=penalty_factor * lip_penalty * 3.0 * mu / h,
+            tolerance=contact_tolerance, uzawa_schedule=uzawa_schedule,
             search_radius=max(1.0, h), max_depth=max(2.0, h),
             pair_hysteresis=FACE_SOLVER.pair_hysteresis,
             edge_release=FACE_SOLVER.lip_edge_release,
@@ -252,7 +257,7 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
                     motion=_segment_motion(motions, seg),
                     penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
                     search_radius=max(2.0, h), max_depth=max(3.0, 1.5 * h), smooth=True,
-                    tangent="projected")
+                    tangent="projected", uzawa_schedule=uzawa_schedule)
                 terms[f"teeth_{name}"].segment = seg     # the segment whose motion it follows
 
     extra = []
@@ -306,10 +311,13 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     asked of a model without lip contact surfaces) and `solver.errors.SolveFailed` if Newton
     fails.
     """
-    body, constraints, terms, extra, lip_size = build_problem(
-        model, motions, activations, contact=contact, sliding=sliding, sliding_nodes=sliding_nodes,
-        materials=materials, growth=growth, body_force=body_force, penalty_factor=penalty_factor,
-        contact_tolerance=contact_tolerance, neck=neck)
+    def problem(**contact_options):
+        return build_problem(
+            model, motions, activations, contact=contact, sliding=sliding, sliding_nodes=sliding_nodes,
+            materials=materials, growth=growth, body_force=body_force, penalty_factor=penalty_factor,
+            contact_tolerance=contact_tolerance, neck=neck, **contact_options)
+
+    body, constraints, terms, extra, lip_size = problem()
     X = np.asarray(model.nodes, dtype=float)
     labels = np.asarray(model.labels, dtype=np.int64)
     activations = dict(activations or {})
@@ -326,11 +334,41 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     # the first load step (`FaceSolverSettings.max_increment`), whatever the lip facets' size
     teeth = any(isinstance(t, RigidSurfaceContact) for t in terms.values())
     advance = teeth_advance(model, motions, 1.0 / max(int(n_steps), 1)) if teeth else 0.0
-    control = FACE_SOLVER.control(n_steps, max_iterations, _contact_nodes(terms), lip_size, advance)
-    if max_seconds is not None:
-        control = replace(control, max_seconds=float(max_seconds))
-    res = newton_solve(body, constraints, list(terms.values()) + extra, control=control,
-                       callback=callback, guess=None if guess is None else X + np.asarray(guess, float))
+
+    def solve(body, constraints, terms, extra, lip_size, seconds):
+        control = FACE_SOLVER.control(n_steps, max_iterations, _contact_nodes(terms), lip_size, advance)
+        if seconds is not None:
+            control = replace(control, max_seconds=float(seconds))
+        return newton_solve(body, constraints, list(terms.values()) + extra, control=control,
+                            callback=callback, guess=None if guess is None else X + np.asarray(guess, float))
+
+    fallback = None
+    try:
+        res = solve(body, constraints, terms, extra, lip_size, max_seconds)
+    except SolveFailed as failure:
+        # a final lip contact state the augmentations cannot reach (the stomion corner pinched
+        # between the incisors and the other lip: docs/solver_control.md): solved once more
+        # with the softer lip-lip penalty of `FaceSolverSettings.fallback_lip_penalty` and the
+        # final load left at its penalty solution ("carried_penalty"); the penetration that
+        # leaves is reported (contact_unmet_mm) and so is the fallback. Failing that too, the
+        # first failure stands.
+        left = None if max_seconds is None else max_seconds - (time.perf_counter() - t0)
+        if not ("lip_contact" in terms and FACE_SOLVER.fallback_lip_penalty) or \
+                (left is not None and left <= 0.0):
+            raise
+        factor = FACE_SOLVER.fallback_lip_penalty * FACE_SOLVER.lip_penalty
+        logging.getLogger("facemodel.simulation").warning(
+            "the face solve failed (%s); solving again with the lip-lip penalty x %g, the final "
+            "contact state left at its penalty solution", failure, factor)
+        problem_fb = problem(lip_penalty=factor, uzawa_schedule="carried_penalty")
+        try:
+            res = solve(*problem_fb, left)
+        except SolveFailed:
+            raise failure from None
+        body, constraints, terms, extra, lip_size = problem_fb
+        fallback = {"reason": str(failure), "failed_at_load": float(failure.load),
+                    "last_converged_load": float(failure.last_converged_load),
+                    "lip_penalty_factor": factor, "uzawa_schedule": "carried_penalty"}
     elapsed = time.perf_counter() - t0
     x = res.x
     sig = body.cauchy_stress(x, 1.0)
@@ -343,7 +381,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             "continuation_from_load": res.continuation_from,
             "continuation_iterations": res.continuation_iterations,
             "krylov_iterations": res.krylov_iterations, "timings": res.timings,
-            "guess": res.guess}
+            "guess": res.guess, "contact_fallback": fallback}
     if contact:
         info["penetration_mm"] = {k: float(t.penetration(x)) for k, t in terms.items()}
         # the augmentations are bounded (`AugmentedLagrangian.max_augmentations`): a solve

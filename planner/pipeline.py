@@ -383,6 +383,12 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
     if folded.size:
         progress.say(f"  warning: {folded.size} element(s) have a folded corner (corner Jacobian <= 0) "
                      "but are valid at their Gauss points")
+    fallback = (stats.get("info") or {}).get("contact_fallback")
+    if fallback:
+        progress.say(f"  warning: the solve failed at load {fallback['failed_at_load']:.3g} with the lips' "
+                     f"nominal contact and was made again with a softer lip-lip penalty (x "
+                     f"{fallback['lip_penalty_factor']:g}), its final contact not augmented to the "
+                     "tolerance (report.json: solver.info.contact_fallback)")
     unmet = (stats.get("info") or {}).get("contact_unmet_mm") or {}
     if unmet:
         progress.say("  warning: the contact augmentations stopped with " + unmet_text(unmet)

@@ -12,6 +12,11 @@ then start the final step far from their values. "carried" (default) gives an in
 step one multiplier update without a re-solve and scales the multipliers to the next load (a
 predictor of the contact forces), so the Uzawa updates are spread over the load increments;
 "every_step" and "final_only" are kept for comparison (experimental: tests only).
+"carried_penalty" treats the final load as "carried" treats the others: its state is the
+penalty solution with the multipliers carried up to it, and its penetration is whatever
+that leaves (the caller reports it). It is a fallback for a final contact state that the
+augmentations cannot reach (each update throws the solve out of its basin), not a method of
+its own: the answer then depends on the penalty.
 
 The multiplier updates are safeguarded so that none throws away the converged state it is
 taken at. A multiplier update at a converged state x* changes the contact forces there by
@@ -102,7 +107,7 @@ class UzawaLoop:
     frictionless problem only the final state is the solution).
     """
 
-    SCHEDULES = ("carried", "every_step", "final_only")
+    SCHEDULES = ("carried", "every_step", "final_only", "carried_penalty")
 
     def __init__(self, max_augmentations: int, schedule: str = "carried",
                  status_resolves: int | None = None):
@@ -111,6 +116,7 @@ class UzawaLoop:
                              f"got {schedule!r}")
         self.max_augmentations = int(max_augmentations)
         self.schedule = schedule
+        self.carried = schedule in ("carried", "carried_penalty")
         self.status_resolves = status_resolves
         self.count = 0
         self.carry = False      # the last `another_solve` asks for an update without re-solve
@@ -130,14 +136,14 @@ class UzawaLoop:
             self.count = 0
         intermediate = self._intermediate(load)
         self.carry = False
-        if (status_changed and intermediate and self.schedule == "carried"
+        if (status_changed and intermediate and self.carried
                 and self.status_resolves is not None and self.count >= self.status_resolves):
             # rule 3 (module docstring): the intermediate state is accepted with its status
             status_changed = False
         if self.count >= self.max_augmentations or \
                 (not status_changed and (not augmented or error <= tolerance or intermediate)):
             self.count = 0
-            self.carry = (self.schedule == "carried" and intermediate and augmented
+            self.carry = (self.carried and intermediate and augmented
                           and error > tolerance)
             self.update = self.carry
             if self.carry:
@@ -148,7 +154,7 @@ class UzawaLoop:
         # a re-solve of an intermediate step is one for the status: it keeps the multipliers
         # (module docstring, rule 1); "final_only" never re-solves an intermediate step with
         # an update either
-        self.update = augmented and not (intermediate and self.schedule == "carried")
+        self.update = augmented and not (intermediate and self.carried)
         return True
 
     def carried_fraction(self, load: float, carried_at: float) -> float:
@@ -175,7 +181,9 @@ class UzawaLoop:
 
     def _intermediate(self, load: float) -> bool:
         """A step the schedule does not augment down to the tolerance (before the final
-        load, unless "every_step")."""
+        load, unless "every_step"; every step with "carried_penalty")."""
+        if self.schedule == "carried_penalty":
+            return True
         return self.schedule != "every_step" and load < 1.0 - 1e-9
 
     def load_factor(self, load: float) -> float:
@@ -186,7 +194,7 @@ class UzawaLoop:
         previous, self._multiplier_load = self._multiplier_load, load
         if previous is not None and load != previous:
             self._from = previous
-        if self.schedule != "carried" or not previous or previous <= 0.0 or load == previous:
+        if not self.carried or not previous or previous <= 0.0 or load == previous:
             return 1.0
         return load / previous
 

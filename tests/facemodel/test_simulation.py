@@ -202,3 +202,68 @@ def test_a_held_neck_cut_stays_put_and_holds_the_submental_tissue_back(face):
                                atol=1e-6)
     with pytest.raises(ValueError, match="neck"):
         simulate(face, motions, contact=False, neck="clamped")
+
+
+def _failing_first(monkeypatch, fails=1):
+    """facemodel.simulation's Newton solve made to fail (a SolveFailed at load 0.9) on its
+    first `fails` calls; returns the list of each call's lip contact term."""
+    import facemodel.simulation as fs
+    from solver.errors import SolveFailed
+
+    real, calls = fs.newton_solve, []
+
+    def newton(body, constraints, terms, **kw):
+        calls.append(next((t for t in terms if type(t).__name__ == "SurfaceContact"), None))
+        if len(calls) <= fails:
+            raise SolveFailed(f"forced failure {len(calls)}", step=5, load=0.9, last_converged_load=0.8)
+        return real(body, constraints, terms, **kw)
+
+    monkeypatch.setattr(fs, "newton_solve", newton)
+    return calls
+
+
+def test_a_failed_solve_is_made_again_with_the_soft_lip_contact_and_says_so(face, seed7_motions, monkeypatch):
+    """A face solve with lip contact that fails is solved once more with the lip-lip penalty
+    times FACE_SOLVER.fallback_lip_penalty (0.1) and the final load left at its penalty
+    solution (no augmentation down to the tolerance). On the seed-7 plan (coarse face), the
+    first solve failed on purpose: the fallback converges, its lip term has a tenth of the
+    nominal penalty and the "carried_penalty" schedule, the info records the failure, and the
+    skin ends nearer the nominal solution than the lips' overlap the fallback leaves (a few
+    tenths of a mm: the penalty's share of the contact force not augmented away; reported as
+    contact_unmet_mm when deeper than twice the 0.05 mm tolerance)."""
+    from facemodel.simulation import FACE_SOLVER
+    from facemodel.teeth import clear_teeth
+
+    model, _ = clear_teeth(face)
+    skin = np.unique(np.asarray(model.facet_sets["skin"]))
+    nominal = simulate(model, seed7_motions, {})
+    calls = _failing_first(monkeypatch)
+    res = simulate(model, seed7_motions, {})
+    assert res.converged and res.load == 1.0 and len(calls) == 2
+    assert calls[1].penalty == pytest.approx(FACE_SOLVER.fallback_lip_penalty * calls[0].penalty)
+    assert calls[1].uzawa.schedule == "carried_penalty" and calls[0].uzawa.schedule == "carried"
+    fb = res.info["contact_fallback"]
+    assert fb["failed_at_load"] == 0.9 and "forced failure 1" in fb["reason"]
+    assert fb["lip_penalty_factor"] == pytest.approx(0.1)
+    assert nominal.info["contact_fallback"] is None
+    # the overlap left is what changes, and the skin moves by less than it: the tissue
+    # carries the lips' boundary misfit without amplifying it
+    left = res.info["penetration_mm"]["lip_contact"]
+    assert 0.0 < left < 0.5
+    assert ("lip_contact" in res.info["contact_unmet_mm"]) == (left > 0.1)
+    diff = np.linalg.norm(res.x[skin] - nominal.x[skin], axis=1)
+    assert diff.max() < left
+
+
+def test_when_the_fallback_fails_too_the_first_failure_is_raised(face, seed7_motions, monkeypatch):
+    from solver.errors import SolveFailed
+
+    calls = _failing_first(monkeypatch, fails=2)
+    with pytest.raises(SolveFailed, match="forced failure 1"):
+        simulate(face, seed7_motions, {}, contact=True)
+    assert len(calls) == 2
+    # without lip contact there is nothing to soften: the failure is raised at once
+    calls.clear()
+    with pytest.raises(SolveFailed, match="forced failure 1"):
+        simulate(face, seed7_motions, {}, contact=False)
+    assert len(calls) == 1

@@ -284,3 +284,17 @@ def test_asking_whether_augmentation_is_due_leaves_the_contact_status_alone(kind
     assert not term.augmentation_due(moved, 1.0)
     for old, new in zip(before, state()):
         assert all(np.array_equal(p, q) for p, q in zip(old, new))
+
+
+def test_carried_penalty_schedule_treats_the_final_load_as_an_intermediate_one():
+    # "carried_penalty" (the face's fallback): no re-solve at any load for the penetration,
+    # the multipliers carried (and scaled with the load) as "carried" does; one re-solve for a
+    # wrong status, then the state is accepted; no early stop for an augmentation at load 1
+    loop = UzawaLoop(max_augmentations=3, schedule="carried_penalty", status_resolves=1)
+    assert not loop.another_solve(1.0, False, True, error=1.0, tolerance=0.1) and loop.carry
+    assert loop.another_solve(1.0, True, True, error=1.0, tolerance=0.1) and not loop.update
+    assert not loop.another_solve(1.0, True, True, error=1.0, tolerance=0.1)
+    assert not loop.augmentation_due(1.0, True, error=1.0, tolerance=0.1)
+    assert loop.load_factor(0.5) == 1.0 and loop.load_factor(1.0) == pytest.approx(2.0)
+    # the default schedule augments the final load
+    assert UzawaLoop(3).augmentation_due(1.0, True, error=1.0, tolerance=0.1)

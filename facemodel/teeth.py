@@ -71,10 +71,42 @@ def teeth_penetration(model, nodes=None) -> dict:
     return out
 
 
+# mm: the step of the search for the smallest shift that clears an arch (`clear_teeth`), a
+# fraction of the smallest teeth's thickness (a few mm) so that no clear interval is stepped over
+SCAN_MM = 0.25
+# degrees: the directions in the mid-sagittal plane `clear_teeth` tries after straight back,
+# tilted up or down from it (the arch sits in a slot of tissue: moved straight back far enough
+# it meets the tissue behind it, and a tilted move can clear both sides sooner)
+TILTS_DEG = (15, -15, 30, -30, 45, -45, 60, -60, 75, -75, 90, -90)
+
+
+def _smallest_shift(depth, clearance: float, max_shift: float):
+    """The smallest s in (0, max_shift] with depth(s) <= -clearance, or None: scanned upwards
+    in SCAN_MM steps, then bisected (to ~1e-8 mm) in the step where it first clears. A larger
+    shift is not always clear too (moved far enough, the arch reaches the tissue behind it),
+    so the search cannot bisect over the whole range."""
+    b = next((s for s in np.arange(1, int(np.ceil(max_shift / SCAN_MM)) + 1) * SCAN_MM
+              if depth(min(s, max_shift)) <= -clearance), None)
+    if b is None:
+        return None
+    b = min(b, max_shift)
+    a = max(b - SCAN_MM, 0.0)
+    for _ in range(30):
+        m = 0.5 * (a + b)
+        if depth(m) > -clearance:
+            a = m
+        else:
+            b = m
+    return b
+
+
 def clear_teeth(model, clearance: float = 0.25, max_shift: float = 6.0):
-    """A model whose arches are moved back just enough that every node is `clearance` mm
-    outside them; returns (model, {arch: shift_mm}). Arches already clear are untouched.
-    Raises ValueError if an arch would have to move more than `max_shift` mm."""
+    """A model whose arches are moved just enough that every node is `clearance` mm outside
+    them; returns (model, {arch: shift_mm}). Arches already clear are untouched. Each arch is
+    moved straight back (posterior: away from the lips) by the smallest shift that clears it;
+    where none up to `max_shift` does, along the direction of the mid-sagittal plane tilted
+    up or down from it (`TILTS_DEG`) that clears with the smallest shift. Raises ValueError if
+    no direction clears within `max_shift` mm."""
     import trimesh
 
     x = np.asarray(model.nodes, dtype=float)
@@ -90,21 +122,23 @@ def clear_teeth(model, clearance: float = 0.25, max_shift: float = 6.0):
         if solid.depth(pts) <= -clearance:
             shifts[name] = 0.0
             continue
-        back = np.array([0.0, -1.0, 0.0])      # posterior (RAS): away from the lips
+        best = None
+        for tilt in (0,) + TILTS_DEG:
+            t = np.radians(tilt)
+            d = np.array([0.0, -np.cos(t), np.sin(t)])      # RAS: back, tilted up (+) or down
 
-        def depth(s):
-            return solid.depth(pts, offset=s * back)
+            def depth(s, d=d):
+                return solid.depth(pts, offset=s * d)
 
-        if depth(max_shift) > -clearance:
-            raise ValueError(f"teeth {name!r}: nodes stay inside the arch even after "
-                             f"{max_shift} mm; the registered lips and teeth disagree")
-        a, b = 0.0, max_shift
-        for _ in range(30):           # bisection to ~1e-8 mm
-            m = 0.5 * (a + b)
-            if depth(m) > -clearance:
-                a = m
-            else:
-                b = m
-        shifts[name] = b
-        teeth[name] = (v + b * back, np.asarray(f), seg)
+            shift = _smallest_shift(depth, clearance, max_shift if best is None else best[0])
+            if shift is not None and (best is None or shift < best[0]):
+                best = (shift, d)
+            if tilt == 0 and best is not None:
+                break       # straight back clears: the other directions are not tried
+        if best is None:
+            raise ValueError(f"teeth {name!r}: nodes stay inside the arch for every shift up to "
+                             f"{max_shift} mm, straight back or tilted up or down from it; the "
+                             "registered lips and teeth disagree")
+        shifts[name] = best[0]
+        teeth[name] = (v + best[0] * best[1], np.asarray(f), seg)
     return replace(model, teeth=teeth), shifts

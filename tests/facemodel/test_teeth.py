@@ -37,3 +37,37 @@ def test_teeth_pushed_into_the_lips_are_moved_back(coarse):
     assert np.allclose(moved, moved[0])                       # rigid translation
     with pytest.raises(ValueError):
         clear_teeth(pushed, clearance=0.25, max_shift=0.5)
+
+
+def test_an_arch_in_a_slot_of_tissue_is_moved_where_it_clears_both_sides():
+    """A tooth block 4 mm deep in a slot: a node 0.4 mm inside its front face near the top
+    (the lip mucosa), tissue from 0.3 mm behind its back face on back (nodes every 1 mm). Moved
+    straight back, the block meets the tissue behind before the front node is clear (0.65 mm
+    needed, 0.05 mm allowed); moved straight down by 1.25 mm the front node is 0.25 mm above
+    its top face and the tissue behind stays 0.3 mm behind it. Every tilt between takes the
+    block into the tissue behind first, so the smallest clearing move is straight down, 1.25 mm
+    (bisection: 1e-6 mm)."""
+    from dataclasses import dataclass
+
+    import trimesh
+
+    @dataclass(frozen=True)
+    class Tissue:
+        nodes: np.ndarray
+        teeth: dict
+
+    box = trimesh.creation.box(extents=(10.0, 4.0, 10.0))
+    box.apply_translation((0.0, 2.0, 5.0))                  # y in [0, 4], z in [0, 10]
+    front = [[0.0, 3.6, 9.0]]
+    behind = [[x, y, z] for x in (-4.0, 0.0, 4.0) for y in -0.3 - np.arange(10.0)
+              for z in np.linspace(0.5, 9.5, 10)]
+    tissue = Tissue(np.array(front + behind), {"upper": (np.asarray(box.vertices), np.asarray(box.faces), "maxilla")})
+    moved, shifts = clear_teeth(tissue, clearance=0.25)
+    assert shifts["upper"] == pytest.approx(1.25, abs=1e-6)
+    d = moved.teeth["upper"][0] - box.vertices
+    assert np.allclose(d, [0.0, 0.0, -shifts["upper"]], atol=1e-12)
+    sd = trimesh.proximity.signed_distance(trimesh.Trimesh(moved.teeth["upper"][0], box.faces), tissue.nodes)
+    assert sd.max() <= -0.25 + 1e-6
+    # a slot too narrow for any move within max_shift is refused, naming the arch
+    with pytest.raises(ValueError, match="upper"):
+        clear_teeth(tissue, clearance=0.25, max_shift=1.0)

@@ -44,10 +44,10 @@ from solver.bc import LocalFrame, Prescribed
 from solver.constitution.muscle import Muscle
 from solver.contact import RigidSurfaceContact, SurfaceContact, TriangleSurface, ramped_rigid_motion
 from solver.contact._geometry import triangulate
+from solver.errors import SolveFailed
 from solver.loads import BodyForce
 from solver.mechanics import SolidBody, von_mises
 from solver.mesh import HexMesh
-from solver.errors import SolveFailed
 from solver.newton import newton_solve
 
 NECK_OWNER = "neck"          # the owner of the held cut's constraint: no segment moves it
@@ -309,7 +309,9 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     Raises `facemodel.errors.ModelInputError` (a
     ValueError) for motions, activations, materials or model parts it cannot use (contact
     asked of a model without lip contact surfaces) and `solver.errors.SolveFailed` if Newton
-    fails.
+    fails. A solve with lip contact that fails is made once more with the soft lip-lip contact
+    of `FaceSolverSettings.fallback_lip_penalty` (its final load at the penalty solution) before
+    the first failure is raised; `info["contact_fallback"]` says when that answer is returned.
     """
     def problem(**contact_options):
         return build_problem(
@@ -346,8 +348,9 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     try:
         res = solve(body, constraints, terms, extra, lip_size, max_seconds)
     except SolveFailed as failure:
-        # a final lip contact state the augmentations cannot reach (the stomion corner pinched
-        # between the incisors and the other lip: docs/solver_control.md): solved once more
+        # typically a final lip contact state the augmentations cannot reach (the stomion
+        # corner pinched between the incisors and the other lip: docs/solver_control.md); any
+        # failure with lip contact is solved once more
         # with the softer lip-lip penalty of `FaceSolverSettings.fallback_lip_penalty` and the
         # final load left at its penalty solution ("carried_penalty"); the penetration that
         # leaves is reported (contact_unmet_mm) and so is the fallback. Failing that too, the

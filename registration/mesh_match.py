@@ -385,6 +385,36 @@ class _NoseNotPlaced(RegistrationFailure):
     patient's (`match_and_repair_arrays` tries the profile pose then)."""
 
 
+# The landmarks the search finds first on the sagittal profile (`landmark_search`); the others of
+# the profile are found on its arcs between them: subnasale and labrale superius on the arc from
+# pronasale to stomion superius, labrale inferius below stomion inferius.
+PROFILE_ANCHORS = {"Sn": ("Prn", "Stms"), "Ls": ("Stms", "Stmi"), "Li": ("Stmi", "Stms")}
+
+
+def far_from_profile_pose(found: dict, carried: dict,
+                          limit: float = PROFILE_LOCATED_MAX_MOVE_MM) -> list[str]:
+    """Located landmarks (name -> (3,)) that moved more than `limit` from where the elastic
+    stage, guided by the profile's features, `carried` them: another feature of the profile
+    than the one sought (the labiomental fold taken for the mouth slit).
+
+    A landmark found on the arc between two anchors of the profile (`PROFILE_ANCHORS`) is
+    measured against the move of an anchor that passed the test: the elastic stage's error is
+    smooth along the profile, so where it carried a whole upper lip several mm too low, its
+    stomion and labrale superius both move by about that much, and what tells another feature
+    is the landmark's move relative to its anchor's (a stomion is no anchor when its partner
+    is far: the slit found is another crease). Menton is not tested (the chin's lowest
+    point is sought along the submental contour, no feature guides it)."""
+    move = {k: np.asarray(found[k], float) - np.asarray(carried[k], float) for k in found}
+    far = {k for k, m in move.items() if k != "Me" and np.linalg.norm(m) > limit}
+    # the two stomia are one detection (`stomia_as_one`): one far makes neither an anchor
+    trusted = set(move) - far - ({"Stms", "Stmi"} if far & {"Stms", "Stmi"} else set())
+    for k in sorted(far & set(PROFILE_ANCHORS)):
+        anchors = [a for a in PROFILE_ANCHORS[k] if a in trusted]
+        if any(np.linalg.norm(move[k] - move[a]) <= limit for a in anchors):
+            far.discard(k)
+    return sorted(far)
+
+
 def stomia_as_one(found: dict, wanted, report: dict) -> None:
     """Set aside a located stomion whose partner was set aside. The two stomia are one
     detection, the mouth slit's two ends (`landmark_search`): where one of them was not used
@@ -627,11 +657,8 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
             # the elastic stage followed the profile's features: the carried landmarks are within
             # a few mm of their features (the profile pose's own error); one found farther from
             # where it was carried is another feature of the profile (the labiomental fold taken
-            # for the mouth slit on a foreign face): it is not used
-            # (menton excepted: the chin's lowest point is sought along the submental contour up
-            # to MENTON_REACH from where it was carried, no feature guides it)
-            far = sorted(k for k in found if k != "Me"
-                         and np.linalg.norm(found[k] - carried[k]) > PROFILE_LOCATED_MAX_MOVE_MM)
+            # for the mouth slit on a foreign face): it is not used (`far_from_profile_pose`)
+            far = far_from_profile_pose(found, carried)
             for k in far:
                 del found[k]
             if far:

@@ -252,6 +252,40 @@ def test_a_stomion_is_not_used_without_its_partner():
         assert "Stms" in found and "not_used_partner_set_aside" not in report
 
 
+def test_a_lip_landmark_is_judged_by_its_move_relative_to_its_anchor():
+    """The far test of a landmark found with the profile guiding (`far_from_profile_pose`).
+    Held-out patient 1000's face scan at standard: the elastic stage carried the whole upper
+    lip about 8 mm too low; the search found the mouth slit 5.9 mm and labrale superius 9.3 mm
+    from where they were carried, both right, and the old test on the raw move set Ls aside
+    (its node was left 6.8 mm off). Here: Ls moved 9.3 mm along with its accepted anchor Stms
+    (5.9 mm) is kept; the same move with the anchors in place, or with the anchor itself set
+    aside (or its partner stomion), is another feature; a move within the limit always passes;
+    menton is never tested."""
+    from registration.mesh_match import PROFILE_LOCATED_MAX_MOVE_MM, far_from_profile_pose
+
+    z = np.zeros(3)
+    carried = {k: z for k in ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "Pog", "Me")}
+    stms_move = np.array([-0.56, 5.87, -0.75])          # 5.9 mm: within the limit
+    ls_move = np.array([-0.69, 8.49, 3.83])             # 9.3 mm: beyond it alone
+    assert np.linalg.norm(stms_move) < PROFILE_LOCATED_MAX_MOVE_MM < np.linalg.norm(ls_move)
+    found = {"Prn": z, "Sn": z, "Ls": ls_move, "Stms": stms_move, "Stmi": stms_move}
+    assert far_from_profile_pose(found, carried) == []
+    # the anchors where they were carried: the lip moved alone by 9.3 mm
+    assert far_from_profile_pose(dict(found, Stms=z, Stmi=z), carried) == ["Ls"]
+    # the anchors themselves too far (another crease taken for the slit): nothing vouches for Ls
+    far_slit = 1.2 * ls_move
+    assert far_from_profile_pose(dict(found, Stms=far_slit, Stmi=far_slit), carried) == \
+        ["Ls", "Stmi", "Stms"]
+    # one stomion far (second-family head 1400 below the eyes: the slit taken at another
+    # crease, Stms 6.6 mm, Stmi 15.8 mm): Stms vouches for no lip landmark
+    stmi_far = np.array([0.0, -11.39, -10.9])
+    assert far_from_profile_pose(dict(found, Stms=np.array([0.0, 0.18, -6.59]), Stmi=stmi_far,
+                                      Ls=np.array([0.01, 3.29, -12.08])), carried) == ["Ls", "Stmi"]
+    # a landmark without anchors (pogonion) and menton
+    big = np.array([0.0, 9.0, 0.0])
+    assert far_from_profile_pose({"Pog": big, "Me": 3 * big, "Stmi": big}, carried) == ["Pog", "Stmi"]
+
+
 def test_a_slit_taken_at_another_crease_does_not_place_the_mouth():
     """Head 1208 of the superquadric family, cut below the eyes, no landmarks: the features
     guide its registration (the first put the mouth 15.6 mm from the profile's fissure point),

@@ -385,9 +385,10 @@ class _NoseNotPlaced(RegistrationFailure):
     patient's (`match_and_repair_arrays` tries the profile pose then)."""
 
 
-# The landmarks the search finds first on the sagittal profile (`landmark_search`); the others of
-# the profile are found on its arcs between them: subnasale and labrale superius on the arc from
-# pronasale to stomion superius, labrale inferius below stomion inferius.
+# Per landmark found on an arc of the sagittal profile, the landmarks the search found first and
+# bounds that arc with (`landmark_search`), the nearest first: subnasale and labrale superius lie
+# on the arc from pronasale to stomion superius, labrale inferius below stomion inferius; the two
+# stomia are the mouth slit's two ends.
 PROFILE_ANCHORS = {"Sn": ("Prn", "Stms"), "Ls": ("Stms", "Stmi"), "Li": ("Stmi", "Stms")}
 
 

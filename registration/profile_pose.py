@@ -19,8 +19,9 @@ from the surface alignment:
    anatomical features are found by their definitions (Farkas 1994) with measures that do not
    depend on the starting pose's pitch: pronasale (the most anterior point of the stretch of
    profile standing farthest in front of the face's surface continued from beside it, at
-   x = +-20 mm extrapolated from +-35 mm, height for height; with the nasal dorsum above it and
-   nothing above it standing farther forward), the oral fissure (a crease 12-60 mm below, where
+   x = +-20 mm extrapolated from +-35 mm, height for height; with the nasal dorsum above it,
+   nothing above it standing farther forward, and standing NOSE_MIN_PROMINENCE_MM out on the
+   tip or the dorsum above it), the oral fissure (a crease 12-60 mm below, where
    the lips meet at an angle: the point farthest behind the chord of the profile
    FISSURE_HALF_CHORD_MM either side beyond what the profile's curvature explains, which tells
    it from the smooth nasolabial and labiomental concavities, `crease_depth`), subnasale (the deepest concavity under the
@@ -31,7 +32,8 @@ from the surface alignment:
    generic model's landmark nodes Prn, Sn, the stomion midpoint and Pog onto those features,
    in closed form (Umeyama 1991 in the plane, with complex numbers), for the first feature set
    in profile order (the generic proportions do not choose the fissure: on a face of other
-   proportions a fold fits them better than the mouth does); steps 1-3 are repeated once from the corrected pose.
+   proportions a fold fits them better than the mouth does); steps 1-3 are repeated once from the corrected pose
+   (a repetition that finds no feature set keeps the first pose).
 
 The pose is accepted only when every feature is found, in profile order, the features fit a
 similarity to FEATURE_RMS_MAX_MM RMS and the pose turns the face by at most MAX_PITCH_DEG from
@@ -67,8 +69,9 @@ PRN_ARC_ABOVE_MM = 5.0
 # mm of profile either side of the most prominent point searched for the nose's tip: about
 # the nose's length along the profile
 NOSE_ARC_MM = 15.0
-# mm: the least a nose tip stands in front of the face's surface continued from beside it
-# (`_side_height`): noses stand 10-20 mm out by that measure, a lip or chin left below a nose cut
+# mm: the least a nose stands in front of the face's surface continued from beside it
+# (`_side_height`), on its tip or the dorsum above it (`_nose_prominence`): noses stand
+# 10-20 mm out by that measure, a lip or chin left below a nose cut
 # off by the scan stands level with it or behind it
 NOSE_MIN_PROMINENCE_MM = 5.0
 # the most prominent stretches of profile tried as the nose (nose, chin, lips)
@@ -216,7 +219,7 @@ def profile_features(skin: TargetSurface, generic: dict) -> tuple[dict | None, s
         near = np.flatnonzero(np.abs(s_arc - s_arc[i_nose]) <= NOSE_ARC_MM)
         i_tip = int(near[np.argmax(p[near, 1])])
         if (s_arc[i_tip] >= PRN_ARC_ABOVE_MM and p[:i_tip + 1, 1].max() <= p[i_tip, 1] + PRN_ABOVE_TOL_MM
-                and np.isfinite(prom[i_tip]) and prom[i_tip] >= NOSE_MIN_PROMINENCE_MM):
+                and _nose_prominence(prom, s_arc, i_tip) >= NOSE_MIN_PROMINENCE_MM):
             i_prn = i_tip
             break
     if i_prn is None:
@@ -246,9 +249,22 @@ def profile_features(skin: TargetSurface, generic: dict) -> tuple[dict | None, s
     for k in chosen:
         f, why = _below_mouth(p, z, i_prn, int(band[k]), prn)
         if f is not None:
-            f["nose_prominence_mm"] = float(prom[i_prn]) if np.isfinite(prom[i_prn]) else None
+            f["nose_prominence_mm"] = _nose_prominence(prom, s_arc, i_prn)
             out.append(f)
     return (out or None), why
+
+
+def _nose_prominence(prom: np.ndarray, s_arc: np.ndarray, i_tip: int) -> float:
+    """How far the nose whose tip is profile vertex `i_tip` stands out of the face: the largest
+    prominence (`prom`, NaN where the profile does not face forward) on the tip and the
+    NOSE_ARC_MM of profile above it (the lower nasal dorsum); -inf where none is defined.
+    Measured at the tip alone it depends on the pose: the planes beside the nose can cross a
+    broad nose's alae just below the tip, which stand nearly as far forward as the tip, and a
+    few degrees of pitch bring the tip to their height; along the dorsum the cheeks recede."""
+    above = np.flatnonzero((s_arc >= s_arc[i_tip] - NOSE_ARC_MM) & (s_arc <= s_arc[i_tip]))
+    vals = prom[above]
+    vals = vals[np.isfinite(vals)]
+    return float(vals.max()) if len(vals) else -np.inf
 
 
 def _below_mouth(p, z, i_prn, i_mouth, prn):
@@ -326,13 +342,24 @@ def profile_pose(skin: TargetSurface, start: Similarity, generic: dict, seed: in
     """The pose generic -> patient from the patient skin's symmetry plane and profile features,
     starting from `start` (the surface alignment). `generic`: the generic model's positions of
     FEATURES (its landmark nodes; "mouth" the stomia's midpoint). The features are found again
-    from the corrected pose (`passes` in all: a large pitch of the start shifts the windows).
+    from the corrected pose (`passes` in all: a large pitch of the start shifts the windows);
+    a later pass that finds no features keeps the last accepted pose (`info["passes"]` the
+    passes used, `info["later_pass_refused"]` why the next one found none).
     Returns (Similarity or None, info) -- None with info["refused"] naming why."""
     pose, info = start, {}
     for k in range(passes):
-        new, info = _one_pass(skin, pose, generic, seed)
+        new, info_k = _one_pass(skin, pose, generic, seed)
         if new is None:
-            return None, info
+            if k == 0:
+                return None, info_k
+            # a later pass that finds no feature set keeps the pose of the last one that did:
+            # those features passed every test (order, fit, turn), and what the later pass
+            # misses is a test at its limit under the shifted sampling of the profile (a scan
+            # cut about PRN_ARC_ABOVE_MM above the nose tip, a prominence near its threshold)
+            info["passes"] = k
+            info["later_pass_refused"] = info_k.get("refused")
+            return pose, info
+        info = info_k
         total = float(np.degrees(np.arccos(np.clip((np.trace(new.rotation @ start.rotation.T) - 1) / 2, -1, 1))))
         info["rotation_from_surface_pose_deg"] = total
         if info["features_rms_mm"] > FEATURE_RMS_MAX_MM:

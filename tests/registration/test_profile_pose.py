@@ -307,3 +307,58 @@ def test_a_slit_taken_at_another_crease_does_not_place_the_mouth():
            if k in head.landmarks and k not in ("ChL", "ChR", "Me")}
     assert max(err.values()) < 8.0, err
     assert min_scaled_jacobian(patient.nodes, patient.hexes).min() >= 0.2 - 1e-9
+
+
+def test_a_broad_nose_is_found_whatever_the_starting_pitch(generic):
+    """Head 1404 of the superquadric family cut below the eyes has a broad nose: the planes
+    beside it (x = +-20 mm) cross its alae just below the tip, where they stand nearly as far
+    forward as the tip. The nose's prominence is therefore judged along the tip and the dorsum
+    above it, not at the tip's height alone, whose value the starting pitch moved across the
+    5 mm threshold (refused at +8 deg before). From starts pitched -8, 0 and +8 deg (the surface
+    alignment of a foreign face is off by up to ~15 deg) the pose is found and pronasale lies
+    within 2 mm of the head's own (the profile's sampling, ~1.8 mm edges, and the parabola
+    refinement leave up to ~1 mm)."""
+    from registration.alignment import Similarity
+    from registration.profile_pose import profile_pose
+
+    head = sa.crop_face(sa.alt_head(1404), "below_eyes")
+    skin = as_target((head.skin.vertices, head.skin.faces), "skin")
+    lm, x = generic.landmarks, np.asarray(generic.nodes, float)
+    gen = {"Prn": x[lm["Prn"]], "Sn": x[lm["Sn"]], "mouth": 0.5 * (x[lm["Stms"]] + x[lm["Stmi"]]),
+           "Pog": x[lm["Pog"]]}
+    for pitch in (-8.0, 0.0, 8.0):
+        rot = Rotation.from_euler("x", pitch, degrees=True).as_matrix()
+        start = Similarity(1.0, rot, gen["Prn"] - rot @ gen["Prn"])
+        pose, info = profile_pose(skin, start, gen, passes=1)
+        assert pose is not None, (pitch, info.get("refused"))
+        assert info["nose_prominence_mm"] >= 5.0
+        err = np.linalg.norm(np.asarray(info["features"]["Prn"]) - np.asarray(head.landmarks["Prn"], float))
+        assert err < 2.0, (pitch, err)
+
+
+def test_a_later_pass_that_finds_no_features_keeps_the_last_accepted_pose(monkeypatch):
+    """The features are found again from the corrected pose; where that pass finds none (a
+    test at its limit under the shifted sampling: a scan cut about 5 mm above the nose tip),
+    the first pass's pose, whose features passed every test, is kept and the refusal of the
+    later pass recorded. A first pass that finds none still refuses."""
+    import registration.profile_pose as pp
+    from registration.alignment import Similarity
+
+    first = Similarity(1.0, np.eye(3), np.array([0.0, 2.0, -3.0]))
+    calls = []
+
+    def scripted(skin, pose, generic, seed):
+        calls.append(pose)
+        if len(calls) == 1:
+            return first, {"features_rms_mm": 3.0, "features": {}}
+        return None, {"refused": pp.NO_NOSE_TIP, "nose_tip_found": False}
+
+    monkeypatch.setattr(pp, "_one_pass", scripted)
+    pose, info = pp.profile_pose(None, Similarity.identity(), {}, passes=2)
+    assert pose is first and info["passes"] == 1
+    assert info["later_pass_refused"] == pp.NO_NOSE_TIP and "refused" not in info
+    assert calls[1] is first                     # the second pass started from the first's pose
+
+    monkeypatch.setattr(pp, "_one_pass", lambda *a: (None, {"refused": pp.NO_NOSE_TIP, "nose_tip_found": False}))
+    pose, info = pp.profile_pose(None, Similarity.identity(), {}, passes=2)
+    assert pose is None and info["nose_tip_found"] is False

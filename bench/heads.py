@@ -37,6 +37,7 @@ from facemodel import synthetic_alt  # noqa: E402
 from registration import mesh_match_and_repair  # noqa: E402
 from registration.errors import RegistrationFailure, RegistrationInputError  # noqa: E402
 from registration.quality import min_scaled_jacobian  # noqa: E402
+from planner.registration_gate import registration_notes  # noqa: E402
 
 
 # mm: a landmark-free registration is counted as aligned correctly when every landmark node of
@@ -96,7 +97,9 @@ def run_one(model, head, landmarks: bool):
            # registered from the profile pose after the surface pose left the nose off
            "retried": bool((rep.get("alignment") or {}).get("surface_pose_refused")),
            # a located stomion set aside because its partner was
-           "partner_set_aside": sorted((rep.get("landmark_search") or {}).get("not_used_partner_set_aside") or [])}
+           "partner_set_aside": sorted((rep.get("landmark_search") or {}).get("not_used_partner_set_aside") or []),
+           # the warnings `faceplan predict` prints with a returned registration
+           "gate_notes": registration_notes(rep) if status == "ok" else []}
     return row
 
 
@@ -151,6 +154,7 @@ def main(argv=None) -> int:
                           f"lm_max {fmt(r['lm_max'], '.2f')} (profile {fmt(r['lm_mid'], '.2f')}, Me {fmt(r['me'], '.2f')}, corners {fmt(r['ch_max'], '.2f')}) cover {fmt(r['coverage'], '.2f')} released {fmt(r['released'], 'd')} "
                           f"not_fitted [{','.join(r['unfitted'])}]{' profile-pose-retry' if r['retried'] else ''}"
                           f"{' partner-set-aside:' + ','.join(r['partner_set_aside']) if r['partner_set_aside'] else ''}"
+                          f"{' gate-warning' if r['gate_notes'] else ''}"
                           f"{' contradicting-set-aside:' + ','.join(f'{k}={v:.1f}mm' for k, v in r['set_aside'].items()) if r['set_aside'] else ''} "
                           f"{r['time_s']:.1f} s {r['error'][:120]}",
                           flush=True)
@@ -184,6 +188,13 @@ def main(argv=None) -> int:
                   f"registered from the profile pose after the surface pose left the nose off: "
                   f"{sum(r['retried'] for r in free if r['status'] == 'ok')} "
                   f"(aligned {sum(r['retried'] for r in good)})")
+            # the lips' warning: both stomia found on the skin set aside (planner.registration_gate)
+            lips = [any("mouth slit" in n for n in r["gate_notes"]) for r in free]
+            print(f"{res} without landmarks, returned with a quality-gate warning: wrong "
+                  f"{sum(bool(r['gate_notes']) for r in wrong)}/{len(wrong)}, aligned "
+                  f"{sum(bool(r['gate_notes']) for r in good)}/{len(good)}; the lips' warning among them: "
+                  f"wrong {sum(w for w, r in zip(lips, free) if r in wrong)}, aligned "
+                  f"{sum(w for w, r in zip(lips, free) if r in good)}")
         for r in sel:
             if r["status"] != "ok":
                 print(f"  {r['status']} head {r['seed']} {r['cut']} lm={'y' if r['landmarks'] else 'n'}: {r['error']}")

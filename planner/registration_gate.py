@@ -5,8 +5,10 @@ returns one sentence per figure far outside what a consistent case gives, naming
 cause, one when the landmarks were located on the skin without the head's frame (the skull
 fit refused: `registration.mesh_match._head_frame`) and the face not placed by its profile's
 features, and one when, without landmarks, the profile's features could not be found
-(`registration.profile_pose`): the placement then rests on the surfaces' bulk fit alone, and
-one per pair of given landmarks that contradict each other for the model (set aside or not). On consistent cases (the synthetic heads,
+(`registration.profile_pose`): the placement then rests on the surfaces' bulk fit alone, one
+when, without landmarks, both stomia found on the skin were set aside (the lips then rest on
+the profile's features alone), and one per pair of given landmarks that contradict each
+other for the model (set aside or not). On consistent cases (the synthetic heads,
 the demo head) the skin fit has a p95 below 1 mm and a maximum below 3 mm, the bone fit a mean
 below 0.5 mm and a maximum below ~10 mm (the chin's edge), and the repair touches 1-2 % of the
 elements; the limits below are two to three times those, so a note means that something in the
@@ -66,6 +68,21 @@ def registration_notes(report: dict) -> list[str]:
         notes.append(f"landmarks {a} and {b} are given {clash['given_apart_mm']:.1f} mm apart where the face "
                      f"model holds them {clash['model_apart_mm']:.1f} mm apart: {done}; check them in "
                      "landmarks.json")
+    # without landmarks, both stomia found on the skin set aside (found far from where the
+    # registration guided by the profile's features carried them, or with their partner): the
+    # slit the search took is another crease or the registration carried the mouth elsewhere;
+    # either way nothing on the skin confirmed where the lips are
+    search = report.get("landmark_search") or {}
+    unused = set(search.get("not_used_far_from_profile_pose") or []) | \
+        set(search.get("not_used_partner_set_aside") or [])
+    if {"Stms", "Stmi"} <= unused:
+        moved = [_get(search, "located", k, "moved_mm") for k in ("Stms", "Stmi")]
+        moved = [m for m in moved if m is not None]
+        apart = f" {max(moved):.0f} mm" if moved else ""
+        notes.append(f"the mouth slit found on the skin lies{apart} from where the registration put the "
+                     "stomia and was not used: the lips are placed by the profile's features alone and "
+                     "can be several mm off; check the lips in the images, or give at least four "
+                     "landmarks (landmarks.json)")
     why = _get(report, "alignment", "profile_pose", "refused")
     if why and _get(report, "alignment", "method") == "surfaces":
         notes.append(f"the face was placed on the skin by its surfaces alone, its profile's features not "

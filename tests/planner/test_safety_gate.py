@@ -48,3 +48,22 @@ def test_landmarks_that_contradict_each_other_are_named():
     rep["landmarks_contradicting"][0]["set_aside"] = False
     (note,) = registration_notes(rep)
     assert "both were followed" in note and "not used" not in note
+
+
+def test_a_mouth_found_on_the_skin_and_set_aside_is_flagged():
+    """Without landmarks, both stomia found on the skin set aside (found 8-16 mm from where
+    the profile-guided registration carried them, or one with its partner): nothing on the
+    skin confirmed where the lips are (second-family head 1500 below the eyes: its lower lip
+    11 mm off). The user is told, with the largest distance and the remedy. One stomion set
+    aside alone (the other used) says nothing: the slit was confirmed at one end."""
+    rep = _report()
+    rep["landmark_search"] = {"not_used_far_from_profile_pose": ["Li", "Stmi", "Stms"],
+                              "located": {"Stms": {"moved_mm": 8.08}, "Stmi": {"moved_mm": 15.89}}}
+    (note,) = registration_notes(rep)
+    assert "16 mm" in note and "landmarks" in note and "lips" in note
+    rep["landmark_search"] = {"not_used_far_from_profile_pose": ["Stmi"],
+                              "not_used_partner_set_aside": ["Stms"], "located": {}}
+    (note,) = registration_notes(rep)
+    assert "mouth slit" in note
+    rep["landmark_search"] = {"not_used_far_from_profile_pose": ["Li"], "located": {}}
+    assert registration_notes(rep) == []

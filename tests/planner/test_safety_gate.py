@@ -21,6 +21,10 @@ def test_each_figure_out_of_range_is_named_with_its_cause():
     # swapped maxilla/mandible files as probed: bone fit max 31.9 mm
     (note,) = registration_notes(_report(bone_mean=3.0, bone_max=31.9))
     assert "swapped" in note and "mandible" in note
+    # one part far while the bulk fits (second-family face scans: one node 8.5 mm off, p95
+    # 1.0 mm): a local misfit, not a frame mix-up, which would move the whole skin
+    (note,) = registration_notes(_report(skin_p95=1.0, skin_max=8.5))
+    assert "8.5" in note and "local" in note and "LPS" not in note
     (note,) = registration_notes(_report(repaired=274))
     assert "274 of 1632" in note
     assert registration_notes({}) == []          # a report without figures: nothing to say

@@ -37,7 +37,7 @@ from facemodel import synthetic_alt  # noqa: E402
 from registration import mesh_match_and_repair  # noqa: E402
 from registration.errors import RegistrationFailure, RegistrationInputError  # noqa: E402
 from registration.quality import min_scaled_jacobian  # noqa: E402
-from planner.registration_gate import registration_notes  # noqa: E402
+from planner.registration_gate import LIPS_UNCONFIRMED, registration_notes  # noqa: E402
 
 
 # mm: a landmark-free registration is counted as aligned correctly when every landmark node of
@@ -188,13 +188,12 @@ def main(argv=None) -> int:
                   f"registered from the profile pose after the surface pose left the nose off: "
                   f"{sum(r['retried'] for r in free if r['status'] == 'ok')} "
                   f"(aligned {sum(r['retried'] for r in good)})")
-            # the lips' warning: both stomia found on the skin set aside (planner.registration_gate)
-            lips = [any("mouth slit" in n for n in r["gate_notes"]) for r in free]
+            def lips(r):     # both stomia found on the skin set aside (planner.registration_gate)
+                return any(n.startswith(LIPS_UNCONFIRMED) for n in r["gate_notes"])
             print(f"{res} without landmarks, returned with a quality-gate warning: wrong "
                   f"{sum(bool(r['gate_notes']) for r in wrong)}/{len(wrong)}, aligned "
                   f"{sum(bool(r['gate_notes']) for r in good)}/{len(good)}; the lips' warning among them: "
-                  f"wrong {sum(w for w, r in zip(lips, free) if r in wrong)}, aligned "
-                  f"{sum(w for w, r in zip(lips, free) if r in good)}")
+                  f"wrong {sum(map(lips, wrong))}, aligned {sum(map(lips, good))}")
         for r in sel:
             if r["status"] != "ok":
                 print(f"  {r['status']} head {r['seed']} {r['cut']} lm={'y' if r['landmarks'] else 'n'}: {r['error']}")

@@ -24,6 +24,8 @@ SKIN_MAX_MM = 8.0
 BONE_MEAN_MM = 1.5
 BONE_MAX_MM = 20.0
 REPAIRED_FRACTION = 0.08
+# how the note on lips that nothing on the skin confirmed begins (`bench/heads.py` counts it)
+LIPS_UNCONFIRMED = "the mouth slit found on the skin lies"
 
 
 def _get(d, *keys):
@@ -88,7 +90,7 @@ def registration_notes(report: dict) -> list[str]:
         moved = [_get(search, "located", k, "moved_mm") for k in ("Stms", "Stmi")]
         moved = [m for m in moved if m is not None]
         apart = f" {max(moved):.0f} mm" if moved else ""
-        notes.append(f"the mouth slit found on the skin lies{apart} from where the registration put the "
+        notes.append(f"{LIPS_UNCONFIRMED}{apart} from where the registration put the "
                      "stomia and was not used: the lips are placed by the profile's features alone and "
                      "can be several mm off; check the lips in the images, or give at least four "
                      "landmarks (landmarks.json)")

@@ -218,8 +218,9 @@ def profile_features(skin: TargetSurface, generic: dict) -> tuple[dict | None, s
         tried.append(float(s_arc[i_nose]))
         near = np.flatnonzero(np.abs(s_arc - s_arc[i_nose]) <= NOSE_ARC_MM)
         i_tip = int(near[np.argmax(p[near, 1])])
+        nose_prom = _nose_prominence(prom, s_arc, i_tip)
         if (s_arc[i_tip] >= PRN_ARC_ABOVE_MM and p[:i_tip + 1, 1].max() <= p[i_tip, 1] + PRN_ABOVE_TOL_MM
-                and _nose_prominence(prom, s_arc, i_tip) >= NOSE_MIN_PROMINENCE_MM):
+                and nose_prom >= NOSE_MIN_PROMINENCE_MM):
             i_prn = i_tip
             break
     if i_prn is None:
@@ -249,7 +250,7 @@ def profile_features(skin: TargetSurface, generic: dict) -> tuple[dict | None, s
     for k in chosen:
         f, why = _below_mouth(p, z, i_prn, int(band[k]), prn)
         if f is not None:
-            f["nose_prominence_mm"] = _nose_prominence(prom, s_arc, i_prn)
+            f["nose_prominence_mm"] = nose_prom
             out.append(f)
     return (out or None), why
 

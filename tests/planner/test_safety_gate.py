@@ -71,3 +71,5 @@ def test_a_mouth_found_on_the_skin_and_set_aside_is_flagged():
     assert "mouth slit" in note
     rep["landmark_search"] = {"not_used_far_from_profile_pose": ["Li"], "located": {}}
     assert registration_notes(rep) == []
+    rep["landmark_search"] = {"not_used_far_from_profile_pose": ["Stmi"], "located": {}}
+    assert registration_notes(rep) == []

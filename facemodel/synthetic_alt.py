@@ -21,7 +21,10 @@ regions cut by a Le Fort I line, the occlusal plane and a genioplasty line (buil
 `facemodel._structured.box_surface`); the skin is a geodesic sphere projected along the rays.
 Soft-tissue landmarks (Farkas 1994 definitions: extremal points and concavities of the
 mid-sagittal profile, the mouth corners at the fissure's ends) are found numerically on the
-profile of the exact skin, then taken as the closest points of the triangulated one.
+profile of the exact skin, then taken as the closest points of the triangulated one. Where a
+definition has no anatomical answer on a head (labrale inferius where the lower lip's roll
+stands behind the fissure's edge, about a quarter of the heads) the head says so
+(`AltHead.ill_defined`).
 
 `crop_face` makes the partial skins a planning CBCT or a surface scan gives: the face only
 (in front of the ears, down under the chin), cut below the eyes, at mid-nose, or a whole-face
@@ -263,6 +266,24 @@ def _deepest_between(yz: np.ndarray, i0: int, i1: int) -> int:
     return i0 + int(np.argmax((yz[i0:i1 + 1] - a) @ nrm))
 
 
+def _labrale_inferius(pts: np.ndarray, s: AltShape) -> tuple[int, bool]:
+    """Labrale inferius on the profile `pts` (head frame): the most anterior point of the lower
+    lip, between the fissure and the chin; and whether it is a prominence (a point inside that
+    range). Where the lower lip's roll stands behind the fissure's lower edge the definition
+    gives that edge, not the lip's vermilion border."""
+    lower = np.flatnonzero((pts[:, 2] < s.mouth_z - 0.4) & (pts[:, 2] > s.chin_z + 4.0))
+    j = int(np.argmax(pts[lower, 1]))
+    return int(lower[j]), j > 0
+
+
+def ill_defined_landmarks(s: AltShape) -> tuple:
+    """The landmarks whose definition has no anatomical answer on head shape `s`: labrale
+    inferius where the lower lip's roll stands behind the fissure's edge (`_labrale_inferius`).
+    `alt_landmarks` still gives the definition's point; a benchmark judges these apart."""
+    _, pts = _profile(s)
+    return () if _labrale_inferius(pts, s)[1] else ("Li",)
+
+
 def alt_landmarks(s: AltShape, skin=None) -> dict:
     """Soft-tissue landmarks of the exact skin (head frame before its pose), then posed and,
     given the triangulated skin, taken as its closest points."""
@@ -277,8 +298,7 @@ def alt_landmarks(s: AltShape, skin=None) -> dict:
     i_sn = _deepest_between(yz, i_prn, i_stms)
     i_ls = i_sn + int(np.argmax(yz[i_sn:i_stms + 1, 0]))
     i_stmi = int(np.flatnonzero(pts[:, 2] <= mz - 0.5)[0])
-    lower = np.flatnonzero((pts[:, 2] < mz - 0.4) & (pts[:, 2] > s.chin_z + 4.0))
-    i_li = int(lower[np.argmax(yz[lower, 0])])
+    i_li, _ = _labrale_inferius(pts, s)
     # soft pogonion: the most anterior point of the chin's prominence
     chin = np.flatnonzero(np.abs(pts[:, 2] - s.chin_z) < 10.0)
     i_pog = int(chin[np.argmax(yz[chin, 0])])
@@ -317,13 +337,15 @@ class AltHead:
     bones: dict           # segment -> trimesh.Trimesh
     teeth: dict = field(default_factory=dict)
     landmarks: dict = field(default_factory=dict)
+    # landmarks whose definition is degenerate on this head (`ill_defined_landmarks`)
+    ill_defined: tuple = ()
 
 
 def alt_head(seed: int, subdivisions: int = 6) -> AltHead:
     """Head `seed` of this family: closed skin, bone segments and landmarks."""
     s = random_alt_shape(seed)
     skin = skin_surface(s, subdivisions)
-    return AltHead(int(seed), s, skin, bone_surfaces(s), {}, alt_landmarks(s, skin))
+    return AltHead(int(seed), s, skin, bone_surfaces(s), {}, alt_landmarks(s, skin), ill_defined_landmarks(s))
 
 
 # crop heights (z, mm, in the head frame before its pose): the partial skins of practice

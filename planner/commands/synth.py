@@ -243,8 +243,11 @@ def write_case(folder: Path, head, *, ct: bool = False, ct_spacing: float = 1.0,
 
     for arch, (v, f, _) in head.teeth.items():
         trimesh.Trimesh(v, f, process=False).export(preop / "teeth" / f"{arch}.stl")
+    # a landmark whose definition has no anatomical answer on this head (`AltHead.ill_defined`)
+    # is not one a clinician would place: the case does not give it
+    skip = set(getattr(head, "ill_defined", ()))
     (preop / "landmarks.json").write_text(json.dumps(
-        {k: [round(float(x), 4) for x in v] for k, v in head.landmarks.items()}, indent=1))
+        {k: [round(float(x), 4) for x in v] for k, v in head.landmarks.items() if k not in skip}, indent=1))
     if plan is None:
         plan = sample_plan(head.shape)
     segs = plan["segments"]

@@ -337,6 +337,7 @@ def mesh_match_and_repair(model, skin, bones: dict | None = None, landmarks: dic
                    np.asarray(model.facet_sets["lip_lower_contact"]))
         if {"lip_upper_contact", "lip_lower_contact"} <= set(model.facet_sets) else None,
         regions={k: np.asarray(v) for k, v in getattr(model, "regions", {}).items()},
+        edge_nodes=np.asarray(model.node_sets["border"]) if "border" in model.node_sets else None,
     )
     x, sim, report, placed = match_and_repair_arrays(arrays, skin_t, bone_t, lms or None, opt, files,
                                                      teeth=own_teeth or None)

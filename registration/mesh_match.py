@@ -125,6 +125,7 @@ class MatchInput:
     teeth: dict = field(default_factory=dict)  # arch -> (vertices, faces, segment), generic frame
     lip_quads: tuple | None = None  # (upper, lower) contact facets across the mouth slit, outward
     regions: dict = field(default_factory=dict)  # skin region name -> node ids (the report's)
+    edge_nodes: np.ndarray | None = None  # node ids on the mesh's cut edges (its border columns)
 
 
 def _fit_stats(d: np.ndarray) -> dict:
@@ -868,13 +869,21 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
     }
     report["regions_not_fitted"] = sorted(k for k, v in report["regions"].items() if not v["fitted"])
     # covered skin nodes left far off the scan (MatchOptions.skin_off_scan_gate_mm), by region
-    off = np.zeros(0, np.int64)
+    # The model's border columns (its cut edges: the top row over the forehead, the sides, the
+    # neck) are not gated: the elastic stage has no support beyond them, so where the scan
+    # curves away past the model's edge (a forehead receding behind the generic one) the edge
+    # row lags while the rows inside fit. A face misplaced along the scan moves the nodes
+    # inside the edge too, and those are gated; a lagging edge is reported here and named by
+    # the quality gate's skin maximum (planner.registration_gate).
+    off = edge_off = np.zeros(0, np.int64)
     if opt.skin_off_scan_gate_mm is not None:
-        off = skin_ids[valid & (cl.distance > opt.skin_off_scan_gate_mm)]
+        far = skin_ids[valid & (cl.distance > opt.skin_off_scan_gate_mm)]
+        edge = np.isin(far, np.asarray(model.edge_nodes if model.edge_nodes is not None else [], np.int64))
+        off, edge_off = far[~edge], far[edge]
     off_regions = sorted(k for k, v in model.regions.items() if len(np.intersect1d(off, np.asarray(v))))
     report["fit"]["skin_off_scan"] = {"gate_mm": opt.skin_off_scan_gate_mm, "n_nodes": int(len(off)),
                                       "max_mm": float(cl.distance[valid].max()) if valid.any() else None,
-                                      "regions": off_regions}
+                                      "regions": off_regions, "border_nodes_over_gate": int(len(edge_off))}
     if lm_given is not None:
         # distance from each carried landmark node to the given landmark, in the patient frame
         # (those set aside as contradicting another included)

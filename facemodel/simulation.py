@@ -309,9 +309,10 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     Raises `facemodel.errors.ModelInputError` (a
     ValueError) for motions, activations, materials or model parts it cannot use (contact
     asked of a model without lip contact surfaces) and `solver.errors.SolveFailed` if Newton
-    fails. A solve with lip contact that fails is made once more with the soft lip-lip contact
-    of `FaceSolverSettings.fallback_lip_penalty` (its final load at the penalty solution) before
-    the first failure is raised; `info["contact_fallback"]` says when that answer is returned.
+    fails. A solve with lip contact that fails is made again with the softer lip-lip contacts
+    of `FaceSolverSettings.fallback_lip_penalties` in turn (the final load at the penalty
+    solution) before the first failure is raised; `info["contact_fallback"]` says when such an
+    answer is returned.
     """
     def problem(**contact_options):
         return build_problem(
@@ -350,28 +351,38 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     except SolveFailed as failure:
         # typically a final lip contact state the augmentations cannot reach (the stomion
         # corner pinched between the incisors and the other lip: docs/solver_control.md); any
-        # failure with lip contact is solved once more
-        # with the softer lip-lip penalty of `FaceSolverSettings.fallback_lip_penalty` and the
-        # final load left at its penalty solution ("carried_penalty"); the penetration that
-        # leaves is reported (contact_unmet_mm) and so is the fallback. Failing that too, the
-        # first failure stands.
-        left = None if max_seconds is None else max_seconds - (time.perf_counter() - t0)
-        if not ("lip_contact" in terms and FACE_SOLVER.fallback_lip_penalty) or \
-                (left is not None and left <= 0.0):
-            raise
-        factor = FACE_SOLVER.fallback_lip_penalty * FACE_SOLVER.lip_penalty
-        logging.getLogger("facemodel.simulation").warning(
-            "the face solve failed (%s); solving again with the lip-lip penalty x %g, the final "
-            "contact state left at its penalty solution", failure, factor)
-        problem_fb = problem(lip_penalty=factor, uzawa_schedule="carried_penalty")
-        try:
-            res = solve(*problem_fb, left)
-        except SolveFailed:
+        # failure with lip contact is solved again with the softer lip-lip penalties of
+        # `FaceSolverSettings.fallback_lip_penalties` in turn, the final load left at the
+        # penalty solution ("carried_penalty"); the penetration that leaves is reported
+        # (contact_unmet_mm) and so is the fallback. Failing every one, the first failure stands.
+        factors = tuple(FACE_SOLVER.fallback_lip_penalties or ()) if "lip_contact" in terms else ()
+        attempts = []
+        for f in factors:
+            left = None if max_seconds is None else max_seconds - (time.perf_counter() - t0)
+            if left is not None and left <= 0.0:
+                break
+            factor = f * FACE_SOLVER.lip_penalty
+            logging.getLogger("facemodel.simulation").warning(
+                "the face solve failed (%s); solving again with the lip-lip penalty x %g, the final "
+                "contact state left at its penalty solution", attempts[-1]["reason"] if attempts else failure,
+                factor)
+            problem_fb = problem(lip_penalty=factor, uzawa_schedule="carried_penalty")
+            try:
+                res = solve(*problem_fb, left)
+            except SolveFailed as again:
+                attempts.append({"lip_penalty_factor": factor, "reason": str(again),
+                                 "failed_at_load": float(again.load)})
+                continue
+            body, constraints, terms, extra, lip_size = problem_fb
+            fallback = {"reason": str(failure), "failed_at_load": float(failure.load),
+                        "last_converged_load": float(failure.last_converged_load),
+                        "lip_penalty_factor": factor, "uzawa_schedule": "carried_penalty",
+                        "softer_attempts_failed": attempts}
+            break
+        else:
             raise failure from None
-        body, constraints, terms, extra, lip_size = problem_fb
-        fallback = {"reason": str(failure), "failed_at_load": float(failure.load),
-                    "last_converged_load": float(failure.last_converged_load),
-                    "lip_penalty_factor": factor, "uzawa_schedule": "carried_penalty"}
+        if fallback is None:        # the time budget ran out between attempts
+            raise failure from None
     elapsed = time.perf_counter() - t0
     x = res.x
     sig = body.cauchy_stress(x, 1.0)

@@ -56,13 +56,15 @@ class FaceSolverSettings:
     held-out seeds 1016 and 1017 reach full load, but only by ending its augmentations with
     the lips up to 0.5 mm inside each other (tolerance 0.05 mm); more augmentations fail at
     full load as the full penalty does (docs/solver_control.md, "The lip-lip penalty").
-    fallback_lip_penalty: a face solve with lip contact that fails is solved once more from
-    the start with the lip-lip penalty times this (0.1) and its final load left at the
-    penalty solution with the carried multipliers (the augmentations that fail there are not
-    made); the penetration left is reported as an unmet contact, and the fallback in the
-    solve's info (`contact_fallback`). None: no fallback. Where the nominal solve fails at a
-    pinched stomion corner (held-out seeds 1016 and 1017 at standard), the softer penalty
-    passes the corner; only the final augmentations fail there (docs/solver_control.md).
+    fallback_lip_penalties: a face solve with lip contact that fails is solved again from the
+    start with the lip-lip penalty times each of these in turn (0.1, then 0.03: about half a
+    decade each) until one converges, its final load left at the penalty solution with the
+    carried multipliers (the augmentations that fail there are not made); the penetration left
+    is reported as an unmet contact, and the fallback in the solve's info (`contact_fallback`).
+    Empty: no fallback. Where the nominal solve fails at a pinched stomion corner (held-out
+    seeds 1016 and 1017 at standard), the softer penalty passes the corner; only the final
+    augmentations fail there (docs/solver_control.md). Softer still leaves the lips more than
+    about 1 mm inside each other, so the sequence ends there.
     """
 
     rtol: float = 1e-6
@@ -77,7 +79,7 @@ class FaceSolverSettings:
     lip_crease_blend: float = 0.0
     lip_edge_release: float = 0.0
     lip_penalty: float = 1.0
-    fallback_lip_penalty: float | None = 0.1
+    fallback_lip_penalties: tuple = (0.1, 0.03)
 
     def max_increment(self, lip_size: float | None, teeth_advance: float = 0.0) -> float:
         """The increment limit (mm) of a contact node: `increment_fraction` of the lip facets'

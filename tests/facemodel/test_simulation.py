@@ -224,7 +224,7 @@ def _failing_first(monkeypatch, fails=1):
 
 def test_a_failed_solve_is_made_again_with_the_soft_lip_contact_and_says_so(face, seed7_motions, monkeypatch):
     """A face solve with lip contact that fails is solved once more with the lip-lip penalty
-    times FACE_SOLVER.fallback_lip_penalty (0.1) and the final load left at its penalty
+    times FACE_SOLVER.fallback_lip_penalties[0] (0.1) and the final load left at its penalty
     solution (no augmentation down to the tolerance). On the seed-7 plan (coarse face), the
     first solve failed on purpose: the fallback converges, its lip term has a tenth of the
     nominal penalty and the "carried_penalty" schedule, the info records the failure, and the
@@ -240,11 +240,11 @@ def test_a_failed_solve_is_made_again_with_the_soft_lip_contact_and_says_so(face
     calls = _failing_first(monkeypatch)
     res = simulate(model, seed7_motions, {})
     assert res.converged and res.load == 1.0 and len(calls) == 2
-    assert calls[1].penalty == pytest.approx(FACE_SOLVER.fallback_lip_penalty * calls[0].penalty)
+    assert calls[1].penalty == pytest.approx(FACE_SOLVER.fallback_lip_penalties[0] * calls[0].penalty)
     assert calls[1].uzawa.schedule == "carried_penalty" and calls[0].uzawa.schedule == "carried"
     fb = res.info["contact_fallback"]
     assert fb["failed_at_load"] == 0.9 and "forced failure 1" in fb["reason"]
-    assert fb["lip_penalty_factor"] == pytest.approx(0.1)
+    assert fb["lip_penalty_factor"] == pytest.approx(0.1) and fb["softer_attempts_failed"] == []
     assert nominal.info["contact_fallback"] is None
     # the overlap left is what changes, and the skin moves by less than it: the tissue
     # carries the lips' boundary misfit without amplifying it
@@ -255,13 +255,34 @@ def test_a_failed_solve_is_made_again_with_the_soft_lip_contact_and_says_so(face
     assert diff.max() < left
 
 
-def test_when_the_fallback_fails_too_the_first_failure_is_raised(face, seed7_motions, monkeypatch):
+def test_a_failed_fallback_is_made_again_softer(face, seed7_motions, monkeypatch):
+    """The nominal solve and the first fallback fail: the next penalty of
+    FACE_SOLVER.fallback_lip_penalties (0.03) is tried, converges, and the info records the
+    first failure and the fallback that failed."""
+    from facemodel.simulation import FACE_SOLVER
+    from facemodel.teeth import clear_teeth
+
+    model, _ = clear_teeth(face)
+    calls = _failing_first(monkeypatch, fails=2)
+    res = simulate(model, seed7_motions, {})
+    assert res.converged and res.load == 1.0 and len(calls) == 3
+    assert calls[2].penalty == pytest.approx(FACE_SOLVER.fallback_lip_penalties[1] * calls[0].penalty)
+    assert calls[2].uzawa.schedule == "carried_penalty"
+    fb = res.info["contact_fallback"]
+    assert "forced failure 1" in fb["reason"] and fb["lip_penalty_factor"] == pytest.approx(0.03)
+    assert [a["lip_penalty_factor"] for a in fb["softer_attempts_failed"]] == [pytest.approx(0.1)]
+    assert "forced failure 2" in fb["softer_attempts_failed"][0]["reason"]
+
+
+def test_when_every_fallback_fails_the_first_failure_is_raised(face, seed7_motions, monkeypatch):
+    from facemodel.simulation import FACE_SOLVER
     from solver.errors import SolveFailed
 
-    calls = _failing_first(monkeypatch, fails=2)
+    n = 1 + len(FACE_SOLVER.fallback_lip_penalties)
+    calls = _failing_first(monkeypatch, fails=n)
     with pytest.raises(SolveFailed, match="forced failure 1"):
         simulate(face, seed7_motions, {}, contact=True)
-    assert len(calls) == 2
+    assert len(calls) == n
     # without lip contact there is nothing to soften: the failure is raised at once
     calls.clear()
     with pytest.raises(SolveFailed, match="forced failure 1"):

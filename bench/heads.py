@@ -14,11 +14,13 @@ whose definition has no anatomical answer on that head, `AltHead.ill_defined`), 
 surface nodes the repair released, regions not fitted, time; a summary per resolution.
 
 With `--family own` the heads come from faceplan's own generator (`facemodel.synthetic`),
-cut the same way: the comparison.
+cut the same way: the comparison. With `--predict` each head and cut is written as a case
+folder (the plan `faceplan synth` draws for such a head, landmarks given) and predicted
+through `faceplan predict`'s pipeline instead.
 
 Usage: python bench/heads.py [--heads 6] [--first 100] [--cuts scan,below_eyes,mid_nose,whole]
                              [--resolutions coarse,standard] [--fine] [--no-landmarks]
-                             [--family alt|own]
+                             [--family alt|own] [--predict]
 """
 from __future__ import annotations
 
@@ -118,6 +120,69 @@ def fmt(v, spec=".3f"):
     return "-" if v is None else format(v, spec)
 
 
+def predict_all(args) -> int:
+    """--predict: every head x cut written as a case (`synth.write_case`, the plan of
+    `synth.bone_plan`, the head's landmarks less its ill-defined ones) and predicted at each
+    resolution (`planner.pipeline.predict_case`, no pictures): one line per run (Newton
+    iterations, cut-backs, a soft-contact fallback, contact left unmet, inverted elements,
+    time) and a summary per resolution."""
+    import json
+    import tempfile
+
+    from planner.commands.synth import bone_plan, write_case
+    from planner.pipeline import predict_case
+
+    if args.family != "alt":
+        print("--predict: heads of the second family only (--family alt)", file=sys.stderr)
+        return 2
+    resolutions = args.resolutions.split(",") + (["fine"] if args.fine else [])
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="faceplan-heads-") as tmp:
+        root = Path(tmp)
+        for seed in range(args.first, args.first + args.heads):
+            head = synthetic_alt.alt_head(seed)
+            for cut in args.cuts.split(","):
+                cropped = head if cut == "whole" else synthetic_alt.crop_face(head, cut)
+                folder = root / f"alt_{seed}_{cut}"
+                write_case(folder, cropped, plan=bone_plan(head, seed))
+                for res in resolutions:
+                    t0 = time.perf_counter()
+                    row = {"res": res, "seed": seed, "cut": cut}
+                    try:
+                        out = predict_case(folder, root / f"out_{seed}_{cut}_{res}", resolution=res,
+                                           render=False, echo=False)
+                        rep = json.loads((out / "report.json").read_text())
+                        solver = rep.get("solver", {})
+                        info = solver.get("info") or {}
+                        row.update(ok=True, newton=solver.get("iterations"), cutbacks=info.get("cutbacks"),
+                                   fallback=bool(info.get("contact_fallback")),
+                                   unmet=info.get("contact_unmet_mm") or {},
+                                   inverted=int(rep.get("mesh_quality", {}).get("inverted_elements", 0)))
+                    except Exception as exc:  # noqa: BLE001 -- every failure is a result of the bench
+                        row.update(ok=False, error=f"{type(exc).__name__}: {exc}")
+                    row["time_s"] = time.perf_counter() - t0
+                    rows.append(row)
+                    if row["ok"]:
+                        unmet = ", ".join(f"{k} {v:.2f} mm" for k, v in row["unmet"].items())
+                        print(f"{res:8s} head {seed} {cut:10s} predicted: Newton {row['newton']}, cut-backs "
+                              f"{row['cutbacks']}, inverted {row['inverted']}"
+                              f"{', soft-contact fallback' if row['fallback'] else ''}"
+                              f"{', contact left ' + unmet if unmet else ''}; {row['time_s']:.1f} s", flush=True)
+                    else:
+                        print(f"{res:8s} head {seed} {cut:10s} FAIL {row['error'][:200]}; {row['time_s']:.1f} s",
+                              flush=True)
+    print()
+    for res in resolutions:
+        sel = [r for r in rows if r["res"] == res]
+        ok = [r for r in sel if r["ok"]]
+        print(f"{res} predicted: {len(ok)}/{len(sel)}; inverted {sum(r['inverted'] for r in ok)}; Newton median "
+              f"{fmt(_median([r['newton'] for r in ok]), '.0f')} max {max((r['newton'] for r in ok), default='-')}; "
+              f"soft-contact fallbacks {sum(r['fallback'] for r in ok)}; contact left unmet {sum(bool(r['unmet']) for r in ok)}; "
+              f"time median {fmt(_median([r['time_s'] for r in sel]), '.1f')} s max "
+              f"{max(r['time_s'] for r in sel):.1f} s")
+    return 0 if all(r["ok"] for r in rows) else 1
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--heads", type=int, default=6)
@@ -133,7 +198,13 @@ def main(argv=None) -> int:
                          "the head's true landmarks is counted as aligned correctly, else as wrong")
     ap.add_argument("--family", choices=("alt", "own"), default="alt",
                     help="alt: the superquadric family; own: faceplan's generator (the comparison)")
+    ap.add_argument("--predict", action="store_true",
+                    help="predict instead: each head and cut written as a case folder with the plan "
+                         "`faceplan synth` draws for such a head, landmarks given, and predicted through "
+                         "`faceplan predict`'s pipeline at each resolution")
     args = ap.parse_args(argv)
+    if args.predict:
+        return predict_all(args)
     resolutions = args.resolutions.split(",") + (["fine"] if args.fine else [])
     cuts = args.cuts.split(",")
     mode = args.landmarks or ("both" if args.no_landmarks else "given")

@@ -63,8 +63,8 @@ class FaceSolverSettings:
     is reported as an unmet contact, and the fallback in the solve's info (`contact_fallback`).
     Empty: no fallback. Where the nominal solve fails at a pinched stomion corner (held-out
     seeds 1016 and 1017 at standard), the softer penalty passes the corner; only the final
-    augmentations fail there (docs/solver_control.md). Softer still leaves the lips more than
-    about 1 mm inside each other, so the sequence ends there.
+    augmentations fail there (docs/solver_control.md). At 0.03 the lips already end about 1 mm
+    inside each other (held-out seed 1017's face scan), so the sequence ends there.
     """
 
     rtol: float = 1e-6

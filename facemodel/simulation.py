@@ -379,9 +379,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
                         "lip_penalty_factor": factor, "uzawa_schedule": "carried_penalty",
                         "softer_attempts_failed": attempts}
             break
-        else:
-            raise failure from None
-        if fallback is None:        # the time budget ran out between attempts
+        if fallback is None:        # every softer solve failed, or the time budget ran out
             raise failure from None
     elapsed = time.perf_counter() - t0
     x = res.x

@@ -131,6 +131,7 @@ def predict_all(args) -> int:
 
     from planner.commands.synth import bone_plan, write_case
     from planner.pipeline import predict_case
+    from planner.report import solve_summary
 
     if args.family != "alt":
         print("--predict: heads of the second family only (--family alt)", file=sys.stderr)
@@ -151,13 +152,10 @@ def predict_all(args) -> int:
                     try:
                         out = predict_case(folder, root / f"out_{seed}_{cut}_{res}", resolution=res,
                                            render=False, echo=False)
-                        rep = json.loads((out / "report.json").read_text())
-                        solver = rep.get("solver", {})
-                        info = solver.get("info") or {}
-                        row.update(ok=True, newton=solver.get("iterations"), cutbacks=info.get("cutbacks"),
-                                   fallback=bool(info.get("contact_fallback")),
-                                   unmet=info.get("contact_unmet_mm") or {},
-                                   inverted=int(rep.get("mesh_quality", {}).get("inverted_elements", 0)))
+                        solve = solve_summary(json.loads((out / "report.json").read_text()))
+                        row.update(ok=True, newton=solve["newton_iterations"], cutbacks=solve["cutbacks"],
+                                   fallback=solve["contact_fallback"], unmet=solve["contact_unmet_mm"],
+                                   inverted=solve["inverted_elements"])
                     except Exception as exc:  # noqa: BLE001 -- every failure is a result of the bench
                         row.update(ok=False, error=f"{type(exc).__name__}: {exc}")
                     row["time_s"] = time.perf_counter() - t0

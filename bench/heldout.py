@@ -123,6 +123,7 @@ def run_case(seed: int, resolution: str, root: Path, landmarks: bool, cut: str =
     from planner.case import load_case
     from planner.commands.synth import write_case
     from planner.pipeline import Progress, predict_case, register_case
+    from planner.report import solve_summary
     from registration.quality import min_scaled_jacobian
 
     rec: dict = {"seed": seed, "resolution": resolution, "cut": cut, "ok": False}
@@ -165,18 +166,14 @@ def run_case(seed: int, resolution: str, root: Path, landmarks: bool, cut: str =
                            render=False, echo=False)
         rec["times_s"]["predict"] = time.perf_counter() - t2
         report = json.loads((out / "report.json").read_text())
-        solver = report.get("solver", {})
-        info = solver.get("info") or {}
-        rec["newton_iterations"] = solver.get("iterations")
-        rec["load_steps"] = solver.get("steps")
-        rec["cutbacks"] = info.get("cutbacks")
-        rec["continuation_from_load"] = info.get("continuation_from_load")
-        rec["contact_unmet_mm"] = info.get("contact_unmet_mm") or {}
+        solve = solve_summary(report)
+        for key in ("newton_iterations", "load_steps", "cutbacks", "continuation_from_load",
+                    "contact_unmet_mm"):
+            rec[key] = solve[key]
         rec["predict_stages_s"] = report.get("timings_s", {})
         rec["predicted_min_sj"] = _predicted_quality(out)
-        mq = report.get("mesh_quality", {})
-        rec["predicted_inverted"] = int(mq.get("inverted_elements", 0))
-        rec["predicted_folded_corners"] = int(mq.get("folded_corner_elements", 0))
+        rec["predicted_inverted"] = solve["inverted_elements"]
+        rec["predicted_folded_corners"] = solve["folded_corner_elements"]
         rec["ok"] = True
     except Exception as exc:  # a bench records every failure mode and goes on
         rec["failed_in"] = stage

@@ -149,3 +149,19 @@ def landmark_movements(model, u: np.ndarray, plan=None, bone_vertices=None) -> d
 
 def predicted_landmarks(model, u: np.ndarray) -> dict[str, list[float]]:
     return {n: [float(c) for c in np.asarray(model.nodes[i], float) + u[i]] for n, i in model.landmarks.items()}
+
+
+def solve_summary(report: dict) -> dict:
+    """The solve's figures from a written prediction report (`report.json`): Newton iterations,
+    load steps, cut-backs, the load the continuation resumed from, the contacts left unmet
+    ({name: mm}), whether a soft-contact fallback was used, and the deformed mesh's inverted
+    (Gauss point) and folded (corner) element counts. The benches tabulate these."""
+    solver = report.get("solver") or {}
+    info = solver.get("info") or {}
+    quality = report.get("mesh_quality") or {}
+    return {"newton_iterations": solver.get("iterations"), "load_steps": solver.get("steps"),
+            "cutbacks": info.get("cutbacks"), "continuation_from_load": info.get("continuation_from_load"),
+            "contact_unmet_mm": info.get("contact_unmet_mm") or {},
+            "contact_fallback": bool(info.get("contact_fallback")),
+            "inverted_elements": int(quality.get("inverted_elements", 0)),
+            "folded_corner_elements": int(quality.get("folded_corner_elements", 0))}

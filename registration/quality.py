@@ -1,4 +1,4 @@
-"""Hexahedron quality: corner Jacobians and the scaled Jacobian, with exact gradients.
+"""Hexahedron quality: corner and Gauss-point Jacobians and the scaled Jacobian, with exact gradients.
 
 For a trilinear hexahedron (VTK node order) the Jacobian at corner c is the determinant of the
 three edge vectors leaving c towards its neighbours, ordered so that a right-handed element
@@ -6,10 +6,19 @@ has positive determinants. The *scaled Jacobian* divides that determinant by the
 the three edge lengths, so it lies in [-1, 1], is 1 for a rectangular box and <= 0 for an
 inverted corner (Knupp, "Achieving finite element mesh quality via optimization of the
 Jacobian matrix norm and associated quantities", IJNME 48, 2000; the Verdict library
-definition, which adds the element centre evaluated with the principal axes). Each of the nine
-"corners" q is written as three edge vectors E_q = M_q X that are linear in the eight nodal
-positions X, so the gradient of the scaled Jacobian with respect to the nodes follows from the
-chain rule in closed form; this is what the repair step optimises.
+definition, which adds the element centre evaluated with the principal axes).
+
+Positive corner Jacobians do not make a trilinear hexahedron valid: det J is a polynomial in
+the natural coordinates, and an element with warped faces can be inverted inside while every
+corner is positive. The finite-element solver integrates at the 2 x 2 x 2 Gauss points and
+refuses an element inverted at any of them (`solver.mesh.check_mesh`), so the quality measured
+here also takes the isoparametric Jacobian columns 2 dx/dxi_k at those eight points (scaled
+by their lengths in the same way): a mesh this module passes is one the solver accepts.
+
+Each of the 17 "corners" q (8 corners, the centre, 8 Gauss points) is written as three edge
+vectors E_q = M_q X that are linear in the eight nodal positions X, so the gradient of the
+scaled Jacobian with respect to the nodes follows from the chain rule in closed form; this is
+what the repair step optimises.
 """
 from __future__ import annotations
 
@@ -22,9 +31,19 @@ CORNER_NEIGHBOURS = np.array(
 )
 
 
+# natural coordinates of the eight nodes (VTK hexahedron)
+NODE_XI = np.array([[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
+                    [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=float)
+# the 2 x 2 x 2 Gauss points the solver integrates at (`solver.mesh.check_mesh` checks them)
+GAUSS_XI = NODE_XI / np.sqrt(3.0)
+N_CORNERS = 17  # 8 corners, the centre, 8 Gauss points
+
+
 def _edge_operator() -> np.ndarray:
-    """M (9, 3, 8): edge k of corner q is sum_n M[q, k, n] x_n (8 corners + centre)."""
-    m = np.zeros((9, 3, 8))
+    """M (17, 3, 8): edge k of "corner" q is sum_n M[q, k, n] x_n (8 corners, the centre,
+    the 8 Gauss points). At the centre and the Gauss points the edges are the isoparametric
+    Jacobian's columns times 2, 2 dx/dxi_k, which for a box are its edge vectors."""
+    m = np.zeros((N_CORNERS, 3, 8))
     for c in range(8):
         for k in range(3):
             m[c, k, CORNER_NEIGHBOURS[c, k]] += 1.0
@@ -33,29 +52,37 @@ def _edge_operator() -> np.ndarray:
     m[8, 0] = np.array([-1, 1, 1, -1, -1, 1, 1, -1]) / 4.0
     m[8, 1] = np.array([-1, -1, 1, 1, -1, -1, 1, 1]) / 4.0
     m[8, 2] = np.array([-1, -1, -1, -1, 1, 1, 1, 1]) / 4.0
+    # 2 dN_n/dxi_k = xi_nk prod_{j != k} (1 + xi_nj xi_j) / 4 at each Gauss point xi
+    for g, xi in enumerate(GAUSS_XI):
+        lin = 1.0 + NODE_XI * xi  # (8, 3)
+        for k in range(3):
+            others = [j for j in range(3) if j != k]
+            m[9 + g, k] = NODE_XI[:, k] * lin[:, others[0]] * lin[:, others[1]] / 4.0
     return m
 
 
 EDGE_OPERATOR = _edge_operator()
 
 
-EDGE_MATRIX = EDGE_OPERATOR.reshape(27, 8)
-EDGE_TRANSPOSED = np.ascontiguousarray(EDGE_OPERATOR.transpose(0, 2, 1))  # (9, 8, 3)
+EDGE_MATRIX = EDGE_OPERATOR.reshape(3 * N_CORNERS, 8)
+EDGE_TRANSPOSED = np.ascontiguousarray(EDGE_OPERATOR.transpose(0, 2, 1))  # (17, 8, 3)
 
 
 def _edges(nodes: np.ndarray, hexes: np.ndarray) -> np.ndarray:
     x = np.asarray(nodes, dtype=float)[np.asarray(hexes)]  # (m, 8, 3)
-    return (EDGE_MATRIX @ x).reshape(-1, 9, 3, 3)  # (m, 9, 3, 3): edge k of corner q
+    return (EDGE_MATRIX @ x).reshape(-1, N_CORNERS, 3, 3)  # (m, 17, 3, 3): edge k of corner q
 
 
 def corner_jacobians(nodes: np.ndarray, hexes: np.ndarray) -> np.ndarray:
-    """Determinants (m, 9) of the edge matrices at the 8 corners and the centre (mm^3)."""
+    """Determinants (m, 17) of the edge matrices at the 8 corners, the centre and the 8 Gauss
+    points (mm^3)."""
     e = _edges(nodes, hexes)
     return np.einsum("...d,...d->...", e[..., 0, :], np.cross(e[..., 1, :], e[..., 2, :]))
 
 
 def scaled_jacobians(nodes: np.ndarray, hexes: np.ndarray) -> np.ndarray:
-    """Scaled Jacobian (m, 9) at the 8 corners and the centre of every hexahedron."""
+    """Scaled Jacobian (m, 17) at the 8 corners, the centre and the 8 Gauss points of every
+    hexahedron."""
     e = _edges(nodes, hexes)
     det = np.einsum("...d,...d->...", e[..., 0, :], np.cross(e[..., 1, :], e[..., 2, :]))
     lengths = np.linalg.norm(e, axis=-1).prod(axis=-1)
@@ -72,7 +99,8 @@ def gather_element(x, hexes, i, xe):
 
 @numba.njit(cache=True)
 def corner_edges(edge_op, q, xe, e):
-    """The three edge vectors e (3, 3) of corner q (0-7, 8 the centre) of element xe (8, 3):
+    """The three edge vectors e (3, 3) of corner q (0-7, 8 the centre, 9-16 the Gauss points)
+    of element xe (8, 3):
     e[k] = sum_n edge_op[q, k, n] xe[n]."""
     for k in range(3):
         for d in range(3):
@@ -84,8 +112,8 @@ def corner_edges(edge_op, q, xe, e):
 
 @numba.njit(cache=True)
 def _min_scaled_jacobian_kernel(x, hexes, edge_op):
-    """The minimum over the nine corners of `scaled_jacobians`, element by element (one
-    pass, no (m, 9, 3, 3) temporaries: the repair and lip stages call it every round)."""
+    """The minimum over the 17 corners of `scaled_jacobians`, element by element (one
+    pass, no (m, 17, 3, 3) temporaries: the repair and lip stages call it every round)."""
     m = hexes.shape[0]
     out = np.empty(m)
     e = np.empty((3, 3))
@@ -93,7 +121,7 @@ def _min_scaled_jacobian_kernel(x, hexes, edge_op):
     for i in range(m):
         gather_element(x, hexes, i, xe)
         best = np.inf
-        for q in range(9):
+        for q in range(edge_op.shape[0]):
             corner_edges(edge_op, q, xe, e)
             det = (e[0, 0] * (e[1, 1] * e[2, 2] - e[1, 2] * e[2, 1])
                    + e[0, 1] * (e[1, 2] * e[2, 0] - e[1, 0] * e[2, 2])
@@ -118,17 +146,17 @@ def min_scaled_jacobian(nodes: np.ndarray, hexes: np.ndarray) -> np.ndarray:
 
 
 def scaled_jacobian_gradient(nodes: np.ndarray, hexes: np.ndarray):
-    """Scaled Jacobians sj (m, 9) and their gradients d sj / d x (m, 9, 8, 3)."""
-    e = _edges(nodes, hexes)  # (m, 9, 3, 3)
+    """Scaled Jacobians sj (m, 17) and their gradients d sj / d x (m, 17, 8, 3)."""
+    e = _edges(nodes, hexes)  # (m, 17, 3, 3)
     e1, e2, e3 = e[..., 0, :], e[..., 1, :], e[..., 2, :]
     c23, c31, c12 = np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)
     det = np.einsum("...d,...d->...", e1, c23)
-    lens = np.maximum(np.linalg.norm(e, axis=-1), 1e-300)  # (m, 9, 3)
+    lens = np.maximum(np.linalg.norm(e, axis=-1), 1e-300)  # (m, 17, 3)
     prod = lens.prod(axis=-1)
     sj = det / prod
-    ddet = np.stack([c23, c31, c12], axis=-2)  # d det / d e_k  (m, 9, 3, 3)
+    ddet = np.stack([c23, c31, c12], axis=-2)  # d det / d e_k  (m, 17, 3, 3)
     dsj_de = ddet / prod[..., None, None] - sj[..., None, None] * e / lens[..., None] ** 2
-    grad = EDGE_TRANSPOSED @ dsj_de  # (m, 9, 8, 3)
+    grad = EDGE_TRANSPOSED @ dsj_de  # (m, 17, 8, 3)
     return sj, grad
 
 

@@ -6,7 +6,7 @@ quality improvement (Knupp, "Hexahedral and tetrahedral mesh untangling", Eng. C
 2001; Escobar et al., "Simultaneous untangling and smoothing of tetrahedral meshes", CMAME 192,
 2003) over a patch: the nodes of the elements whose minimum scaled Jacobian is below the
 threshold, grown by `rings` layers of neighbours. The patch objective is
-  E(a) = sum over patch elements e and their 9 corners q of max(0, tau - sj_eq)^2
+  E(a) = sum over patch elements e and their 17 corners q (`registration.quality`) of max(0, tau - sj_eq)^2
          + sum over inverted corners of (det_eq / h^3)^2
          + mu * sum_nodes |x - x0|^2 / h^2
          [+ w * sum over corners of max(0, threshold + delta - sj_eq)^2, once a round fails],
@@ -87,7 +87,7 @@ def _tangent_bases(x: np.ndarray, free: np.ndarray, constraints: list[SurfaceCon
 @numba.njit(cache=True)
 def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.0, bound=-2.0,
                           weight=0.0):
-    """sum over elements and their 9 corners of max(0, tau - sj)^2 and its gradient with
+    """sum over elements and their 17 corners of max(0, tau - sj)^2 and its gradient with
     respect to the free nodes (local[node] >= 0), accumulated node by node. Edge lengths are
     regularised, l = sqrt(|e|^2 + eps2): with eps2 > 0 a collapsed edge (two nodes on one
     point, as a projection onto a patient surface can leave) gives a finite objective and
@@ -105,7 +105,7 @@ def _penalty_and_gradient(x, hexes, local, n_free, edge_op, tau, eps2=0.0, h3=0.
     xe = np.empty((8, 3))
     for m in range(hexes.shape[0]):
         gather_element(x, hexes, m, xe)
-        for q in range(9):
+        for q in range(edge_op.shape[0]):
             corner_edges(edge_op, q, xe, e)
             c23 = np.array([e[1, 1] * e[2, 2] - e[1, 2] * e[2, 1], e[1, 2] * e[2, 0] - e[1, 0] * e[2, 2],
                             e[1, 0] * e[2, 1] - e[1, 1] * e[2, 0]])

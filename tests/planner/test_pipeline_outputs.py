@@ -97,6 +97,16 @@ def test_report_and_images(written):
     assert "data:image/png;base64" in html and "Ls" in html
 
 
+def test_solve_summary_reads_the_written_report(written):
+    from planner.report import solve_summary
+
+    _, _, out = written
+    s = solve_summary(json.loads((out / "report.json").read_text()))
+    assert s["newton_iterations"] == [3, 2] and s["inverted_elements"] == 0
+    assert s["folded_corner_elements"] == 0 and s["contact_unmet_mm"] == {}
+    assert s["contact_fallback"] is False
+
+
 def test_failure_leaves_no_output(tmp_path, monkeypatch):
     model = block_model()
     plan = parse_plan({"faceplan": 1})

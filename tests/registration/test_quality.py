@@ -58,3 +58,58 @@ def test_scale_invariance(scale):
     rng = np.random.default_rng(0)
     x = UNIT + 0.1 * rng.standard_normal(UNIT.shape)
     assert np.allclose(scaled_jacobians(scale * x, HEX), scaled_jacobians(x, HEX), atol=1e-12)
+
+
+# valid at its eight corners and its centre, inverted at a Gauss point: det J of a trilinear
+# hexahedron is a polynomial in the natural coordinates, so positive corners do not bound it
+WARPED_INSIDE = np.array([[0.593, -0.091, -0.084], [1.228, 0.843, 0.145], [1.052, 0.804, 0.126],
+                          [0.553, 0.932, -0.069], [-0.236, -0.632, 1.685], [0.71, 0.58, 0.36],
+                          [1.677, 0.458, 0.312], [-0.14, 0.01, 1.4]])
+
+
+def test_an_element_inverted_only_at_a_gauss_point_is_inverted():
+    from solver.errors import MeshError
+    from solver.mesh import check_mesh
+
+    sj = scaled_jacobians(WARPED_INSIDE, HEX)[0]
+    assert sj[:9].min() > 0.05  # the corners and the centre alone would pass it
+    assert min_scaled_jacobian(WARPED_INSIDE, HEX)[0] < 0
+    assert quality_summary(WARPED_INSIDE, HEX)["n_inverted"] == 1
+    with pytest.raises(MeshError):
+        check_mesh(WARPED_INSIDE, HEX)
+
+
+def test_gauss_point_rows_are_the_isoparametric_jacobian():
+    # rows 9-16 are 2 dx/dxi at the 2x2x2 Gauss points: their determinants are 8 det J there,
+    # det J computed independently by the solver's shape-function gradients
+    from solver.mesh._hexmesh import det3, gauss_hex, hex8_gradients
+
+    rng = np.random.default_rng(5)
+    x = UNIT + 0.2 * rng.standard_normal(UNIT.shape)
+    xg, _ = gauss_hex(2)
+    jg = det3(np.einsum("ai,qaj->qij", x, hex8_gradients(xg)))
+    ours = corner_jacobians(x, HEX)[0, 9:]
+    # the same point set (order may differ): compare sorted values to round-off
+    assert np.allclose(np.sort(ours), np.sort(8.0 * jg), rtol=1e-12, atol=1e-14)
+
+
+def test_the_gate_agrees_with_the_solver_on_random_elements():
+    # every element the quality measure calls valid, the solver accepts: the measure judges
+    # the solver's points (corners, 2x2x2 Gauss points) and the centre besides. Draws strong
+    # enough that a few hundred of 3000 are inverted somewhere.
+    from solver.errors import MeshError
+    from solver.mesh import check_mesh
+
+    rng = np.random.default_rng(11)
+    disagree = inverted = 0
+    for _ in range(3000):
+        x = UNIT + 0.4 * rng.standard_normal(UNIT.shape)
+        ours = min_scaled_jacobian(x, HEX)[0] > 0
+        try:
+            check_mesh(x, HEX)
+            theirs = True
+        except MeshError:
+            theirs = False
+        disagree += ours and not theirs
+        inverted += not theirs
+    assert disagree == 0 and inverted > 100

@@ -8,7 +8,8 @@ features, and one when, without landmarks, the profile's features could not be f
 (`registration.profile_pose`): the placement then rests on the surfaces' bulk fit alone, one
 when, without landmarks, both stomia found on the skin were set aside (the lips then rest on
 the profile's features alone), and one per pair of given landmarks that contradict each
-other for the model (set aside or not). On consistent cases (the synthetic heads,
+other for the model (set aside or not), and one naming the given landmarks the mesh repair had
+to move off their place. On consistent cases (the synthetic heads,
 the demo head) the skin fit has a p95 below 1 mm and a maximum below 3 mm, the bone fit a mean
 below 0.5 mm and a maximum below ~10 mm (the chin's edge), and the repair touches 1-2 % of the
 elements; the limits below are two to three times those, so a note means that something in the
@@ -24,6 +25,9 @@ SKIN_MAX_MM = 8.0
 BONE_MEAN_MM = 1.5
 BONE_MAX_MM = 20.0
 REPAIRED_FRACTION = 0.08
+# a given landmark the repair moved farther than this is named: the precision with which a
+# landmark is placed on a CT-derived skin (about a voxel) and the skin fit's normal maximum
+LANDMARK_MOVED_MM = 1.0
 # how the note on lips that nothing on the skin confirmed begins (`bench/heads.py` counts it)
 LIPS_UNCONFIRMED = "the mouth slit found on the skin lies"
 
@@ -94,6 +98,14 @@ def registration_notes(report: dict) -> list[str]:
                      "stomia and was not used: the lips are placed by the profile's features alone and "
                      "can be several mm off; check the lips in the images, or give at least four "
                      "landmarks (landmarks.json)")
+    moved = {k: v for k, v in (_get(report, "repair", "landmarks_moved_mm") or {}).items()
+             if v > LANDMARK_MOVED_MM}
+    if moved:
+        which = ", ".join(f"{k} {v:.1f} mm" for k, v in sorted(moved.items(), key=lambda kv: -kv[1]))
+        notes.append(f"the mesh repair moved given landmark(s) off their place ({which}): held there, "
+                     "the elements around them could not all be made valid (tissue thinner than the "
+                     "model's layers there, or landmarks that pull the mesh against the skin); check "
+                     "them in landmarks.json and the region in the images")
     why = _get(report, "alignment", "profile_pose", "refused")
     if why and _get(report, "alignment", "method") == "surfaces":
         notes.append(f"the face was placed on the skin by its surfaces alone, its profile's features not "

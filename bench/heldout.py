@@ -101,7 +101,8 @@ def draw_plan(head, seed: int) -> tuple[dict, dict]:
 
 
 def _predicted_quality(folder: Path) -> float:
-    """Minimum scaled Jacobian (corners and centres) of the elements of prediction.vtu."""
+    """Minimum scaled Jacobian (corners, centres and Gauss points, `registration.quality`) of
+    the elements of prediction.vtu."""
     import meshio
 
     from registration.quality import scaled_jacobians

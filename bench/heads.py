@@ -152,19 +152,16 @@ def predict_all(args) -> int:
                     try:
                         out = predict_case(folder, root / f"out_{seed}_{cut}_{res}", resolution=res,
                                            render=False, echo=False)
-                        solve = solve_summary(json.loads((out / "report.json").read_text()))
-                        row.update(ok=True, newton=solve["newton_iterations"], cutbacks=solve["cutbacks"],
-                                   fallback=solve["contact_fallback"], unmet=solve["contact_unmet_mm"],
-                                   inverted=solve["inverted_elements"])
+                        row.update(ok=True, **solve_summary(json.loads((out / "report.json").read_text())))
                     except Exception as exc:  # noqa: BLE001 -- every failure is a result of the bench
                         row.update(ok=False, error=f"{type(exc).__name__}: {exc}")
                     row["time_s"] = time.perf_counter() - t0
                     rows.append(row)
                     if row["ok"]:
-                        unmet = ", ".join(f"{k} {v:.2f} mm" for k, v in row["unmet"].items())
-                        print(f"{res:8s} head {seed} {cut:10s} predicted: Newton {row['newton']}, cut-backs "
-                              f"{row['cutbacks']}, inverted {row['inverted']}"
-                              f"{', soft-contact fallback' if row['fallback'] else ''}"
+                        unmet = ", ".join(f"{k} {v:.2f} mm" for k, v in row["contact_unmet_mm"].items())
+                        print(f"{res:8s} head {seed} {cut:10s} predicted: Newton {row['newton_iterations']}, cut-backs "
+                              f"{row['cutbacks']}, inverted {row['inverted_elements']}"
+                              f"{', soft-contact fallback' if row['contact_fallback'] else ''}"
                               f"{', contact left ' + unmet if unmet else ''}; {row['time_s']:.1f} s", flush=True)
                     else:
                         print(f"{res:8s} head {seed} {cut:10s} FAIL {row['error'][:200]}; {row['time_s']:.1f} s",
@@ -173,9 +170,9 @@ def predict_all(args) -> int:
     for res in resolutions:
         sel = [r for r in rows if r["res"] == res]
         ok = [r for r in sel if r["ok"]]
-        print(f"{res} predicted: {len(ok)}/{len(sel)}; inverted {sum(r['inverted'] for r in ok)}; Newton median "
-              f"{fmt(_median([r['newton'] for r in ok]), '.0f')} max {max((r['newton'] for r in ok), default='-')}; "
-              f"soft-contact fallbacks {sum(r['fallback'] for r in ok)}; contact left unmet {sum(bool(r['unmet']) for r in ok)}; "
+        print(f"{res} predicted: {len(ok)}/{len(sel)}; inverted {sum(r['inverted_elements'] for r in ok)}; Newton median "
+              f"{fmt(_median([r['newton_iterations'] for r in ok]), '.0f')} max {max((r['newton_iterations'] for r in ok), default='-')}; "
+              f"soft-contact fallbacks {sum(r['contact_fallback'] for r in ok)}; contact left unmet {sum(bool(r['contact_unmet_mm']) for r in ok)}; "
               f"time median {fmt(_median([r['time_s'] for r in sel]), '.1f')} s max "
               f"{max(r['time_s'] for r in sel):.1f} s")
     return 0 if all(r["ok"] for r in rows) else 1

@@ -120,6 +120,11 @@ def fmt(v, spec=".3f"):
     return "-" if v is None else format(v, spec)
 
 
+def _resolutions(args) -> list[str]:
+    """The resolutions to run: --resolutions, and fine when --fine is given."""
+    return args.resolutions.split(",") + (["fine"] if args.fine else [])
+
+
 def predict_all(args) -> int:
     """--predict: every head x cut written as a case (`synth.write_case`, the plan of
     `synth.bone_plan`, the head's landmarks less its ill-defined ones) and predicted at each
@@ -136,7 +141,7 @@ def predict_all(args) -> int:
     if args.family != "alt":
         print("--predict: heads of the second family only (--family alt)", file=sys.stderr)
         return 2
-    resolutions = args.resolutions.split(",") + (["fine"] if args.fine else [])
+    resolutions = _resolutions(args)
     rows = []
     with tempfile.TemporaryDirectory(prefix="faceplan-heads-") as tmp:
         root = Path(tmp)
@@ -200,7 +205,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.predict:
         return predict_all(args)
-    resolutions = args.resolutions.split(",") + (["fine"] if args.fine else [])
+    resolutions = _resolutions(args)
     cuts = args.cuts.split(",")
     mode = args.landmarks or ("both" if args.no_landmarks else "given")
     modes = {"given": (True,), "none": (False,), "both": (True, False)}[mode]

@@ -718,8 +718,9 @@ def _match_and_repair_once(model: MatchInput, skin: TargetSurface, bones: dict, 
     pin = np.asarray(landmark_report["nodes"] if landmark_report else [], np.int64)
     x_held = x[pin].copy()
     x, rep = repair_holding(x, hexes, pin, threshold=opt.threshold, constraints=constraints)
-    # the landmarks the repair had to move off their given place, and how far (mm)
-    moved = dict(zip(pin.tolist(), np.linalg.norm(x[pin] - x_held, axis=1).tolist()))
+    # the landmarks the repair had to move off their given place, and how far: in the patient
+    # frame (mm), the model frame's lengths times the alignment's scale
+    moved = dict(zip(pin.tolist(), (sim.scale * np.linalg.norm(x[pin] - x_held, axis=1)).tolist()))
     rep["landmarks_moved_mm"] = {k: round(moved[i], 3) for k, i in model.landmark_nodes.items()
                                  if moved.get(i, 0.0) > 1e-3}
     times["repair_s"] = time.perf_counter() - t3

@@ -78,7 +78,7 @@ def test_a_mouth_found_on_the_skin_and_set_aside_is_flagged():
 def test_given_landmarks_the_repair_moved_are_named():
     """`registration.mesh_match`: held on their given place, the landmark nodes left an element
     below the quality threshold, and the repair freed them (second-family head 106 at
-    standard, below the eyes: Stmi 2.2 mm, Li 1.2 mm, Stms 0.6 mm). Those beyond the landmark
+    standard, below the eyes: Stmi 2.3 mm, Li 1.2 mm, Stms 0.1 mm). Those beyond the landmark
     precision (1 mm) are named, largest first; a move within it is not worth a note."""
     rep = _report()
     rep["repair"]["landmarks_moved_mm"] = {"Stms": 0.594, "Stmi": 2.213, "Li": 1.224}

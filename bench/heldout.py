@@ -12,14 +12,14 @@ and run through the pipeline's functions (`planner.pipeline.register_case`, `pre
 at each resolution asked.
 
 Per case and resolution: success or the failure (exception type and message), Newton
-iterations, load steps, cut-backs, the contacts the prediction left deeper than twice their
-tolerance (a warning of `faceplan predict`), minimum scaled Jacobian of the registered and of
+iterations, load steps, cut-backs, whether the soft-contact fallback made the prediction, the
+contacts the prediction left deeper than twice their tolerance (a warning of `faceplan predict`), minimum scaled Jacobian of the registered and of
 the predicted mesh, inverted elements, landmark errors (registered landmark nodes against the
 head's true landmarks, mm) and the time of each stage; then per resolution the success rate,
 median / max iterations, total cut-backs, the worst scaled Jacobian, landmark error median /
 max, median stage times, and a summary line
-`heldout <res>: ok=<k>/<n> newton_median=.. newton_max=.. cutbacks=.. contact_unmet=.. min_sj=.. inverted=.. folded=..
-lm_median_mm=.. lm_max_mm=.. registration_median_s=.. predict_median_s=..`.
+`heldout <res>: ok=<k>/<n> newton_median=.. newton_max=.. cutbacks=.. fallbacks=.. contact_unmet=..
+min_sj=.. inverted=.. folded=.. lm_median_mm=.. lm_max_mm=.. registration_median_s=.. predict_median_s=..`.
 
 Flags: `--count N` patients (default 30), `--first-seed S` (default 1000), `--seeds A,B,..`
 (these seeds instead, e.g. the cohort's failures run again), `--log FILE` (the solver's
@@ -169,7 +169,7 @@ def run_case(seed: int, resolution: str, root: Path, landmarks: bool, cut: str =
         report = json.loads((out / "report.json").read_text())
         solve = solve_summary(report)
         for key in ("newton_iterations", "load_steps", "cutbacks", "continuation_from_load",
-                    "contact_unmet_mm"):
+                    "contact_unmet_mm", "contact_fallback"):
             rec[key] = solve[key]
         rec["predict_stages_s"] = report.get("timings_s", {})
         rec["predicted_min_sj"] = _predicted_quality(out)
@@ -211,6 +211,9 @@ def summarise(records: list[dict], resolution: str, cut: str = "whole") -> str:
               f"{len(cont)} case(s)" + (" (seeds " + ", ".join(
                   f"{r['seed']} from load {r['continuation_from_load']:.3g}" for r in cont) + ")"
                                         if cont else ""))
+        soft = [r for r in ok if r.get("contact_fallback")]
+        print(f"  soft-contact fallback (the nominal solve failed; a softer lip contact, warned): "
+              f"{len(soft)} case(s)" + (" (seeds " + ", ".join(str(r["seed"]) for r in soft) + ")" if soft else ""))
         unmet = [r for r in ok if r.get("contact_unmet_mm")]
         print(f"  contact deeper than twice its tolerance at the end (converged, reported as a "
               f"warning): {len(unmet)} case(s)" + (" (" + "; ".join(
@@ -243,7 +246,7 @@ def summarise(records: list[dict], resolution: str, cut: str = "whole") -> str:
             f"{k} ({sum(k in r.get('regions_not_fitted', []) for r in rs)})" for k in unfit))
     line = (f"heldout {label}: ok={len(ok)}/{len(rs)} "
             f"newton_median={_median(its):.0f} newton_max={max(its) if its else 'nan'} "
-            f"cutbacks={sum(cut)} contact_unmet={sum(bool(r.get('contact_unmet_mm')) for r in ok)} min_sj={min(sj) if sj else float('nan'):.3f} inverted={inv} folded={folded} "
+            f"cutbacks={sum(cut)} fallbacks={sum(bool(r.get('contact_fallback')) for r in ok)} contact_unmet={sum(bool(r.get('contact_unmet_mm')) for r in ok)} min_sj={min(sj) if sj else float('nan'):.3f} inverted={inv} folded={folded} "
             f"lm_median_mm={_median(lm):.2f} lm_max_mm={max(lm) if lm else float('nan'):.2f} "
             f"registration_median_s={_median(stages.get('registration', [])):.1f} "
             f"predict_median_s={_median(stages.get('predict', [])):.1f}")

@@ -13,8 +13,9 @@ at each resolution asked.
 
 Per case and resolution: success or the failure (exception type and message), Newton
 iterations, load steps, cut-backs, whether the soft-contact fallback made the prediction, the
-contacts the prediction left deeper than twice their tolerance (a warning of `faceplan predict`), minimum scaled Jacobian of the registered and of
-the predicted mesh, inverted elements, landmark errors (registered landmark nodes against the
+contacts the prediction left deeper than twice their tolerance (a warning of `faceplan
+predict`), minimum scaled Jacobian of the registered and of the predicted mesh, inverted and
+corner-folded elements (the fields of `planner.report.solve_summary`), landmark errors (registered landmark nodes against the
 head's true landmarks, mm) and the time of each stage; then per resolution the success rate,
 median / max iterations, total cut-backs, the worst scaled Jacobian, landmark error median /
 max, median stage times, and a summary line
@@ -167,14 +168,9 @@ def run_case(seed: int, resolution: str, root: Path, landmarks: bool, cut: str =
                            render=False, echo=False)
         rec["times_s"]["predict"] = time.perf_counter() - t2
         report = json.loads((out / "report.json").read_text())
-        solve = solve_summary(report)
-        for key in ("newton_iterations", "load_steps", "cutbacks", "continuation_from_load",
-                    "contact_unmet_mm", "contact_fallback"):
-            rec[key] = solve[key]
+        rec.update(solve_summary(report))
         rec["predict_stages_s"] = report.get("timings_s", {})
         rec["predicted_min_sj"] = _predicted_quality(out)
-        rec["predicted_inverted"] = solve["inverted_elements"]
-        rec["predicted_folded_corners"] = solve["folded_corner_elements"]
         rec["ok"] = True
     except Exception as exc:  # a bench records every failure mode and goes on
         rec["failed_in"] = stage
@@ -197,8 +193,8 @@ def summarise(records: list[dict], resolution: str, cut: str = "whole") -> str:
     its = [r["newton_iterations"] for r in ok if r.get("newton_iterations") is not None]
     cut = [r["cutbacks"] or 0 for r in ok]
     sj = [r["predicted_min_sj"] for r in ok] + [r["registered_min_sj"] for r in rs if "registered_min_sj" in r]
-    inv = sum(r.get("predicted_inverted", 0) for r in ok)
-    folded = sum(r.get("predicted_folded_corners", 0) for r in ok)
+    inv = sum(r["inverted_elements"] for r in ok)
+    folded = sum(r["folded_corner_elements"] for r in ok)
     lm = [e for r in rs for e in r.get("landmark_error_mm", {}).values()]
     print(f"\n== {label}: {len(ok)}/{len(rs)} succeeded")
     for r in rs:

@@ -389,7 +389,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             int(sum(len(c.nodes) for c in constraints)), "terms": list(terms),
             "activations": activations, "sliding": list(sliding),
             "cutbacks": res.cutbacks, "factorizations": res.factorizations,
-            "convexified_updates": res.convexified,
+            "convexified_updates": res.convexified, "blowups_halved": res.blowups_halved,
             "continuation_from_load": res.continuation_from,
             "continuation_iterations": res.continuation_iterations,
             "krylov_iterations": res.krylov_iterations, "timings": res.timings,

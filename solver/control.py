@@ -35,6 +35,16 @@ class SolverControl:
     Line search: line_search (off by default: on nearly incompressible problems the volumetric
     energy often rises at an early full step although undamped Newton converges fastest; the
     halving on an inverted element always acts), line_search_tol, line_search_growth.
+    Blow-up guard: blowup_factor, a trial update whose residual exceeds this many times the
+    force scale (max(|f_int|, |f_term|, |f_ext|)) of the iterate it starts from is halved
+    like one that inverts an element (None: off). Such a residual belongs to no Newton
+    iterate: an element driven next to degeneracy, its Gauss points not yet inverted, where
+    the exponential fibre law or the isochoric invariants J^(-2/3) I1 grow without bound;
+    taken, it leaves Newton crawling out of it for many iterations, or the step diverging.
+    A solve's first update starts from a converged state, whose forces are the reactions
+    alone (none at rest, none on a free body) and no measure of the step's load: it is
+    measured against the largest force scale of the last converged step's iterates instead
+    (not at all in the first step).
     Update length (`IncrementLimiter`): max_increment (mm, None: off) on increment_nodes (None:
     every free node).
     Three-field iteration: mixed, iterate on (u, p, theta) with element-wise condensation for
@@ -84,6 +94,7 @@ class SolverControl:
     line_search: bool = False
     line_search_tol: float = 1.0
     line_search_growth: float = 100.0
+    blowup_factor: float | None = 100.0
     max_increment: float | None = None
     increment_nodes: object = None
     mixed: bool = True
@@ -114,6 +125,8 @@ class SolverControl:
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise ValueError(f"{name} must be None or >= 1, got {value!r}")
+        if self.blowup_factor is not None and not self.blowup_factor > 1.0:
+            raise ValueError(f"blowup_factor must be None or > 1, got {self.blowup_factor!r}")
         if self.max_seconds is not None and not self.max_seconds > 0.0:
             raise ValueError(f"max_seconds must be None or > 0, got {self.max_seconds!r}")
         if not self.ptc_damping > 0.0:
@@ -293,6 +306,7 @@ class StepResult:
     retries: int = 0                 # re-solves the terms asked for (augmentations)
     first_iterations: int | None = None   # iterations of the step's first solve
     out_of_time: bool = False        # stopped because the run's wall-clock budget is spent
+    peak_scale: float = 0.0          # the largest force scale of the accepted iterates
 
     def __post_init__(self):
         if self.residuals is None:

@@ -70,6 +70,7 @@ class NewtonResult:
     early_augmentations: int = 0     # solves stopped early for an augmentation
     convexified: int = 0             # updates solved again with convexified term tangents
                                      # (the exact one was not a descent direction)
+    blowups_halved: int = 0          # trial updates halved by the blow-up guard
     continuation_from: float | None = None   # load fraction from which pseudo-transient
                                              # continuation was on (None: never)
     continuation_iterations: int = 0         # iterations solved with the PTC damping
@@ -247,6 +248,8 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
         step = run.solve_load_step(x, target, step_no)
         if step.converged:
             x, load = step.x, target
+            if step.peak_scale > 0.0:
+                run.step_scale = step.peak_scale
             predictor.converged(target, x.copy(), run.mixed_state())
             result.steps.append(StepRecord(step_no, load, step.iterations, step.residuals,
                                            step.retries))
@@ -371,6 +374,9 @@ class _Run:
         self._start_mixed = None
         self._term_states = []
         self.ptc = None             # the `PseudoTransient` damping once continuation is on
+        # the largest force scale of the iterates of the last converged load step: the
+        # blow-up guard's reference at a step's first iteration (None before one converged)
+        self.step_scale = None
 
     def start_from(self, x0):
         """The load stepping starts at load 0 from x0 (None: the reference coordinates): the
@@ -554,10 +560,12 @@ class _Run:
             g0 = -_dot(du_hat[free], rhs[free])
             energy = abs(g0)
             s, ev1, r, A, cpl = self._update(x, du, du_hat, g0, ev, r, target, targets,
-                                             has_gap=bool(np.any(gap != 0.0)))
+                                             has_gap=bool(np.any(gap != 0.0)), guarded=it > 1)
             if s is None:
-                return step.failed("every trial update inverts an element", ev1)
+                return step.failed("every trial update inverts an element or blows the "
+                                   "residual up", ev1)
             ev = ev1
+            step.peak_scale = max(step.peak_scale, ev.force_scale)
             if step.energy0 is None:
                 step.energy0 = max(energy, 1e-300)
             x = x + s * du
@@ -696,11 +704,13 @@ class _Run:
             g0 = -_dot(out[0][free], rhs[free])
         return out[0], rhs, out[1], r, A, cpl
 
-    def _update(self, x, du, du_hat, g0, ev, r, target, targets, has_gap):
+    def _update(self, x, du, du_hat, g0, ev, r, target, targets, has_gap, guarded=False):
         """The accepted length s of the update du and the evaluation at x + s du: limited by
-        the `IncrementLimiter`, halved while it inverts an element, then, with the line
-        search on, a secant search when the full step overshoots. s is None when every trial
-        inverts an element."""
+        the `IncrementLimiter`, halved while it inverts an element or its residual blows up
+        (`SolverControl.blowup_factor`; measured against x's force scale where x is an iterate
+        of this solve (`guarded`), else against the last converged step's iterates), then, with
+        the line search on, a secant search when the full step overshoots. s is None when
+        every trial is rejected."""
         system, control, body, free = self.system, self.control, self.body, self.cons.free
         snap = body.mixed_snapshot() if getattr(body, "mixed", None) is not None else None
         # Near convergence (relative residual below 10 sqrt(rtol), from where a quadratically
@@ -711,13 +721,20 @@ class _Run:
         s = self.limiter.step_length(du)
         if s < 1.0:
             lazy = False
+        # the blow-up guard's bound on the trial residual (None: not applied, see SolverControl)
+        reference = ev.force_scale if guarded else self.step_scale
+        bound = None
+        if control.blowup_factor is not None and reference is not None and reference > 0.0:
+            bound = control.blowup_factor * reference
         for _ in range(12):
             if snap is not None:
                 body.mixed_update(snap, s * du)
             ev1, r1, A1, c1 = system.evaluate(x + s * du, target, targets=targets,
                                               tangent=not lazy)
-            if ev1.valid:
+            if ev1.valid and (bound is None or _norm(r1[free]) <= bound):
                 break
+            if ev1.valid:
+                self.result.blowups_halved += 1
             lazy = False
             s *= 0.5
         else:

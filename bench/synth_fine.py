@@ -10,6 +10,7 @@ sensitivity of a target-set effect, the scan) and the load average of the machin
 after (the machine is shared: the seconds depend on it, the counts do not). A truth solve that
 fails, or a case still running after `--max-minutes`, is reported with the stages done and the
 last Newton iteration logged (its load step and load fraction) instead of the end-to-end line.
+`--no-blowup-guard` makes the peer run with the Newton solver's blow-up guard off.
 """
 from __future__ import annotations
 
@@ -56,6 +57,9 @@ def main() -> int:
     parser.add_argument("--effect", default="gravity", help="withheld effect (default gravity)")
     parser.add_argument("--truth-resolution", default="fine", choices=("coarse", "standard", "fine"))
     parser.add_argument("--no-contact", action="store_true", help="lip contact off in the truth model")
+    parser.add_argument("--no-blowup-guard", action="store_true",
+                        help="the peer run: the Newton blow-up guard off "
+                             "(FaceSolverSettings.blowup_factor None)")
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="stop the case after this many minutes and report how far it got")
     args = parser.parse_args()
@@ -63,6 +67,13 @@ def main() -> int:
     from facemodel.synthetic import synthetic_head
     from planner.commands.synth import FOLLOW_UP_MONTHS, _rng, make_postop, parse_withheld, write_case
     from planner.errors import SolveError
+
+    if args.no_blowup_guard:
+        import dataclasses
+
+        import facemodel.simulation as simulation
+
+        simulation.FACE_SOLVER = dataclasses.replace(simulation.FACE_SOLVER, blowup_factor=None)
 
     load0 = os.getloadavg()
     stages = {}

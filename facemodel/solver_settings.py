@@ -30,6 +30,10 @@ class FaceSolverSettings:
     shrink_iterations: a step whose first solve needed more iterations halves the next: a hard
     step on the face announces a harder one (contact closing), and halving costs less than a
     cut-back.
+    blowup_factor: the Newton blow-up guard (`SolverControl.blowup_factor`; None: off). On the
+    face an update can drive a muscle or fat element next to degeneracy without inverting
+    it; taken, such an iterate led a fine truth solve into many crawling iterations and
+    continuation (docs/effects.md).
     augmentation_rtol: a solve whose relative residual is below it stops when the contact
     terms will augment the step anyway (the multiplier update need not wait for a converged
     penalty solve).
@@ -72,6 +76,7 @@ class FaceSolverSettings:
     max_retries: int = 20
     stall_iterations: int = 8
     shrink_iterations: int = 7
+    blowup_factor: float | None = 100.0
     augmentation_rtol: float = 0.5
     increment_fraction: float = 0.35
     teeth_increment_fraction: float = 0.5
@@ -98,6 +103,7 @@ class FaceSolverSettings:
         return SolverControl(
             steps=steps, max_iterations=max_iterations, rtol=self.rtol, etol=self.etol,
             max_retries=self.max_retries, shrink_iterations=self.shrink_iterations,
+            blowup_factor=self.blowup_factor,
             stall_iterations=self.stall_iterations if contact else None,
             max_increment=self.max_increment(lip_size, teeth_advance) if contact else None,
             increment_nodes=contact_nodes, augmentation_rtol=self.augmentation_rtol)

@@ -52,7 +52,7 @@ class _Tether(Term):
         return float(np.sum(np.where(on, self.c * (self.l * (e - 1.0) - (u - self.a)), 0.0)))
 
 
-def _solve(blowup_factor):
+def _solve(blowup_factor, steps=1, limited=True):
     nodes, hexes, s = block((1.0, 1.0, 1.0), (2, 2, 2))
     body = solver.SolidBody(solver.HexMesh(nodes, hexes), solver.Yeoh(2.0, 0.0, 0.0, K=200.0))
     top = np.asarray(s["zmax"])
@@ -66,9 +66,9 @@ def _solve(blowup_factor):
     l = 0.004 * u_lin
     tether = _Tether(top, nodes, c=1e-3 * force / len(top), a=0.6 * u_lin, l=l)
     res = solver.newton_solve(body, [solver.fix(s["zmin"])], terms=[tether], external=f_ext,
-                              steps=1, max_iterations=60, rtol=1e-10, ptc_after=None,
-                              max_increment=0.4 * u_lin, increment_nodes=top,
-                              blowup_factor=blowup_factor)
+                              steps=steps, max_iterations=60, rtol=1e-10, ptc_after=None,
+                              max_increment=0.4 * u_lin if limited else None,
+                              increment_nodes=top, blowup_factor=blowup_factor, grow=False)
     return res, u_lin, tether
 
 
@@ -89,6 +89,26 @@ def test_guard_halves_the_overshoot_and_saves_the_crawl():
     # c (e^((u-a)/l) - 1), takes the load a few l beyond a), none further
     u_top = guarded.u[tether.nodes, 2]
     assert tether.a < u_top.max() < tether.a + 10 * tether.l
+    scale = np.abs(guarded.u).max()
+    assert np.abs(guarded.u - unguarded.u).max() < 1e-6 * scale
+
+
+def test_guard_on_a_steps_first_update():
+    """Two load steps, no increment limit: the first (half the load) ends below the tether's
+    start a = 0.6 u_lin; the second step's first update, the tangent of the converged state,
+    lands at u_lin, 100 tether lengths beyond a. That update starts from a converged state
+    (its forces the reactions alone), so the guard measures it against the first step's
+    iterates, and halves it. Unguarded, the blown-up iterate is taken and Newton crawls back
+    about l an iteration from 100 l beyond a; guarded, the accepted iterates overshoot only
+    as far as a residual of 100 times the forces reaches, a few l beyond the root, so the
+    crawl back is shorter: at most two thirds of the iterations."""
+    guarded, _, tether = _solve(100.0, steps=2, limited=False)
+    unguarded, _, _ = _solve(None, steps=2, limited=False)
+    assert guarded.converged and unguarded.converged
+    assert guarded.blowups_halved >= 1 and unguarded.blowups_halved == 0
+    assert guarded.cutbacks == 0
+    assert 3 * guarded.iterations <= 2 * unguarded.iterations, (unguarded.iterations,
+                                                                guarded.iterations)
     scale = np.abs(guarded.u).max()
     assert np.abs(guarded.u - unguarded.u).max() < 1e-6 * scale
 

@@ -223,10 +223,9 @@ def test_lips_and_teeth_stop_alternating_when_the_tissue_has_no_room_for_the_cle
     arches = [Arch(k, v, f, seg) for k, (v, f, seg) in patient.teeth.items()]
     depth = union_distance(arches, patient.nodes[movable], 2.5)[0].min()
     # the room the tissue has is about the clearance itself: the deepest node ends short of
-    # it or, under other floating-point kernels, just past it (1.503 mm seen with OpenBLAS's
-    # Sandybridge kernels and generic numba), never beyond it by more than the stall
-    # tolerance (0.01 mm: the nodes are pushed to the clearance, not past it); the depth left
-    # is the one reported (the same distance function on the same nodes: round-off)
+    # it or, with other floating-point kernels, just past it, never beyond it by more than
+    # the stall tolerance (0.01 mm: the nodes are pushed to the clearance, not past it); the
+    # depth left is the one reported (the same distance function on the same nodes)
     assert depth < 1.5 + 0.01 and abs(depth - tc["min_signed_distance_final_mm"]) < 1e-9
     assert min_scaled_jacobian(patient.nodes, patient.hexes).min() >= 0.2
     # apart to the separation's own tolerance (its 0.1 mm gap, pushed to within 0.05 mm)

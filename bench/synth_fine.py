@@ -10,7 +10,9 @@ sensitivity of a target-set effect, the scan) and the load average of the machin
 after (the machine is shared: the seconds depend on it, the counts do not). A truth solve that
 fails, or a case still running after `--max-minutes`, is reported with the stages done and the
 last Newton iteration logged (its load step and load fraction) instead of the end-to-end line.
-`--no-blowup-guard` makes the peer run with the Newton solver's blow-up guard off.
+`--no-blowup-guard` makes the peer run with the Newton solver's blow-up guard off,
+`--no-osteotomy-bridges` the one with the tissue over the osteotomies tied to both segments
+(`facemodel.attachments.BRIDGE_WIDTH_MM` 0).
 """
 from __future__ import annotations
 
@@ -60,6 +62,9 @@ def main() -> int:
     parser.add_argument("--no-blowup-guard", action="store_true",
                         help="the peer run: the Newton blow-up guard off "
                              "(FaceSolverSettings.blowup_factor None)")
+    parser.add_argument("--no-osteotomy-bridges", action="store_true",
+                        help="the peer run: no osteotomy bridges (the attachments tied on both "
+                             "sides of every cut)")
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="stop the case after this many minutes and report how far it got")
     args = parser.parse_args()
@@ -74,6 +79,11 @@ def main() -> int:
         import facemodel.simulation as simulation
 
         simulation.FACE_SOLVER = dataclasses.replace(simulation.FACE_SOLVER, blowup_factor=None)
+
+    if args.no_osteotomy_bridges:
+        import facemodel.attachments as attachments
+
+        attachments.BRIDGE_WIDTH_MM = 0.0
 
     load0 = os.getloadavg()
     stages = {}
@@ -112,17 +122,24 @@ def main() -> int:
     stages.update(timings)
     if record is None:
         print(f"one synthetic case, seed {args.seed}, withheld {args.effect}, truth {args.truth_resolution}, "
-              f"lip contact {'off' if args.no_contact else 'on'}: {failure}")
+              f"lip contact {'off' if args.no_contact else 'on'}{_peer(args)}: {failure}")
         _print_stages(load0, stages, "time until stopped", total, solves)
         print(f"  last Newton iteration: {last[0]}")
         return 3
     print(f"one synthetic case, seed {args.seed}, withheld {args.effect} -> {record['effect']}="
           f"{json.dumps(record['value'])}, truth {args.truth_resolution} (registered at "
           f"{record['perturbation'].get('registered_at')}), lip contact "
-          f"{'off' if args.no_contact else 'on'}")
+          f"{'off' if args.no_contact else 'on'}{_peer(args)}")
     _print_stages(load0, stages, "total (end to end)", total, solves)
     print(f"  effect skin change (max, mm): {record['effect_skin_change_mm']['max_mm']}")
     return 0
+
+
+def _peer(args) -> str:
+    """What a peer run leaves out, for the header line."""
+    off = [name for name, flag in (("blow-up guard", args.no_blowup_guard),
+                                   ("osteotomy bridges", args.no_osteotomy_bridges)) if flag]
+    return "".join(f", {name} off" for name in off)
 
 
 def _print_stages(load0, stages: dict, total_label: str, total: float, solves: list) -> None:

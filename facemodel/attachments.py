@@ -1,4 +1,6 @@
-"""Attachments that depend on the operation: the tissue a genioplasty degloves slides on bone.
+"""Attachments that depend on the operation: the tissue a genioplasty degloves slides on bone,
+the tissue over every osteotomy the plan opens bridges it, tied to neither segment
+(`osteotomy_bridges`, `attachment_sets`).
 
 An intra-oral sliding genioplasty is reached through a vestibular incision in the lower labial
 sulcus; the periosteum and the mentalis are stripped (subperiosteal degloving) from the
@@ -43,22 +45,101 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-__all__ = ["RELEASE_SET", "has_genioplasty", "release_for_plan", "genioplasty_sliding",
-           "bone_normals", "bone_frames"]
+__all__ = ["RELEASE_SET", "BRIDGE_WIDTH_MM", "has_genioplasty", "release_for_plan",
+           "genioplasty_sliding", "attachment_sets", "osteotomy_bridges", "bone_normals",
+           "bone_frames"]
 
 RELEASE_SET = "release_genioplasty"
 ANTERIOR = np.array([0.0, 1.0, 0.0])      # patient RAS
 INFERIOR = np.array([0.0, 0.0, -1.0])
 
 
+# half-width of the tissue that bridges an osteotomy, tied to neither segment (mm); see
+# `osteotomy_bridges`
+BRIDGE_WIDTH_MM = 2.5
+
+
+def _moves_apart(motions: dict, a: str, b: str, tol: float = 1e-9) -> bool:
+    """True if segments a and b move relative to each other in `motions` (an identity is
+    assumed for a segment not given)."""
+    eye = np.eye(4)
+    return bool(np.abs(np.asarray(motions.get(a, eye), float)
+                       - np.asarray(motions.get(b, eye), float)).max() > tol)
+
+
+def osteotomy_bridges(model, owners: dict, motions: dict,
+                      width: float | None = None) -> np.ndarray:
+    """Attached node ids of the tissue that bridges the plan's osteotomies.
+
+    An osteotomy of the plan is where the attachments of two segments that the plan moves
+    relative to each other meet: the Le Fort I line between the maxilla and the skull, the
+    genioplasty's between the chin and the mandible. The approach to each degloves the bone on
+    both sides of the cut (the Le Fort I's circumvestibular incision and subperiosteal
+    dissection up to the infraorbital foramina: Bell W.H., J Oral Surg 33:412-426, 1975;
+    Reyneke 2010; the genioplasty's, module docstring), so the tissue over the cut lies on
+    neither segment: it bridges the step the move opens. A node of `owners` {segment: ids}
+    within `width` (None: `BRIDGE_WIDTH_MM`) of a node of another segment moved relative to its
+    own is such a bridge node and is tied to no bone.
+
+    The rule makes the tissue's shear across the cut a property of the anatomy, not of the
+    mesh. Tied on both sides, the relative move d of the two segments shears the one element
+    row between them by d / h, h the mesh spacing on the bone: it grows as 1 / h under
+    refinement, and on a fine mesh the Newton updates of the load steps fold those elements.
+    Released within `width` on either side, d is spread over a bridge about 2 `width` wide on
+    every mesh whose spacing is below `width`; what remains is the weak singularity at the
+    bridge's ends, where tied tissue meets free tissue (strain ~ r^(-1/2), Williams M.L.,
+    J Appl Mech 19:526-528, 1952). A mesh whose spacing across the cut is above `width` keeps
+    its one element row: on every mesh the shear across the cut stays below about d / `width`.
+    """
+    width = BRIDGE_WIDTH_MM if width is None else float(width)
+    X = np.asarray(model.nodes, dtype=float)
+    segs = [s for s in owners if len(owners[s])]
+    out = []
+    trees = {s: cKDTree(X[owners[s]]) for s in segs}
+    for i, a in enumerate(segs):
+        for b in segs[i + 1:]:
+            if not _moves_apart(motions, a, b):
+                continue
+            for own, other in ((a, b), (b, a)):
+                ids = np.asarray(owners[own], dtype=np.int64)
+                d, _ = trees[other].query(X[ids], distance_upper_bound=width)
+                out.append(ids[d < width])
+    if not out:
+        return np.zeros(0, dtype=np.int64)
+    return np.unique(np.concatenate(out))
+
+
+def attachment_sets(model, motions: dict, bridge_width: float | None = None) -> dict:
+    """{segment: node ids} of the tissue tied to each bone segment for the plan's `motions`:
+    the "attach_<segment>" node sets with one owner per node (a node listed by two segments
+    goes to the later of `model.segments`), less the nodes that bridge an osteotomy
+    (`osteotomy_bridges` of `bridge_width`, None: `BRIDGE_WIDTH_MM` as it is at the call;
+    0: none released)."""
+    if bridge_width is None:
+        bridge_width = BRIDGE_WIDTH_MM
+    owner = {}
+    for seg in model.segments:
+        for i in np.asarray(model.node_sets.get("attach_" + seg, ()), dtype=np.int64).tolist():
+            owner[i] = seg
+    sets = {}
+    for seg in model.segments:
+        ids = np.array(sorted(i for i, s in owner.items() if s == seg), dtype=np.int64)
+        if len(ids):
+            sets[seg] = ids
+    if bridge_width > 0.0:
+        bridge = osteotomy_bridges(model, sets, motions, bridge_width)
+        if len(bridge):
+            sets = {s: np.setdiff1d(ids, bridge) for s, ids in sets.items()}
+            sets = {s: ids for s, ids in sets.items() if len(ids)}
+    return sets
+
+
 def has_genioplasty(motions: dict, tol: float = 1e-9) -> bool:
     """True if the chin segment moves relative to the mandible in `motions` {segment: 4x4}
     (an identity is assumed for a segment not given)."""
-    eye = np.eye(4)
-    chin = np.asarray(motions.get("chin", eye), float)
-    mandible = np.asarray(motions.get("mandible", eye), float)
-    return bool(np.abs(chin - mandible).max() > tol)
+    return _moves_apart(motions, "chin", "mandible", tol)
 
 
 def release_for_plan(model, motions: dict):

@@ -3,7 +3,9 @@
 Turns the anatomical model into a problem of the generic solver, following Payan et al.'s
 orthognathic-surgery face model (Chabanas, Luboz & Payan 2003; Nazari et al. 2010 for the
 muscle and lip-contact set-up): every attachment node set "attach_<segment>" moves with its
-bone segment's rigid motion (the skull stays fixed), ramped with the load fraction; the teeth
+bone segment's rigid motion (the skull stays fixed), ramped with the load fraction, but for the
+tissue that bridges an osteotomy of the plan, tied to neither segment
+(`facemodel.attachments.osteotomy_bridges`); the teeth
 move with their segment and the lip mucosa cannot enter them (rigid contact); the upper and
 lower lips cannot enter each other (two-pass deformable contact); each muscle label gets the
 active transversely isotropic `solver.constitution.muscle.Muscle` law at its activation
@@ -35,7 +37,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from facemodel.attachments import bone_frames
+from facemodel.attachments import attachment_sets, bone_frames
 from facemodel.errors import ModelInputError
 from facemodel.materials import default_materials
 from facemodel.model import MUSCLES, NECK_CONDITIONS
@@ -87,21 +89,6 @@ class SimulationResult:
     problem: tuple = ()             # (SolidBody, constraints, terms) as solved, for sensitivities
 
 
-def _attachment_sets(model, motions):
-    """Node ids per segment with a single owner each (later segments take precedence)."""
-    owner = {}
-    for seg in model.segments:
-        nodes = np.asarray(model.node_sets.get("attach_" + seg, ()), dtype=np.int64)
-        for i in nodes.tolist():
-            owner[i] = seg
-    out = {}
-    for seg in model.segments:
-        ids = np.array(sorted(i for i, s in owner.items() if s == seg), dtype=np.int64)
-        if len(ids):
-            out[seg] = ids
-    return out
-
-
 def _segment_motion(motions, seg):
     T = motions.get(seg)
     return np.eye(4) if T is None else np.asarray(T, dtype=float)
@@ -143,7 +130,8 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
                   uzawa_schedule="carried"):
     """The FE problem `simulate` solves: (SolidBody, constraints, contact terms {name: term},
     other terms [body force], lip facet size or None); arguments as `simulate`'s. The body's
-    `constraint_segments` names the segment each constraint follows. lip_penalty: factor on
+    `constraint_segments` names the segment each constraint follows, its `bridge_nodes` counts
+    the attached nodes released as osteotomy bridges. lip_penalty: factor on
     the lip-lip penalty (None: `FACE_SOLVER.lip_penalty`); uzawa_schedule: the contact terms'
     augmentation schedule (`solver.contact._uzawa.UzawaLoop`)."""
     lip_penalty = FACE_SOLVER.lip_penalty if lip_penalty is None else float(lip_penalty)
@@ -188,7 +176,7 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
                      growth=growth)
 
     # --- essential conditions: attachments tied to their bone (sliding ones excepted)
-    attach = _attachment_sets(model, motions)
+    attach = attachment_sets(model, motions)
     constraints, terms = [], {}
     owners = []                                     # the segment each constraint follows
     sliding_nodes = dict(sliding_nodes or {})
@@ -264,6 +252,9 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
     if body_force is not None:
         extra.append(BodyForce(X, model.hexes, body_force))
     body.constraint_segments = tuple(owners)
+    listed = np.unique(np.concatenate([np.asarray(model.node_sets.get("attach_" + s, ()), np.int64)
+                                       for s in segments] or [np.zeros(0, np.int64)]))
+    body.bridge_nodes = int(len(listed) - sum(len(v) for v in attach.values()))
     return body, constraints, terms, extra, lip_size
 
 
@@ -393,7 +384,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             "continuation_from_load": res.continuation_from,
             "continuation_iterations": res.continuation_iterations,
             "krylov_iterations": res.krylov_iterations, "timings": res.timings,
-            "guess": res.guess, "contact_fallback": fallback}
+            "guess": res.guess, "contact_fallback": fallback,
+            "osteotomy_bridge_nodes": int(getattr(body, "bridge_nodes", 0))}
     if contact:
         info["penetration_mm"] = {k: float(t.penetration(x)) for k, t in terms.items()}
         # the augmentations are bounded (`AugmentedLagrangian.max_augmentations`): a solve

@@ -41,6 +41,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from facemodel.attachments import attachment_sets
+
 __all__ = ["BlendedFace", "blend_face", "write_mesh_glb", "write_mesh_obj", "write_markups",
            "write_feb", "SLICER_SCHEMA"]
 
@@ -282,8 +284,10 @@ def write_feb(model, motions: Mapping[str, np.ndarray], materials: Mapping[str, 
             eid += 1
             _sub(block, "elem", ",".join(str(int(v) + 1) for v in hexes[e]), id=eid)
     sets = {}
+    # the nodes faceplan's own solve ties to each segment (the osteotomy bridges released)
+    tied = attachment_sets(model, motions)
     for seg, m4 in motions.items():
-        ids = np.asarray(model.node_sets.get("attach_" + seg, ()), np.int64)
+        ids = tied.get(seg, np.zeros(0, np.int64))
         if len(ids):
             sets[seg] = (ids, np.asarray(m4, float))
             _sub(mesh, "NodeSet", ",".join(str(int(v) + 1) for v in ids), name="attach_" + seg)

@@ -325,7 +325,7 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
             progress.say(f"  teeth moved back to start contact clear of the lips (mm): {moved}")
     # a genioplasty degloves the anterior mandible and chin: that tissue slides on its bone
     # (segments that slide as a whole, `sliding`, keep their own treatment)
-    from facemodel.attachments import genioplasty_sliding
+    from facemodel.attachments import attachment_sets, genioplasty_sliding, osteotomy_bridges
 
     setup = {"model": model, "plan": plan, "plan_actual": plan_actual,
              "follow_up_months": follow_up_months,
@@ -337,6 +337,9 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
     if degloved:
         progress.say("  genioplasty: degloved tissue slides on the bone ("
                      + ", ".join(f"{s} {len(ids)} nodes" for s, ids in degloved.items()) + ")")
+    bridges = osteotomy_bridges(model, attachment_sets(model, motions, bridge_width=0.0), motions)
+    if len(bridges):
+        progress.say(f"  osteotomies: {len(bridges)} attached nodes bridge the cuts, tied to no bone")
     if effects.active:
         progress.say(f"  effects: {json.dumps(effects.as_dict())}")
     moving = {k: m for k, m in motions.items() if not np.allclose(m, np.eye(4), atol=1e-12)}

@@ -334,10 +334,12 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
     inputs = model_inputs(setup, effects)
     motions, activations, sliding = inputs["motions"], inputs["activations"], inputs["sliding"]
     degloved = inputs["sliding_nodes"]
+    # the degloved nodes that bridge a cut are tied to no bone, sliding or not
+    bridges = osteotomy_bridges(model, attachment_sets(model, motions, bridge_width=0.0), motions)
     if degloved:
         progress.say("  genioplasty: degloved tissue slides on the bone ("
-                     + ", ".join(f"{s} {len(ids)} nodes" for s, ids in degloved.items()) + ")")
-    bridges = osteotomy_bridges(model, attachment_sets(model, motions, bridge_width=0.0), motions)
+                     + ", ".join(f"{s} {len(np.setdiff1d(ids, bridges))} nodes"
+                                 for s, ids in degloved.items()) + ")")
     if len(bridges):
         progress.say(f"  osteotomies: {len(bridges)} attached nodes bridge the cuts, tied to no bone")
     if effects.active:

@@ -385,7 +385,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             "continuation_iterations": res.continuation_iterations,
             "krylov_iterations": res.krylov_iterations, "timings": res.timings,
             "guess": res.guess, "contact_fallback": fallback,
-            "osteotomy_bridge_nodes": int(getattr(body, "bridge_nodes", 0))}
+            "osteotomy_bridge_nodes": body.bridge_nodes}
     if contact:
         info["penetration_mm"] = {k: float(t.penetration(x)) for k, t in terms.items()}
         # the augmentations are bounded (`AugmentedLagrangian.max_augmentations`): a solve

@@ -142,3 +142,28 @@ def test_the_solver_ties_no_bridge_node_and_counts_them():
     assert body.bridge_nodes == len(bridge) > 0
     assert not np.isin(bridge, held).any()
     assert len(held) == sum(len(v) for v in raw.values()) - len(bridge)
+
+
+def test_the_febio_export_ties_the_nodes_the_solver_ties(tmp_path):
+    import xml.etree.ElementTree as ET
+
+    from planner.export import write_feb
+
+    h = 1.0
+    nodes, hexes, sets = block((LENGTH, h, DEPTH), (round(LENGTH / h), 1, round(DEPTH / h)))
+    base = np.asarray(sets["zmin"])
+    model = SimpleNamespace(
+        nodes=nodes, hexes=hexes, labels=np.zeros(len(hexes), int), label_names=("hypodermis",),
+        segments=("skull", "maxilla"),
+        node_sets={"attach_skull": base[nodes[base, 0] < LENGTH / 2 - 1e-9],
+                   "attach_maxilla": base[nodes[base, 0] > LENGTH / 2 - 1e-9]})
+    T = np.eye(4)
+    T[2, 3] = STEP
+    motions = {"skull": np.eye(4), "maxilla": T}
+    tied = attachment_sets(model, motions)
+    assert len(osteotomy_bridges(model, attachment_sets(model, motions, 0.0), motions)) > 0
+    path = write_feb(model, motions, {"hypodermis": {"C10": 2.5, "C20": 1.175, "K": 5000.0}},
+                     tmp_path / "strip.feb")
+    exported = {s.get("name"): sorted(int(v) - 1 for v in s.text.split(","))
+                for s in ET.parse(path).getroot().find("Mesh").findall("NodeSet")}
+    assert exported == {"attach_" + s: sorted(ids.tolist()) for s, ids in tied.items()}

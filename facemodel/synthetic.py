@@ -473,13 +473,12 @@ def scan_coverage(points, vertices, faces, landmarks: dict, *, tol: float = 1.0)
 def displaced_surface(vertices, fe_nodes, fe_triangles, fe_displacement):
     """Vertices of a surface moved by the displacement of the FE skin it lies on: each
     vertex takes the displacement interpolated (barycentric) at its closest point on the FE
-    skin triangles (the registered FE skin is within a fraction of a mm of the patient skin)."""
-    import trimesh
+    skin triangles (the registered FE skin is within a fraction of a mm of the patient skin;
+    exact closest points, `solver.geometry.TriangleTree`)."""
+    from solver.geometry import TriangleTree
 
     V = np.asarray(vertices, float)
-    mesh = trimesh.Trimesh(np.asarray(fe_nodes, float), np.asarray(fe_triangles, np.int64), process=False)
-    closest, _, tri = trimesh.proximity.closest_point(mesh, V)
-    corners = mesh.vertices[mesh.faces[tri]]
-    bary = trimesh.triangles.points_to_barycentric(corners, closest)
-    u = np.einsum("ka,kai->ki", bary, np.asarray(fe_displacement, float)[mesh.faces[tri]])
+    T = np.asarray(fe_triangles, np.int64)
+    _, bary, tri, _ = TriangleTree(np.asarray(fe_nodes, float), T).closest(V)
+    u = np.einsum("ka,kai->ki", bary, np.asarray(fe_displacement, float)[T[tri]])
     return V + u

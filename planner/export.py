@@ -97,7 +97,7 @@ def blend_face(patient_vertices: np.ndarray, patient_faces: np.ndarray, patch_ve
     its displacement; `band_mm`: width of the fade along the patch boundary."""
     from scipy.spatial import cKDTree
 
-    from registration.surface import TriangleTree
+    from solver.geometry import TriangleTree
 
     pv_ = np.asarray(patient_vertices, float)
     pf = np.asarray(patient_faces, np.int64)

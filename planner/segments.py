@@ -50,7 +50,7 @@ def nearest_surface(surfaces: list, points: np.ndarray, k: int = 16) -> tuple[np
     whose centroid lies within d + r is projected. Ties between surfaces go to the first."""
     from scipy.spatial import cKDTree
 
-    from registration.surface import _closest_over_candidates
+    from solver.geometry import _closest_over_candidates
 
     x = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
     n = len(x)

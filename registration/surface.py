@@ -20,16 +20,11 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from solver.geometry import point_triangle
+# the exact closest-point kernel and tree are generic geometry (solver.geometry); registration
+# re-exports them for its callers
+from solver.geometry import TIE_REL, TriangleTree, _closest_over_candidates  # noqa: F401
 
 
-# Two triangles whose closest points lie within this of each other (squared distances, relative
-# to 1 + d^2 in mm^2) are a tie: a point whose closest point is on an edge or vertex they share
-# is as close to both, up to the rounding of the projections (~1e-13 mm^2 at head size). A tie
-# goes to the lower triangle index, so that the triangle (and its normal, which the registration
-# tests against thresholds) does not depend on the order of the candidates or on the last bits
-# of the sums, which differ between BLAS kernels and processors.
-TIE_REL = 1e-12
 
 
 def _mix64(x: np.ndarray) -> np.ndarray:
@@ -69,40 +64,6 @@ def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rank = np.empty(len(order), np.int64)
     rank[order] = np.arange(len(order))
     return first[order].astype(np.int64), rank[inverse]
-
-
-@numba.njit(cache=True)
-def _closest_over_candidates(points, vertices, faces, candidates):
-    n = points.shape[0]
-    out = np.empty((n, 3))
-    bary = np.empty((n, 3))
-    best_face = np.empty(n, dtype=np.int64)
-    dist = np.empty(n)
-    for i in range(n):
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        best = np.inf
-        best_face[i] = faces.shape[0]
-        for j in range(candidates.shape[1]):
-            f = candidates[i, j]
-            if f < 0:
-                continue
-            ia, ib, ic = faces[f, 0], faces[f, 1], faces[f, 2]
-            _, _, _, u, v, w, _ = point_triangle(
-                px, py, pz, vertices[ia, 0], vertices[ia, 1], vertices[ia, 2],
-                vertices[ib, 0], vertices[ib, 1], vertices[ib, 2],
-                vertices[ic, 0], vertices[ic, 1], vertices[ic, 2])
-            qx = u * vertices[ia, 0] + v * vertices[ib, 0] + w * vertices[ic, 0]
-            qy = u * vertices[ia, 1] + v * vertices[ib, 1] + w * vertices[ic, 1]
-            qz = u * vertices[ia, 2] + v * vertices[ib, 2] + w * vertices[ic, 2]
-            d = (qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2
-            tie = TIE_REL * (1.0 + best)
-            if d < best - tie or (d <= best + tie and f < best_face[i]):
-                best = d
-                out[i, 0], out[i, 1], out[i, 2] = qx, qy, qz
-                bary[i, 0], bary[i, 1], bary[i, 2] = u, v, w
-                best_face[i] = f
-        dist[i] = np.sqrt(best)
-    return out, bary, best_face, dist
 
 
 @numba.njit(cache=True)
@@ -307,69 +268,6 @@ def merge_coincident(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarra
     first, inverse = unique_rows(np.round(v / (1e-9 * extent)) + 0.0)   # + 0.0: -0.0 is 0.0
     v, f = v[first], inverse[f]
     return v, f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
-
-
-class TriangleTree:
-    """Exact closest points on a triangle mesh taken as it is (no merging, no orientation): the
-    light structure for many queries on a large surface or a one-off measure against one.
-
-    Candidates are the triangles of the k nearest centroids (a k-d tree), projected exactly
-    (`_closest_over_candidates`). A triangle whose centroid lies c from the point is at least
-    c - r away (r: the largest centroid-to-corner distance of the mesh), so the answer d is
-    exact when the k-th centroid lies beyond d + r; otherwise the test is made again with twice
-    the candidates, and where it still fails every triangle whose centroid lies within d + r is
-    projected. Zero-area triangles are left out (their edges belong to their
-    neighbours); `face` indices refer to the triangles as given."""
-
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
-        f = np.ascontiguousarray(faces, dtype=np.int64)
-        tri = self.vertices[f]
-        area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-        self.kept = np.flatnonzero(area2 > 1e-12 * max(float(area2.max(initial=0.0)), 1e-300))
-        if not len(self.kept):
-            raise ValueError("the mesh has no triangle of non-zero area")
-        self.faces = np.ascontiguousarray(f[self.kept])
-        tri = tri[self.kept]
-        centroids = tri.mean(axis=1)
-        self.radius = float(np.linalg.norm(tri - centroids[:, None, :], axis=2).max())
-        self._tree = cKDTree(centroids)
-
-    def closest(self, points: np.ndarray, k: int = 16, max_distance: float = np.inf):
-        """(closest points, barycentric coordinates, face index, distance) for points (n, 3);
-        exact for every point nearer than `max_distance` (the others get an upper bound that
-        is itself beyond it)."""
-        x = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-        n = len(x)
-        kk = int(min(k, len(self.faces)))
-        dc, cand = self._tree.query(x, k=kk)
-        dc, cand = np.reshape(dc, (n, kk)), np.asarray(cand, np.int64).reshape(n, kk)
-        q, bary, face, d = _closest_over_candidates(x, self.vertices, self.faces, cand)
-        need = np.flatnonzero((dc[:, -1] - self.radius < d) & (dc[:, 0] - self.radius <= max_distance))
-        if not len(need) or kk >= len(self.faces):
-            return q, bary, self.kept[face], d
-        # first twice the candidates (vectorised queries, in chunks to bound the memory),
-        # then, for the points still unsure, every triangle whose centroid lies within d + r
-        # (ragged lists: a loop over those points only). A wider set holds the first
-        # candidates: the same answer or a better one.
-        k2 = int(min(2 * kk, len(self.faces)))
-        still = []
-        for chunk in np.array_split(need, -(-len(need) // 50_000)):
-            dc2, wide = self._tree.query(x[chunk], k=k2)
-            dc2, wide = np.reshape(dc2, (len(chunk), k2)), np.asarray(wide, np.int64).reshape(len(chunk), k2)
-            q[chunk], bary[chunk], face[chunk], d[chunk] = _closest_over_candidates(
-                x[chunk], self.vertices, self.faces, wide)
-            if k2 < len(self.faces):
-                still.append(chunk[dc2[:, -1] - self.radius < d[chunk]])
-        need = np.concatenate(still) if still else np.zeros(0, np.int64)
-        for chunk in np.array_split(need, -(-len(need) // 5_000)) if len(need) else ():
-            balls = self._tree.query_ball_point(x[chunk], d[chunk] + self.radius)
-            wide = np.full((len(chunk), max(1, max(len(b) for b in balls))), -1, np.int64)
-            for row, b in enumerate(balls):
-                wide[row, :len(b)] = b
-            q[chunk], bary[chunk], face[chunk], d[chunk] = _closest_over_candidates(
-                x[chunk], self.vertices, self.faces, wide)
-        return q, bary, self.kept[face], d
 
 
 # Triangle budget of the surfaces registration works on: a CT-derived skin or bone has 10^5-10^6

@@ -5,7 +5,9 @@
 barycentric coordinates and its region (the face, an edge or a vertex), so that a caller may
 sign a distance with pseudo-normals (contact) or tell boundary points (registration).
 `closest_on_triangle` is its form on (3,) arrays, `closest_point_on_triangles` its row-by-row
-form on (k, 3) arrays; `triangulate` splits quads into triangles. `deepest_concavity` finds,
+form on (k, 3) arrays; `TriangleTree` answers exact closest points on a whole triangle mesh
+(candidate triangles from a k-d tree of their centroids, widened until the answer is provably
+the nearest); `triangulate` splits quads into triangles. `deepest_concavity` finds,
 on a planar polyline, the point deepest behind the convex-hull edge (bitangent) that spans a
 concavity.
 """
@@ -13,10 +15,11 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from scipy.spatial import cKDTree
 
 __all__ = ["FACE", "VERT_A", "VERT_B", "VERT_C", "EDGE_AB", "EDGE_BC", "EDGE_CA",
            "point_triangle", "closest_on_triangle", "closest_point_on_triangles", "triangulate",
-           "deepest_concavity"]
+           "deepest_concavity", "TriangleTree", "TIE_REL"]
 
 FACE, VERT_A, VERT_B, VERT_C, EDGE_AB, EDGE_BC, EDGE_CA = range(7)
 
@@ -92,6 +95,113 @@ def closest_point_on_triangles(p, a, b, c):
     region = np.empty(len(p), dtype=np.int64)
     _closest_rows(p, a, b, c, q, region)
     return q, region
+
+
+# Two triangles whose closest points lie within this of each other (squared distances, relative
+# to 1 + d^2 in mm^2) are a tie: a point whose closest point is on an edge or vertex they share
+# is as close to both, up to the rounding of the projections (~1e-13 mm^2 at head size). A tie
+# goes to the lower triangle index, so that the triangle (and its normal, which the registration
+# tests against thresholds, for example) does not depend on the order of the candidates or on the last bits
+# of the sums, which differ between BLAS kernels and processors.
+TIE_REL = 1e-12
+
+
+@nb.njit(cache=True)
+def _closest_over_candidates(points, vertices, faces, candidates):
+    n = points.shape[0]
+    out = np.empty((n, 3))
+    bary = np.empty((n, 3))
+    best_face = np.empty(n, dtype=np.int64)
+    dist = np.empty(n)
+    for i in range(n):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        best = np.inf
+        best_face[i] = faces.shape[0]
+        for j in range(candidates.shape[1]):
+            f = candidates[i, j]
+            if f < 0:
+                continue
+            ia, ib, ic = faces[f, 0], faces[f, 1], faces[f, 2]
+            _, _, _, u, v, w, _ = point_triangle(
+                px, py, pz, vertices[ia, 0], vertices[ia, 1], vertices[ia, 2],
+                vertices[ib, 0], vertices[ib, 1], vertices[ib, 2],
+                vertices[ic, 0], vertices[ic, 1], vertices[ic, 2])
+            qx = u * vertices[ia, 0] + v * vertices[ib, 0] + w * vertices[ic, 0]
+            qy = u * vertices[ia, 1] + v * vertices[ib, 1] + w * vertices[ic, 1]
+            qz = u * vertices[ia, 2] + v * vertices[ib, 2] + w * vertices[ic, 2]
+            d = (qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2
+            tie = TIE_REL * (1.0 + best)
+            if d < best - tie or (d <= best + tie and f < best_face[i]):
+                best = d
+                out[i, 0], out[i, 1], out[i, 2] = qx, qy, qz
+                bary[i, 0], bary[i, 1], bary[i, 2] = u, v, w
+                best_face[i] = f
+        dist[i] = np.sqrt(best)
+    return out, bary, best_face, dist
+
+
+
+class TriangleTree:
+    """Exact closest points on a triangle mesh taken as it is (no merging, no orientation): the
+    light structure for many queries on a large surface or a one-off measure against one.
+
+    Candidates are the triangles of the k nearest centroids (a k-d tree), projected exactly
+    (`_closest_over_candidates`, `point_triangle` over each point's candidates). A triangle whose centroid lies c from the point is at least
+    c - r away (r: the largest centroid-to-corner distance of the mesh), so the answer d is
+    exact when the k-th centroid lies beyond d + r; otherwise the test is made again with twice
+    the candidates, and where it still fails every triangle whose centroid lies within d + r is
+    projected. Zero-area triangles are left out (their edges belong to their
+    neighbours); `face` indices refer to the triangles as given."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+        f = np.ascontiguousarray(faces, dtype=np.int64)
+        tri = self.vertices[f]
+        area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        self.kept = np.flatnonzero(area2 > 1e-12 * max(float(area2.max(initial=0.0)), 1e-300))
+        if not len(self.kept):
+            raise ValueError("the mesh has no triangle of non-zero area")
+        self.faces = np.ascontiguousarray(f[self.kept])
+        tri = tri[self.kept]
+        centroids = tri.mean(axis=1)
+        self.radius = float(np.linalg.norm(tri - centroids[:, None, :], axis=2).max())
+        self._tree = cKDTree(centroids)
+
+    def closest(self, points: np.ndarray, k: int = 16, max_distance: float = np.inf):
+        """(closest points, barycentric coordinates, face index, distance) for points (n, 3);
+        exact for every point nearer than `max_distance` (the others get an upper bound that
+        is itself beyond it)."""
+        x = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        n = len(x)
+        kk = int(min(k, len(self.faces)))
+        dc, cand = self._tree.query(x, k=kk)
+        dc, cand = np.reshape(dc, (n, kk)), np.asarray(cand, np.int64).reshape(n, kk)
+        q, bary, face, d = _closest_over_candidates(x, self.vertices, self.faces, cand)
+        need = np.flatnonzero((dc[:, -1] - self.radius < d) & (dc[:, 0] - self.radius <= max_distance))
+        if not len(need) or kk >= len(self.faces):
+            return q, bary, self.kept[face], d
+        # first twice the candidates (vectorised queries, in chunks to bound the memory),
+        # then, for the points still unsure, every triangle whose centroid lies within d + r
+        # (ragged lists: a loop over those points only). A wider set holds the first
+        # candidates: the same answer or a better one.
+        k2 = int(min(2 * kk, len(self.faces)))
+        still = []
+        for chunk in np.array_split(need, -(-len(need) // 50_000)):
+            dc2, wide = self._tree.query(x[chunk], k=k2)
+            dc2, wide = np.reshape(dc2, (len(chunk), k2)), np.asarray(wide, np.int64).reshape(len(chunk), k2)
+            q[chunk], bary[chunk], face[chunk], d[chunk] = _closest_over_candidates(
+                x[chunk], self.vertices, self.faces, wide)
+            if k2 < len(self.faces):
+                still.append(chunk[dc2[:, -1] - self.radius < d[chunk]])
+        need = np.concatenate(still) if still else np.zeros(0, np.int64)
+        for chunk in np.array_split(need, -(-len(need) // 5_000)) if len(need) else ():
+            balls = self._tree.query_ball_point(x[chunk], d[chunk] + self.radius)
+            wide = np.full((len(chunk), max(1, max(len(b) for b in balls))), -1, np.int64)
+            for row, b in enumerate(balls):
+                wide[row, :len(b)] = b
+            q[chunk], bary[chunk], face[chunk], d[chunk] = _closest_over_candidates(
+                x[chunk], self.vertices, self.faces, wide)
+        return q, bary, self.kept[face], d
 
 
 def triangulate(facets: np.ndarray) -> np.ndarray:

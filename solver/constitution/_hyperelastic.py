@@ -73,11 +73,13 @@ class Yeoh:
         W11 = 2.0 * self.C20 + 6.0 * self.C30 * t
         return W, W1, W11
 
-    def isochoric(self, C, fibres=None, load=1.0):
+    def isochoric(self, C, fibres=None, load=1.0, tangent=True):
         C = np.asarray(C, dtype=float)
-        I1b, dI, d2I, _, _ = i1_bar(C)
+        I1b, dI, d2I, _, _ = i1_bar(C, second=tangent)
         W, W1, W11 = self.dW(I1b)
         S = 2.0 * W1[..., None, None] * dI
+        if not tangent:
+            return S, None, W
         CC = 4.0 * (W11[..., None, None, None, None] * outer(dI, dI)
                     + W1[..., None, None, None, None] * d2I)
         return S, CC, W

@@ -37,16 +37,18 @@ __all__ = [
 class Material(Protocol):
     """Uncoupled hyperelastic material, W = W_iso(C_bar) + U(J).
 
-    `parameters` maps a name to (value, unit). `isochoric(C, fibres=None, load=1.0)` returns
-    (S_iso (...,3,3), CC_iso (...,3,3,3,3), W_iso (...)) for right Cauchy-Green tensors
-    C (...,3,3); `fibres` (...,3) are unit reference fibre directions or None; `load` in [0, 1]
-    is the load fraction for ramped parts (active muscle stress). `volumetric(J)` returns
+    `parameters` maps a name to (value, unit). `isochoric(C, fibres=None, load=1.0,
+    tangent=True)` returns (S_iso (...,3,3), CC_iso (...,3,3,3,3), W_iso (...)) for right
+    Cauchy-Green tensors C (...,3,3); `fibres` (...,3) are unit reference fibre directions or
+    None; `load` in [0, 1] is the load fraction for ramped parts (active muscle stress);
+    without `tangent` CC_iso is None (a residual or a stress needs no fourth-order tensor, whose
+    81 components per point cost more than the rest). `volumetric(J)` returns
     (U, dU/dJ, d2U/dJ2), each shaped like J.
     """
 
     parameters: dict[str, tuple[float, str]]
 
-    def isochoric(self, C, fibres=None, load=1.0): ...
+    def isochoric(self, C, fibres=None, load=1.0, tangent=True): ...
 
     def volumetric(self, J): ...
 
@@ -108,10 +110,10 @@ def sym_product(A: np.ndarray, B: np.ndarray) -> np.ndarray:
                   + A[..., :, None, None, :] * B[..., None, :, :, None])
 
 
-def i1_bar(C: np.ndarray):
+def i1_bar(C: np.ndarray, second: bool = True):
     """I1_bar = J^(-2/3) tr C and its derivatives with respect to C.
 
-    Returns (I1b, dI1b (...,3,3), d2I1b (...,3,3,3,3), Cinv, J) with
+    Returns (I1b, dI1b (...,3,3), d2I1b (...,3,3,3,3) or None without `second`, Cinv, J) with
     dI1b = J^(-2/3) (I - I1/3 C^-1) and
     d2I1b = J^(-2/3) [ -1/3 (I (x) C^-1 + C^-1 (x) I) + I1/9 C^-1 (x) C^-1 + I1/3 C^-1 (.) C^-1 ].
     """
@@ -122,6 +124,8 @@ def i1_bar(C: np.ndarray):
     eye = identity(C.shape[:-2])
     I1b = a * I1
     dI1b = a[..., None, None] * (eye - (I1 / 3.0)[..., None, None] * Cinv)
+    if not second:
+        return I1b, dI1b, None, Cinv, J
     aa = a[..., None, None, None, None]
     d2 = aa * (-(outer(eye, Cinv) + outer(Cinv, eye)) / 3.0
                + (I1 / 9.0)[..., None, None, None, None] * outer(Cinv, Cinv)
@@ -129,10 +133,11 @@ def i1_bar(C: np.ndarray):
     return I1b, dI1b, d2, Cinv, J
 
 
-def i4_bar(C: np.ndarray, a0: np.ndarray):
+def i4_bar(C: np.ndarray, a0: np.ndarray, second: bool = True):
     """I4_bar = J^(-2/3) a0.C.a0 (squared isochoric fibre stretch) and its derivatives.
 
-    a0 (...,3) unit reference fibre directions. Returns (I4b, dI4b, d2I4b) with
+    a0 (...,3) unit reference fibre directions. Returns (I4b, dI4b, d2I4b or None without
+    `second`) with
     dI4b = J^(-2/3) (a0 (x) a0 - I4/3 C^-1) and
     d2I4b = J^(-2/3) [ -1/3 (A0 (x) C^-1 + C^-1 (x) A0) + I4/9 C^-1 (x) C^-1 + I4/3 C^-1 (.) C^-1 ].
     """
@@ -142,6 +147,8 @@ def i4_bar(C: np.ndarray, a0: np.ndarray):
     I4 = np.einsum("...ij,...ij->...", C, A0)
     I4b = a * I4
     dI4b = a[..., None, None] * (A0 - (I4 / 3.0)[..., None, None] * Cinv)
+    if not second:
+        return I4b, dI4b, None
     aa = a[..., None, None, None, None]
     d2 = aa * (-(outer(A0, Cinv) + outer(Cinv, A0)) / 3.0
                + (I4 / 9.0)[..., None, None, None, None] * outer(Cinv, Cinv)

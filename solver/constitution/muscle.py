@@ -139,14 +139,14 @@ class Muscle:
         W14 = np.zeros_like(I1b)
         return W, W1, W4, W11, W14, W44
 
-    def isochoric(self, C, fibres=None, load=1.0):
+    def isochoric(self, C, fibres=None, load=1.0, tangent=True):
         C = np.asarray(C, dtype=float)
-        I1b, dI1, d2I1, _, _ = i1_bar(C)
+        I1b, dI1, d2I1, _, _ = i1_bar(C, second=tangent)
         if fibres is None:
             a0 = np.zeros(C.shape[:-1])
         else:
             a0 = np.broadcast_to(np.asarray(fibres, dtype=float), C.shape[:-1])
-        I4b, dI4, d2I4 = i4_bar(C, a0)
+        I4b, dI4, d2I4 = i4_bar(C, a0, second=tangent)
         # Elements without a fibre direction (zero vector) behave as the isotropic matrix.
         has = np.einsum("...i,...i->...", a0, a0) > 0.5
         I4s = np.where(has, I4b, 1.0)
@@ -162,6 +162,8 @@ class Muscle:
         e2 = (..., None, None)
         e4 = (..., None, None, None, None)
         S = 2.0 * (W1[e2] * dI1 + W4[e2] * dI4)
+        if not tangent:
+            return S, None, W
         CC = 4.0 * (W11[e4] * outer(dI1, dI1)
                     + W14[e4] * (outer(dI1, dI4) + outer(dI4, dI1))
                     + W44[e4] * outer(dI4, dI4)

@@ -183,7 +183,7 @@ class SolidBody:
             mat = groups[0][0]
             fib = None if fibres is None else np.broadcast_to(
                 fibres[:, None, :], C.shape[:2] + (3,))
-            S, CC, W = mat.isochoric(C, fibres=fib, load=load)
+            S, CC, W = mat.isochoric(C, fibres=fib, load=load, tangent=tangent)
             return S, CC, W
         m, nq = C.shape[:2]
         S = np.empty((m, nq, 3, 3))
@@ -192,7 +192,7 @@ class SolidBody:
         for mat, idx in groups:
             fib = None if fibres is None else np.broadcast_to(
                 fibres[idx][:, None, :], (len(idx), nq, 3))
-            s, cc, w = mat.isochoric(C[idx], fibres=fib, load=load)
+            s, cc, w = mat.isochoric(C[idx], fibres=fib, load=load, tangent=tangent)
             S[idx] = s
             W[idx] = w
             if tangent:

@@ -1,11 +1,11 @@
-"""Large surfaces: the row hash, the exact closest-point tree, the simplified working surface
+"""Large surfaces: the row hash, the simplified working surface
 and a registration run on one (judged on the full-resolution skin)."""
 import numpy as np
 import pytest
 import trimesh
 
 from registration import surface as rs
-from registration.surface import TargetSurface, TriangleTree, unique_rows, working_surface
+from registration.surface import TargetSurface, unique_rows, working_surface
 
 
 def test_unique_rows_matches_the_row_sort():
@@ -24,28 +24,6 @@ def test_unique_rows_survives_hash_collisions(monkeypatch):
     a = np.array([[1, 2, 3], [4, 5, 6], [1, 2, 3], [7, 8, 9]], dtype=np.int64)
     first, inverse = unique_rows(a)
     assert np.array_equal(a[first][inverse], a) and len(first) == 3
-
-
-def _brute_closest(v, f, p):
-    """Every triangle a candidate: the exact answer by definition."""
-    cand = np.tile(np.arange(len(f)), (len(p), 1))
-    return rs._closest_over_candidates(np.ascontiguousarray(p), v, f, cand)
-
-
-def test_triangle_tree_is_exact_with_mixed_triangle_sizes():
-    # a fine sphere patch next to a few huge triangles: nearest centroids alone miss the large
-    # ones; the c - r bound must bring them in
-    sphere = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
-    big_v = np.array([[-200.0, -200.0, 30.0], [200.0, -200.0, 30.0], [0.0, 300.0, 30.0]])
-    v = np.vstack([sphere.vertices, big_v])
-    f = np.vstack([sphere.faces, [[len(sphere.vertices), len(sphere.vertices) + 1, len(sphere.vertices) + 2]]])
-    rng = np.random.default_rng(3)
-    p = rng.uniform(-40, 40, size=(400, 3))
-    q, bary, face, d = TriangleTree(v, f).closest(p, k=4)
-    q0, _, _, d0 = _brute_closest(np.ascontiguousarray(v, float), np.ascontiguousarray(f, np.int64), p)
-    # the same distance to rounding (1e-9 mm at these sizes); the point on its triangle
-    assert np.allclose(d, d0, atol=1e-9)
-    assert np.allclose(np.einsum("nk,nkd->nd", bary, v[f[face]]), q, atol=1e-9)
 
 
 def test_working_surface_stays_on_the_surface():

@@ -136,3 +136,19 @@ def test_elements_without_fibres_are_the_isotropic_matrix():
 def test_bad_parameters_are_refused(bad):
     with pytest.raises(MaterialError):
         _muscle(**bad)
+
+
+@pytest.mark.parametrize("law", ["muscle", "yeoh"])
+def test_stress_without_tangent_is_the_same_stress(law):
+    # a residual or stress evaluation skips the fourth-order tensor: S and W must be those of
+    # the full evaluation (the same expressions, so to round-off, 1e-12 relative)
+    from solver.constitution import Yeoh
+
+    rng = np.random.default_rng(7)
+    C = _random_C(rng, n=8)
+    a0 = _random_fibres(rng, len(C))
+    mat = _muscle() if law == "muscle" else Yeoh(C10=2.5, C20=1.175, C30=0.5, K=250.0)
+    S, CC, W = mat.isochoric(C, a0, 0.7)
+    S2, CC2, W2 = mat.isochoric(C, a0, 0.7, tangent=False)
+    assert CC is not None and CC2 is None
+    assert np.allclose(S2, S, rtol=1e-12, atol=0.0) and np.allclose(W2, W, rtol=1e-12, atol=0.0)

@@ -12,13 +12,18 @@ fails, or a case still running after `--max-minutes`, is reported with the stage
 last Newton iteration logged (its load step and load fraction) instead of the end-to-end line.
 `--no-blowup-guard` makes the peer run with the Newton solver's blow-up guard off,
 `--no-osteotomy-bridges` the one with the tissue over the osteotomies tied to both segments
-(`facemodel.attachments.BRIDGE_WIDTH_MM` 0).
+(`facemodel.attachments.BRIDGE_WIDTH_MM` 0), `--release-freed-memory` the one with freed arrays
+returned to the kernel (`solver.memory.KEEP_FREED_MEMORY` False), `--teeth-increment-fraction
+F` the one with another floor of the contact nodes' increment limit
+(`FaceSolverSettings.teeth_increment_fraction`). The last line gives the process's peak
+resident memory.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import resource
 import signal
 import sys
 import tempfile
@@ -65,6 +70,11 @@ def main() -> int:
     parser.add_argument("--no-osteotomy-bridges", action="store_true",
                         help="the peer run: no osteotomy bridges (the attachments tied on both "
                              "sides of every cut)")
+    parser.add_argument("--release-freed-memory", action="store_true",
+                        help="the peer run: freed arrays go back to the kernel (solver.memory off)")
+    parser.add_argument("--teeth-increment-fraction", type=float, default=None,
+                        help="the peer run: this floor of the contact nodes' increment limit, as "
+                             "a fraction of the teeth's advance per load step")
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="stop the case after this many minutes and report how far it got")
     args = parser.parse_args()
@@ -84,6 +94,19 @@ def main() -> int:
         import facemodel.attachments as attachments
 
         attachments.BRIDGE_WIDTH_MM = 0.0
+
+    if args.release_freed_memory:
+        import solver.memory
+
+        solver.memory.KEEP_FREED_MEMORY = False
+
+    if args.teeth_increment_fraction is not None:
+        import dataclasses
+
+        import facemodel.simulation as simulation
+
+        simulation.FACE_SOLVER = dataclasses.replace(
+            simulation.FACE_SOLVER, teeth_increment_fraction=args.teeth_increment_fraction)
 
     load0 = os.getloadavg()
     stages = {}
@@ -132,14 +155,20 @@ def main() -> int:
           f"{'off' if args.no_contact else 'on'}{_peer(args)}")
     _print_stages(load0, stages, "total (end to end)", total, solves)
     print(f"  effect skin change (max, mm): {record['effect_skin_change_mm']['max_mm']}")
+    # ru_maxrss is in kB on Linux
+    print(f"  peak resident memory: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     return 0
 
 
 def _peer(args) -> str:
     """What a peer run leaves out, for the header line."""
     off = [name for name, flag in (("blow-up guard", args.no_blowup_guard),
-                                   ("osteotomy bridges", args.no_osteotomy_bridges)) if flag]
-    return "".join(f", {name} off" for name in off)
+                                   ("osteotomy bridges", args.no_osteotomy_bridges),
+                                   ("freed-memory reuse", args.release_freed_memory)) if flag]
+    out = "".join(f", {name} off" for name in off)
+    if args.teeth_increment_fraction is not None:
+        out += f", teeth increment fraction {args.teeth_increment_fraction:g}"
+    return out
 
 
 def _print_stages(load0, stages: dict, total_label: str, total: float, solves: list) -> None:

@@ -47,8 +47,10 @@ class FaceSolverSettings:
     of them has to move by their advance within the step; a limit that is a fraction of the
     lip facets alone shrinks with the mesh while the advance does not, and a finer mesh then
     creeps behind the teeth for more iterations, with the mucosa squeezed between the teeth
-    and the tissue still held back, until the step stalls. With the floor 0.5, two capped
-    iterations carry the mucosa over the teeth's advance at every resolution.
+    and the tissue still held back, until the step stalls. At 1 one limited iteration carries
+    the mucosa over the teeth's advance at every resolution; at 0.5 (two iterations) the fine
+    truths' first load steps still stalled where the mucosa touches the other lip and the
+    incisors at once (docs/effects.md, "The increment limit follows the teeth").
     pair_hysteresis: a lip node keeps its master triangle while its projection is within this
     barycentric distance outside it (a node over a crease otherwise flips between two planes).
     lip_crease_blend, lip_edge_release: crease blending and the release band of the lip-lip
@@ -79,7 +81,7 @@ class FaceSolverSettings:
     blowup_factor: float | None = 100.0
     augmentation_rtol: float = 0.5
     increment_fraction: float = 0.35
-    teeth_increment_fraction: float = 0.5
+    teeth_increment_fraction: float = 1.0
     pair_hysteresis: float = 0.05
     lip_crease_blend: float = 0.0
     lip_edge_release: float = 0.0

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from solver.assembly._extended import ExtendedPattern, rotate_blocks
+from solver.memory import keep_freed_memory
 from solver.bc import ConstraintSet
 from solver.control import (ConvergenceCriterion, IncrementLimiter, Predictor, SolverControl,
                             StepController, StepResult)
@@ -226,6 +227,8 @@ def newton_solve(body, constraints=(), terms=(), external=None, control: SolverC
     Raises `SolveFailed` (with the last converged state) if the load cannot be reached.
     """
     control = dataclasses.replace(control or SolverControl(), **settings)
+    # the iterations allocate and free arrays of tens of MB: keep their pages in the process
+    keep_freed_memory()
     if guess is not None:
         guess = np.asarray(guess, dtype=float)
         if guess.shape != body.mesh.nodes.shape:

@@ -33,7 +33,8 @@ every cut; the regions the registration reports not fitted are listed), `--given
 give none and the registration locates them on the skin, so that the landmark errors measure
 the located landmarks' settings too), `--json FILE` (every record, rewritten after each case),
 `--summarise FILE...` (run nothing: the summaries of records written by --json, e.g. a cohort
-run in parts). Registrations use a private cache (no result of an earlier run is reused; within
+run in parts), `--teeth-increment-fraction F` (the peer run with another floor of the contact
+nodes' increment limit). Registrations use a private cache (no result of an earlier run is reused; within
 a run the prediction reuses the registration just made, as `faceplan predict` would on a second
 call).
 """
@@ -50,6 +51,8 @@ import traceback
 from pathlib import Path
 
 import numpy as np
+
+from _peers import add_teeth_increment_fraction, apply_teeth_increment_fraction
 
 # `python bench/heldout.py` puts bench/ first on sys.path, where bench/registration.py would
 # shadow the registration package: drop it.
@@ -265,6 +268,7 @@ def main() -> int:
                         help="comma-separated skins: whole (default), and partial ones cut to the "
                              "face as bench/heads.py cuts them: scan, below_eyes, mid_nose")
     parser.add_argument("--json", help="write every record to this file")
+    add_teeth_increment_fraction(parser)
     parser.add_argument("--summarise", nargs="+", metavar="JSON",
                         help="run nothing: print the summaries of the records in these files "
                              "(written by --json; e.g. a cohort run in parts)")
@@ -279,6 +283,7 @@ def main() -> int:
         for ln in lines:
             print(ln)
         return 0 if all(r["ok"] for r in records) else 1
+    apply_teeth_increment_fraction(args.teeth_increment_fraction)
     resolutions = [r.strip() for r in args.resolutions.split(",") if r.strip()]
     cuts = [c.strip() for c in args.cuts.split(",") if c.strip()]
     from facemodel.synthetic_alt import CUTS

@@ -30,6 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _peers import add_teeth_increment_fraction, apply_teeth_increment_fraction
+
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
 
@@ -72,9 +74,7 @@ def main() -> int:
                              "sides of every cut)")
     parser.add_argument("--release-freed-memory", action="store_true",
                         help="the peer run: freed arrays go back to the kernel (solver.memory off)")
-    parser.add_argument("--teeth-increment-fraction", type=float, default=None,
-                        help="the peer run: this floor of the contact nodes' increment limit, as "
-                             "a fraction of the teeth's advance per load step")
+    add_teeth_increment_fraction(parser)
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="stop the case after this many minutes and report how far it got")
     args = parser.parse_args()
@@ -100,13 +100,7 @@ def main() -> int:
 
         solver.memory.KEEP_FREED_MEMORY = False
 
-    if args.teeth_increment_fraction is not None:
-        import dataclasses
-
-        import facemodel.simulation as simulation
-
-        simulation.FACE_SOLVER = dataclasses.replace(
-            simulation.FACE_SOLVER, teeth_increment_fraction=args.teeth_increment_fraction)
+    apply_teeth_increment_fraction(args.teeth_increment_fraction)
 
     load0 = os.getloadavg()
     stages = {}

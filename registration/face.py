@@ -32,9 +32,10 @@ import numpy as np
 from registration.errors import RegistrationFailure, RegistrationInputError
 from registration.mesh_match import MatchInput, MatchOptions, covered_skin, match_and_repair_arrays
 from registration.quality import EDGE_OPERATOR
-from registration.surface import (WORKING_MAX_FACES, TargetSurface, TriangleTree, simplifies,
-                                  surface_deviation, working_surface)
+from registration.surface import (WORKING_MAX_FACES, TargetSurface, simplifies, surface_deviation,
+                                  working_surface)
 from registration.teeth import ARCH_SEGMENT, teeth_arrays
+from solver.geometry import TriangleTree
 
 CACHE_FORMAT = 3
 CACHE_FILES = ("result.npz", "report.json")

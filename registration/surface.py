@@ -20,9 +20,7 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-# the exact closest-point kernel and tree are generic geometry (solver.geometry); registration
-# re-exports them for its callers
-from solver.geometry import TIE_REL, TriangleTree, _closest_over_candidates  # noqa: F401
+from solver.geometry import TIE_REL, _closest_over_candidates
 
 
 

@@ -7,7 +7,7 @@ from shell import ellipsoid_radius, surface_grid
 
 
 def _brute_force(points, v, f):
-    from registration.surface import _closest_over_candidates
+    from solver.geometry import _closest_over_candidates
     cand = np.tile(np.arange(len(f)), (len(points), 1))
     return _closest_over_candidates(points, v, f, cand)
 

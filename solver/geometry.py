@@ -6,8 +6,8 @@ barycentric coordinates and its region (the face, an edge or a vertex), so that 
 sign a distance with pseudo-normals (contact) or tell boundary points (registration).
 `closest_on_triangle` is its form on (3,) arrays, `closest_point_on_triangles` its row-by-row
 form on (k, 3) arrays; `TriangleTree` answers exact closest points on a whole triangle mesh
-(candidate triangles from a k-d tree of their centroids, widened until the answer is provably
-the nearest); `triangulate` splits quads into triangles. `deepest_concavity` finds,
+(candidate triangles from a k-d tree of pieces of bounded size that cover them, widened
+until the answer is provably the nearest); `triangulate` splits quads into triangles. `deepest_concavity` finds,
 on a planar polyline, the point deepest behind the convex-hull edge (bitangent) that spans a
 concavity.
 """
@@ -145,13 +145,24 @@ class TriangleTree:
     """Exact closest points on a triangle mesh taken as it is (no merging, no orientation): the
     light structure for many queries on a large surface or a one-off measure against one.
 
-    Candidates are the triangles of the k nearest centroids (a k-d tree), projected exactly
-    (`_closest_over_candidates`, `point_triangle` over each point's candidates). A triangle whose centroid lies c from the point is at least
-    c - r away (r: the largest centroid-to-corner distance of the mesh), so the answer d is
-    exact when the k-th centroid lies beyond d + r; otherwise the test is made again with twice
-    the candidates, and where it still fails every triangle whose centroid lies within d + r is
-    projected. Zero-area triangles are left out (their edges belong to their
-    neighbours); `face` indices refer to the triangles as given."""
+    Every triangle is covered by pieces of radius (largest centroid-to-corner distance) at most
+    r0: a triangle up to r0 is its own piece, a larger one is cut at the midpoint of its
+    longest edge until its pieces are small enough (a sliver into a row of pieces, a broad
+    facet into a patch). A k-d tree holds the pieces' centroids. Candidates of a point are the
+    triangles of its k nearest pieces, projected exactly (`_closest_over_candidates`). The
+    answer d is exact when the k-th piece lies beyond d + r0: any triangle nearer than d has
+    its closest point in one of its pieces, whose centroid then lies within d + r0. Otherwise
+    the candidates are doubled until that holds. With r0 from the typical triangle, a surface
+    where large triangles lie beside small ones (a decimated CT skin: broad flat facets on the
+    cheek, fine ones round the nose) costs about what a uniform one does, and a large triangle
+    whose centroid is far from a point above its edge is still found.
+
+    Zero-area triangles are left out (their edges belong to their neighbours); `face` indices
+    refer to the triangles as given, and of triangles equally near (`TIE_REL`) the lowest
+    index wins."""
+
+    # r0 in median triangle radii: larger, fewer pieces but a looser bound (more doubling)
+    PIECE_RADIUS = 1.25
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
@@ -162,9 +173,10 @@ class TriangleTree:
         if not len(self.kept):
             raise ValueError("the mesh has no triangle of non-zero area")
         self.faces = np.ascontiguousarray(f[self.kept])
-        tri = tri[self.kept]
-        centroids = tri.mean(axis=1)
-        self.radius = float(np.linalg.norm(tri - centroids[:, None, :], axis=2).max())
+        corners = tri[self.kept]
+        self.radius = self.PIECE_RADIUS * float(np.median(_triangle_radii(corners)))
+        owner, centroids = _pieces(corners, self.radius)
+        self._owner = owner
         self._tree = cKDTree(centroids)
 
     def closest(self, points: np.ndarray, k: int = 16, max_distance: float = np.inf):
@@ -173,35 +185,55 @@ class TriangleTree:
         is itself beyond it)."""
         x = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         n = len(x)
-        kk = int(min(k, len(self.faces)))
-        dc, cand = self._tree.query(x, k=kk)
-        dc, cand = np.reshape(dc, (n, kk)), np.asarray(cand, np.int64).reshape(n, kk)
-        q, bary, face, d = _closest_over_candidates(x, self.vertices, self.faces, cand)
-        need = np.flatnonzero((dc[:, -1] - self.radius < d) & (dc[:, 0] - self.radius <= max_distance))
-        if not len(need) or kk >= len(self.faces):
-            return q, bary, self.kept[face], d
-        # first twice the candidates (vectorised queries, in chunks to bound the memory),
-        # then, for the points still unsure, every triangle whose centroid lies within d + r
-        # (ragged lists: a loop over those points only). A wider set holds the first
-        # candidates: the same answer or a better one.
-        k2 = int(min(2 * kk, len(self.faces)))
-        still = []
-        for chunk in np.array_split(need, -(-len(need) // 50_000)):
-            dc2, wide = self._tree.query(x[chunk], k=k2)
-            dc2, wide = np.reshape(dc2, (len(chunk), k2)), np.asarray(wide, np.int64).reshape(len(chunk), k2)
-            q[chunk], bary[chunk], face[chunk], d[chunk] = _closest_over_candidates(
-                x[chunk], self.vertices, self.faces, wide)
-            if k2 < len(self.faces):
-                still.append(chunk[dc2[:, -1] - self.radius < d[chunk]])
-        need = np.concatenate(still) if still else np.zeros(0, np.int64)
-        for chunk in np.array_split(need, -(-len(need) // 5_000)) if len(need) else ():
-            balls = self._tree.query_ball_point(x[chunk], d[chunk] + self.radius)
-            wide = np.full((len(chunk), max(1, max(len(b) for b in balls))), -1, np.int64)
-            for row, b in enumerate(balls):
-                wide[row, :len(b)] = b
-            q[chunk], bary[chunk], face[chunk], d[chunk] = _closest_over_candidates(
-                x[chunk], self.vertices, self.faces, wide)
+        m = len(self._owner)
+        kk = int(min(k, m))
+        dc, piece = self._tree.query(x, k=kk)
+        dc, piece = np.reshape(dc, (n, kk)), np.reshape(piece, (n, kk))
+        q, bary, face, d = _closest_over_candidates(x, self.vertices, self.faces, self._owner[piece])
+        need = np.flatnonzero(dc[:, -1] - self.radius < np.minimum(d, max_distance))
+        # widen: twice the candidates, and twice again, for the points still unsure (vectorised
+        # queries in chunks of bounded memory). A wider set holds the first candidates: the same
+        # answer or a better one. It ends when every point is certain or every piece is seen.
+        while len(need) and kk < m:
+            kk = int(min(2 * kk, m))
+            still = []
+            for chunk in np.array_split(need, -(-len(need) * kk // 2_000_000)):
+                dc, piece = self._tree.query(x[chunk], k=kk)
+                dc, piece = np.reshape(dc, (len(chunk), kk)), np.reshape(piece, (len(chunk), kk))
+                q[chunk], bary[chunk], face[chunk], d[chunk] = _closest_over_candidates(
+                    x[chunk], self.vertices, self.faces, self._owner[piece])
+                still.append(chunk[dc[:, -1] - self.radius < np.minimum(d[chunk], max_distance)])
+            need = np.concatenate(still)
         return q, bary, self.kept[face], d
+
+
+def _triangle_radii(corners: np.ndarray) -> np.ndarray:
+    """Largest centroid-to-corner distance of each triangle (m, 3, 3)."""
+    return np.linalg.norm(corners - corners.mean(axis=1)[:, None, :], axis=2).max(axis=1)
+
+
+def _pieces(corners: np.ndarray, r0: float):
+    """(owner, centroid) of pieces of radius <= r0 covering the triangles (m, 3, 3): each
+    triangle over r0 is cut at the midpoint of its longest edge, and its halves likewise."""
+    owner = np.arange(len(corners))
+    done_owner, done_centroid = [], []
+    tri = corners
+    while len(tri):
+        small = _triangle_radii(tri) <= r0
+        done_owner.append(owner[small])
+        done_centroid.append(tri[small].mean(axis=1))
+        tri, owner = tri[~small], owner[~small]
+        if not len(tri):
+            break
+        # longest edge (i, i+1), opposite corner i+2: two halves sharing its midpoint
+        edge = np.linalg.norm(tri - np.roll(tri, -1, axis=1), axis=2)
+        i = np.argmax(edge, axis=1)
+        rows = np.arange(len(tri))
+        a, b, c = tri[rows, i], tri[rows, (i + 1) % 3], tri[rows, (i + 2) % 3]
+        mid = 0.5 * (a + b)
+        tri = np.concatenate([np.stack([a, mid, c], axis=1), np.stack([mid, b, c], axis=1)])
+        owner = np.concatenate([owner, owner])
+    return np.concatenate(done_owner), np.concatenate(done_centroid)
 
 
 def triangulate(facets: np.ndarray) -> np.ndarray:

@@ -111,9 +111,7 @@ class Alignment:
 
 def _pairs(reference: TriangleSurface, x: np.ndarray, allowed_faces: np.ndarray | None,
            gate: float, keep: float):
-    # 4 nearest vertices suffice while iterating (points are close to the surface); the
-    # final distances use the exhaustive default
-    cp = reference.closest(x, k=4)
+    cp = reference.closest(x)
     ok = ~cp.on_boundary & (cp.distance <= gate)
     if allowed_faces is not None:
         ok &= allowed_faces[cp.face]
@@ -279,7 +277,7 @@ def global_initialisation(scan_points: np.ndarray, reference: TriangleSurface,
 def _face_coverage(pts: np.ndarray, reference: TriangleSurface, T: np.ndarray,
                    within: float = 2.0) -> float:
     """Fraction of the scan points lying within `within` mm of the face (not beyond its edge)."""
-    cp = reference.closest(apply(T, pts[:3000]), k=4)
+    cp = reference.closest(apply(T, pts[:3000]))
     return float(np.mean(~cp.beyond_boundary & (cp.distance <= within)))
 
 
@@ -361,7 +359,7 @@ def unoperated_width_scale_pct(aligned: np.ndarray, reference: TriangleSurface, 
     w_all = np.ones(len(x)) if weights is None else np.asarray(weights, float)
     total, stderr, centre = 0.0, float("nan"), None
     for _ in range(iterations):
-        cp = reference.closest(x, k=4)
+        cp = reference.closest(x)
         sel = allowed[cp.face] & ~cp.beyond_boundary & (cp.distance <= gate)
         if sel.sum() < 50:
             return (float("nan"), float("nan"), True) if centre is None else (-100.0 * total, stderr, False)

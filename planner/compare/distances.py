@@ -1,9 +1,9 @@
 """Closest points and signed point-to-surface distances on triangle meshes.
 
-For every query point the exact closest point on a triangulated surface is found: the k nearest
-surface vertices (scipy cKDTree) give candidate triangles (those incident to them), and for each
-candidate the closest point on the triangle is computed with the Voronoi-region case analysis of
-Ericson, *Real-Time Collision Detection* (2005), sect. 5.1.5 (numba kernel). The distance is
+For every query point the exact closest point on a triangulated surface is found
+(`solver.geometry.TriangleTree`: candidate triangles from a k-d tree of their centroids, each
+projected with the Voronoi-region case analysis of Ericson, *Real-Time Collision Detection*
+(2005), sect. 5.1.5, the search widened until no other triangle can be nearer). The distance is
 signed with the normal interpolated (barycentric) from area-weighted vertex normals at the
 closest point: positive when the query point lies on the outer side of the surface. A closest
 point that lies on a boundary edge or boundary vertex of the surface is flagged, and so is a
@@ -16,63 +16,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
-import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
-from solver.geometry import point_triangle
+from solver.geometry import TriangleTree
 
 __all__ = ["TriangleSurface", "ClosestPoints", "vertex_areas"]
-
-
-@numba.njit(cache=True, inline="always")
-def _closest_on_triangle(p, a, b, c):
-    """Closest point to p on triangle abc: barycentric weights (wa, wb, wc) (the shared
-    Ericson kernel, `solver.geometry.point_triangle`, on 3-vectors)."""
-    _, _, _, wa, wb, wc, _ = point_triangle(p[0], p[1], p[2], a[0], a[1], a[2],
-                                            b[0], b[1], b[2], c[0], c[1], c[2])
-    return wa, wb, wc
-
-
-@numba.njit(cache=True, parallel=False)
-def _closest_kernel(points, vertices, faces, vf_ptr, vf_idx, near):
-    n = points.shape[0]
-    best_face = np.empty(n, np.int64)
-    best_bary = np.empty((n, 3))
-    best_d2 = np.empty(n)
-    for i in range(n):
-        p = points[i]
-        bd = np.inf
-        bf = -1
-        b0 = 1.0
-        b1 = 0.0
-        b2 = 0.0
-        for j in range(near.shape[1]):
-            v = near[i, j]
-            if v < 0:
-                continue
-            for q in range(vf_ptr[v], vf_ptr[v + 1]):
-                f = vf_idx[q]
-                a = vertices[faces[f, 0]]
-                b = vertices[faces[f, 1]]
-                c = vertices[faces[f, 2]]
-                wa, wb, wc = _closest_on_triangle(p, a, b, c)
-                x0 = wa * a[0] + wb * b[0] + wc * c[0] - p[0]
-                x1 = wa * a[1] + wb * b[1] + wc * c[1] - p[1]
-                x2 = wa * a[2] + wb * b[2] + wc * c[2] - p[2]
-                d2 = x0 * x0 + x1 * x1 + x2 * x2
-                if d2 < bd:
-                    bd = d2
-                    bf = f
-                    b0 = wa
-                    b1 = wb
-                    b2 = wc
-        best_face[i] = bf
-        best_bary[i, 0] = b0
-        best_bary[i, 1] = b1
-        best_bary[i, 2] = b2
-        best_d2[i] = bd
-    return best_face, best_bary, best_d2
 
 
 @dataclass(frozen=True)
@@ -104,18 +52,8 @@ class TriangleSurface:
             raise ValueError("a surface needs at least one triangle")
 
     @cached_property
-    def tree(self) -> cKDTree:
-        return cKDTree(self.vertices)
-
-    @cached_property
-    def _vertex_faces(self) -> tuple[np.ndarray, np.ndarray]:
-        n = len(self.vertices)
-        flat = self.faces.ravel()
-        order = np.argsort(flat, kind="stable")
-        counts = np.bincount(flat, minlength=n)
-        ptr = np.zeros(n + 1, np.int64)
-        np.cumsum(counts, out=ptr[1:])
-        return ptr, (order // 3).astype(np.int64)
+    def _tree(self) -> TriangleTree:
+        return TriangleTree(self.vertices, self.faces)
 
     @cached_property
     def face_normals(self) -> np.ndarray:
@@ -172,20 +110,14 @@ class TriangleSurface:
         f = self.faces
         return float(np.mean(np.linalg.norm(v[f[:, [1, 2, 0]]] - v[f], axis=2)))
 
-    def closest(self, points: np.ndarray, k: int = 8) -> ClosestPoints:
-        """Exact closest points on the surface (candidates: triangles around k nearest vertices)."""
+    def closest(self, points: np.ndarray, k: int = 16) -> ClosestPoints:
+        """Exact closest points on the surface (`solver.geometry.TriangleTree`)."""
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-        k = int(min(k, len(self.vertices)))
-        _, near = self.tree.query(points, k=k, workers=-1)
-        near = np.asarray(near, dtype=np.int64).reshape(len(points), k)
-        near[near >= len(self.vertices)] = -1
-        ptr, idx = self._vertex_faces
-        face, bary, d2 = _closest_kernel(points, self.vertices, self.faces, ptr, idx, near)
+        _, bary, face, distance = self._tree.closest(points, k=k)
         corners = self.vertices[self.faces[face]]                  # (p, 3, 3)
         point = np.einsum("pk,pki->pi", bary, corners)
         normal = np.einsum("pk,pki->pi", bary, self.vertex_normals[self.faces[face]])
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
-        distance = np.sqrt(d2)
         side = np.einsum("pi,pi->p", points - point, normal)
         signed = np.where(side < 0, -distance, distance)
         # on the boundary: on a boundary edge (the weight of the opposite corner is 0) or at a

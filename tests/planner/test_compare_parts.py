@@ -32,6 +32,29 @@ def test_closest_points_match_trimesh():
     assert not cp.on_boundary.any()
 
 
+def test_closest_points_are_exact_beside_large_triangles():
+    # A decimated CT skin: broad facets beside fine ones. Above a 40 mm facet near a fine grid
+    # the nearest vertices and centroids are the grid's; the closest triangle is the facet.
+    # The comparison's surface must still find it (trimesh, every triangle a candidate, is
+    # the reference).
+    xs = np.arange(0.0, 10.01, 0.5)
+    gx, gy = np.meshgrid(xs + 41.0, xs)
+    n = len(xs)
+    grid = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+    i = np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :] + 3
+    fine = np.vstack([np.column_stack([i.ravel(), i.ravel() + 1, i.ravel() + n]),
+                      np.column_stack([i.ravel() + 1, i.ravel() + n + 1, i.ravel() + n])])
+    v = np.vstack([[[0.0, 0.0, 0.0], [40.0, 0.0, 0.0], [0.0, 40.0, 0.0]], grid])
+    f = np.vstack([[[0, 1, 2]], fine])
+    rng = np.random.default_rng(5)
+    pts = np.column_stack([rng.uniform(-5, 55, 400), rng.uniform(-5, 45, 400), rng.uniform(-1, 1, 400)])
+    pts[:3] = [[35.0, 2.0, 0.1], [20.0, 12.0, 0.1], [30.0, 5.0, -0.3]]
+    _, ref_d, _ = trimesh.proximity.closest_point(trimesh.Trimesh(v, f, process=False), pts)
+    np.testing.assert_allclose(ref_d[:3], [0.1, 0.1, 0.3], atol=1e-12)
+    # exact on both sides: the same distances to round-off
+    np.testing.assert_allclose(TriangleSurface(v, f).closest(pts).distance, ref_d, atol=1e-9)
+
+
 def test_boundary_flags_and_sign_on_a_flat_patch():
     xs = np.arange(0.0, 11.0)
     X, Y = np.meshgrid(xs, xs)

@@ -6,7 +6,9 @@
 * deepest_concavity: on a profile with a V-notch cut into a straight front the deepest point is
   the notch's tip and the spanning hull edge joins the notch's rims, exactly.
 * TriangleTree: on a fine sphere beside a few huge triangles (nearest centroids alone miss the
-  large ones) its distances equal every-triangle brute force to rounding (1e-9 mm).
+  large ones), and on a surface whose triangle sizes span three orders of magnitude (grouped
+  into pieces), its distances equal every-triangle brute force to rounding (1e-9 mm),
+  and within `max_distance` where that is given.
 """
 import numpy as np
 import trimesh
@@ -69,3 +71,30 @@ def test_triangle_tree_is_exact_with_mixed_triangle_sizes():
     # the same distance to rounding (1e-9 mm at these sizes); the point on its triangle
     assert np.allclose(d, d0, atol=1e-9)
     assert np.allclose(np.einsum("nk,nkd->nd", bary, v[f[face]]), q, atol=1e-9)
+
+
+def test_triangle_tree_levels_are_exact_over_many_sizes():
+    # a wavy sheet whose cells grow geometrically from 0.05 mm to ~50 mm along x: several size
+    # levels, each triangle's neighbours of another size
+    edges = 0.05 * 1.35 ** np.arange(24)
+    xs = np.concatenate([[0.0], np.cumsum(edges)])
+    ys = np.linspace(0.0, 60.0, 13)
+    gx, gy = np.meshgrid(xs, ys)
+    v = np.column_stack([gx.ravel(), gy.ravel(), 2.0 * np.sin(gx.ravel() / 15.0)])
+    nx = len(xs)
+    i = (np.arange(len(ys) - 1)[:, None] * nx + np.arange(nx - 1)[None, :]).ravel()
+    f = np.vstack([np.column_stack([i, i + 1, i + nx]), np.column_stack([i + 1, i + nx + 1, i + nx])])
+    tree = geometry.TriangleTree(v, f)
+    assert len(tree._owner) > len(f)             # the large cells are cut into pieces
+    rng = np.random.default_rng(11)
+    p = np.column_stack([rng.uniform(-5, xs[-1] + 5, 600), rng.uniform(-5, 65, 600), rng.uniform(-6, 6, 600)])
+    p[:200, 0] = rng.uniform(0.0, 3.0, 200)          # crowd the smallest cells
+    q, bary, face, d = tree.closest(p, k=4)
+    q0, _, _, d0 = _brute_closest(np.ascontiguousarray(v, float), np.ascontiguousarray(f, np.int64), p)
+    assert np.allclose(d, d0, atol=1e-9)
+    assert np.allclose(np.einsum("nk,nkd->nd", bary, v[f[face]]), q, atol=1e-9)
+    # exact within max_distance; beyond it an upper bound that is itself beyond it
+    _, _, _, dm = tree.closest(p, k=4, max_distance=1.0)
+    near = d0 <= 1.0
+    assert near.sum() > 50 and np.allclose(dm[near], d0[near], atol=1e-9)
+    assert np.all(dm[~near] > 1.0)

@@ -7,9 +7,9 @@ sign a distance with pseudo-normals (contact) or tell boundary points (registrat
 `closest_on_triangle` is its form on (3,) arrays, `closest_point_on_triangles` its row-by-row
 form on (k, 3) arrays; `TriangleTree` answers exact closest points on a whole triangle mesh
 (candidate triangles from a k-d tree of pieces of bounded size that cover them, widened
-until the answer is provably the nearest); `triangulate` splits quads into triangles. `deepest_concavity` finds,
-on a planar polyline, the point deepest behind the convex-hull edge (bitangent) that spans a
-concavity.
+until the answer is provably the nearest); `triangulate` splits quads into triangles;
+`deepest_concavity` finds, on a planar polyline, the point deepest behind the convex-hull edge
+(bitangent) that spans a concavity.
 """
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
 """Closest points and signed point-to-surface distances on triangle meshes.
 
 For every query point the exact closest point on a triangulated surface is found
-(`solver.geometry.TriangleTree`: candidate triangles from a k-d tree of their centroids, each
-projected with the Voronoi-region case analysis of Ericson, *Real-Time Collision Detection*
+(`solver.geometry.TriangleTree`: candidate triangles from a k-d tree of pieces that cover
+them, each projected with the Voronoi-region case analysis of Ericson, *Real-Time Collision Detection*
 (2005), sect. 5.1.5, the search widened until no other triangle can be nearer). The distance is
 signed with the normal interpolated (barycentric) from area-weighted vertex normals at the
 closest point: positive when the query point lies on the outer side of the surface. A closest

@@ -109,6 +109,11 @@ def add_arguments(parser) -> None:
                         help="time budget of each case's truth solves: a case whose solves are still "
                              "running after M minutes (a plan creeping at a limit point of the lips) "
                              "fails with the load it reached (default: no limit)")
+    parser.add_argument("--solve-log", default=None, metavar="DIR",
+                        help="write each case's truth solves (its stages and every Newton iteration, "
+                             "as they run, and the failure of a case that fails) to DIR/CASE.log; the "
+                             "lines name the withheld effect, so DIR must lie outside --out, as the "
+                             "key does")
     parser.add_argument("--ct", action="store_true", help="also write a CT-like volume preop/ct.nii.gz")
     parser.add_argument("--ct-spacing", type=float, default=1.0, help="CT voxel size in mm (default 1)")
     parser.add_argument("--surface-size", type=float, default=1.0,
@@ -166,6 +171,18 @@ def _check(args) -> None:
     if args.head_family == "alt" and (args.surface_size != 1.0 or args.mesher != "sphere"):
         raise InputError("--surface-size and --mesher apply to faceplan's own head family only",
                          field="--head-family")
+    if args.solve_log is not None:
+        if args.withheld_effect is None:
+            raise InputError("--solve-log needs --withheld-effect: without a post-op scan there is no "
+                             "truth solve to log", field="--solve-log")
+        log_dir, out = Path(args.solve_log).resolve(), Path(args.out).resolve()
+        if log_dir == out or out in log_dir.parents:
+            raise InputError("--solve-log lies inside --out: its lines name the withheld effect, so it "
+                             "must be kept apart from the case folders (as the key is)",
+                             file=str(args.solve_log), field="--solve-log")
+        if log_dir.exists() and not log_dir.is_dir():
+            raise InputError("--solve-log exists and is not a folder", file=str(args.solve_log),
+                             field="--solve-log")
     if args.case_max_minutes is not None and not args.case_max_minutes > 0:
         raise InputError(f"--case-max-minutes must be > 0, got {args.case_max_minutes}",
                          field="--case-max-minutes")
@@ -532,13 +549,22 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     from planner.pipeline import solve_plan as _solve_plan
     from planner.plan import load_plan, parse_plan
 
-    def solve_plan(*a, **kw):
+    # one progress clock for the whole case: its lines (stages, each truth solve's Newton
+    # iterations) then read as one time line
+    progress = None if log is None else Progress(echo=log)
+
+    def say(message):
+        if progress is not None:
+            progress.say(message)
+
+    def solve_plan(*a, what: str, **kw):
         left = None
         if deadline is not None:
             left = deadline - time.perf_counter()
             if left <= 0.0:
                 raise SolveError(f"{Path(folder).name}: the case's time budget is spent before its next solve")
-        return _solve_plan(*a, progress=None if log is None else Progress(echo=log), max_seconds=left, **kw)
+        say(f"truth solve: {what}" + ("" if left is None else f" (budget left {left:.0f} s)"))
+        return _solve_plan(*a, progress=progress, max_seconds=left, **kw)
 
     folder = Path(folder)
     rng = _rng(seed)
@@ -564,6 +590,8 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     timings = {} if timings is None else timings
     companion = REGISTERED_AT.get(truth_resolution, truth_resolution)
     clock = time.perf_counter()
+    say(f"truth model: registering the perturbed generic model (layers dermis x{dermis:.3f}, deep "
+        f"x{deep:.3f}; moduli x{json.dumps(mat_record['modulus_factors'])}; neck {neck}) at {companion}")
     try:
         patient, _ = registration.mesh_match_and_repair(
             perturbed(companion), case.skin, case.bones, landmarks=case.landmarks or None,
@@ -571,15 +599,19 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     except (reg_errors.RegistrationInputError, reg_errors.RegistrationFailure) as exc:
         raise SolveError(f"{folder.name}: registration of the truth model failed: {exc}") from exc
     timings[f"register_{companion}_s"] = time.perf_counter() - clock
+    say(f"truth model: registered in {timings[f'register_{companion}_s']:.1f} s")
     finer = None
     if companion != truth_resolution:
         # the value is set, and its skin change measured, on the registered model; the finer
         # truth is solved once, with the value found (the scan is made from it)
         clock = time.perf_counter()
-        finer, _, _ = prolonged_patient(perturbed(truth_resolution), perturbed(companion), patient)
+        finer, _, carried = prolonged_patient(perturbed(truth_resolution), perturbed(companion), patient)
         timings[f"carry_to_{truth_resolution}_s"] = time.perf_counter() - clock
+        say(f"truth model: carried to {truth_resolution} ({carried['nodes']} nodes) in "
+            f"{timings[f'carry_to_{truth_resolution}_s']:.1f} s")
     clock = time.perf_counter()
-    base = solve_plan(patient, truth_plan, case.bones, follow_up_months=fu)
+    base = solve_plan(patient, truth_plan, case.bones, follow_up_months=fu,
+                      what=f"the plan without the effect on the {companion} model")
     timings["solve_base_s"] = time.perf_counter() - clock
     solves = [_solve_record("base", base)]
     timings["solves"] = solves
@@ -617,7 +649,8 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
         try:
             # from the base solution: the effect changes the problem by a little
             out = solve_plan(patient, truth_plan, case.bones, effects=eff, plan_actual=plan_actual,
-                             follow_up_months=fu, guess=base.displacement)
+                             follow_up_months=fu, guess=base.displacement,
+                             what=f"with {json.dumps(eff.as_dict())} on the {companion} model")
         finally:
             timings["solve_effect_s"] = timings.get("solve_effect_s", 0.0) + time.perf_counter() - clock
         solves.append(_solve_record("effect", out))
@@ -662,7 +695,8 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
         clock = time.perf_counter()
         try:
             pred = solve_plan(finer, truth_plan, case.bones, effects=effects, plan_actual=plan_actual,
-                              follow_up_months=fu)
+                              follow_up_months=fu,
+                              what=f"with {json.dumps(effects.as_dict())} on the {truth_resolution} model")
         except SolveError as exc:
             raise SolveError(f"{folder.name}: the {truth_resolution} truth solve failed "
                              f"(effects {json.dumps(effects.as_dict())}): {exc}") from exc
@@ -732,10 +766,37 @@ def make_case(root: str, seed: int, options: dict) -> dict:
               "shape": rec["shape"], "plan": rec["plan"]}
     if withheld is not None:
         budget = options.get("case_max_minutes")
-        record.update(make_postop(str(target), seed, tuple(withheld), options["truth_resolution"],
-                                  contact=options.get("contact", True), neck=options.get("truth_neck", "free"),
-                                  deadline=None if budget is None else start + 60.0 * float(budget)))
+        with _SolveLog(options.get("solve_log"), name) as log:
+            record.update(make_postop(str(target), seed, tuple(withheld), options["truth_resolution"],
+                                      contact=options.get("contact", True), neck=options.get("truth_neck", "free"),
+                                      deadline=None if budget is None else start + 60.0 * float(budget),
+                                      log=log))
     return record
+
+
+class _SolveLog:
+    """`--solve-log`: a context giving the callable that writes one case's truth-solve lines to
+    `folder`/`name`.log as they come (line-buffered, so that a creeping solve can be followed
+    with `tail -f`), or None without a folder. A case that fails ends its log with the failure;
+    the exception goes on."""
+
+    def __init__(self, folder, name: str):
+        self.path = None if folder is None else Path(folder) / f"{name}.log"
+        self.fh = None
+
+    def __enter__(self):
+        if self.path is None:
+            return None
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.fh = open(self.path, "w", buffering=1, encoding="utf-8")
+        return lambda line: self.fh.write(line + "\n")
+
+    def __exit__(self, exc_type, exc, tb):
+        if self.fh is not None:
+            if exc is not None:
+                self.fh.write(f"failed: {type(exc).__name__}: {exc}\n")
+            self.fh.close()
+        return False
 
 
 def run_cases(root: Path, seeds: list, options: dict, scheduler: str | None, workers: int,
@@ -777,7 +838,8 @@ def run(args) -> int:
     options = {"withheld": parse_withheld(args.withheld_effect), "truth_resolution": args.truth_resolution,
                "surface_size": args.surface_size, "mesher": args.mesher, "ct": args.ct,
                "ct_spacing": args.ct_spacing, "case_max_minutes": args.case_max_minutes,
-               "truth_neck": args.truth_neck, "head_family": args.head_family}
+               "truth_neck": args.truth_neck, "head_family": args.head_family,
+               "solve_log": None if args.solve_log is None else str(Path(args.solve_log).resolve())}
     seeds = [args.seed + i for i in range(args.count)]
     with atomic_output_dir(out) as tmp:
         if out.is_dir():          # keep what the folder already holds

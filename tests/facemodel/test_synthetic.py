@@ -116,13 +116,17 @@ def test_synth_command_writes_case_folders(tmp_path):
 
 
 @pytest.mark.parametrize("argv", [["--withheld-effect", "wind"], ["--withheld-effect", "swelling=9"],
-                                  ["--count", "0"], ["--seed", "-1"], ["--case-max-minutes", "0"]])
+                                  ["--count", "0"], ["--seed", "-1"], ["--case-max-minutes", "0"],
+                                  # no truth solve to log; a log inside --out names the effect
+                                  ["--solve-log", "LOGS"],
+                                  ["--withheld-effect", "none", "--solve-log", "OUT/logs"]])
 def test_synth_refuses_bad_input(tmp_path, argv):
     from planner.cli import main
 
     out = tmp_path / "cases"
+    argv = [a.replace("OUT", str(out)).replace("LOGS", str(tmp_path / "logs")) for a in argv]
     assert main(["synth", "--out", str(out), *argv]) == 2
-    assert not out.exists()
+    assert not out.exists() and not (tmp_path / "logs").exists()
 
 
 @pytest.mark.parametrize("shape", [

@@ -327,6 +327,31 @@ def test_a_case_over_its_time_budget_fails_before_its_next_solve(tmp_path):
         synth.make_case(str(tmp_path), 23, opts)
 
 
+def test_the_solve_log_follows_a_case_and_ends_with_its_failure(tmp_path):
+    """`faceplan synth --solve-log DIR`: a case's truth stages and every Newton iteration of its
+    solves go to DIR/CASE.log as they run, on one clock; a case that fails ends its log with
+    the failure (here a budget spent by the registration), and the failure still propagates."""
+    import re
+
+    opts = {"withheld": ("muscle_tone", {"muscle_tone": 0.05}), "truth_resolution": "coarse",
+            "surface_size": 4.0, "mesher": "sphere", "ct": False, "ct_spacing": 1.0, "contact": False,
+            "solve_log": str(tmp_path / "logs")}
+    synth.make_case(str(tmp_path / "ok"), 23, opts)
+    lines = (tmp_path / "logs" / "synth_0023.log").read_text().splitlines()
+    assert lines[0].endswith("at coarse") and "registered in" in lines[1]
+    solves = [k for k, line in enumerate(lines) if "truth solve:" in line]
+    assert len(solves) == 2 and "without the effect" in lines[solves[0]]
+    assert '"muscle_tone": 0.05' in lines[solves[1]]
+    newton = [line for line in lines if re.search(r"step \d+ load [\d.]+ it \d+ \|R\|", line)]
+    assert len(newton) >= 4 and "load 1.000" in newton[-1]
+    clock = [float(re.match(r"\[\s*([\d.]+) s\]", line).group(1)) for line in lines]
+    assert clock == sorted(clock)                  # one clock for the case, not one per solve
+    with pytest.raises(SolveError, match="time budget is spent"):
+        synth.make_case(str(tmp_path / "late"), 23, {**opts, "case_max_minutes": 1e-6})
+    assert (tmp_path / "logs" / "synth_0023.log").read_text().splitlines()[-1].startswith(
+        "failed: SolveError:")
+
+
 def test_a_head_of_the_other_family_is_a_case_whose_plan_follows_its_bones(tmp_path):
     """`faceplan synth --head-family alt`: a head of the second generator written as a case
     folder that loads (no teeth), its plan drawn from its own bones within `bone_plan`'s

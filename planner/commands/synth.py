@@ -564,7 +564,8 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
             if left <= 0.0:
                 raise SolveError(f"{Path(folder).name}: the case's time budget is spent before its next solve")
         say(f"truth solve: {what}" + ("" if left is None else f" (budget left {left:.0f} s)"))
-        return _solve_plan(*a, progress=progress, max_seconds=left, **kw)
+        with _records_to(progress):
+            return _solve_plan(*a, progress=progress, max_seconds=left, **kw)
 
     folder = Path(folder)
     rng = _rng(seed)
@@ -772,6 +773,39 @@ def make_case(root: str, seed: int, options: dict) -> dict:
                                       deadline=None if budget is None else start + 60.0 * float(budget),
                                       log=log))
     return record
+
+
+class _records_to:
+    """Within the context, the solver's and the face model's warnings (a load step cut back,
+    continuation switched on, the soft-contact fallback) also go to `progress` (a
+    `planner.pipeline.Progress`, or None: nothing), on its clock."""
+
+    LOGGERS = ("solver", "facemodel")
+
+    def __init__(self, progress):
+        import logging
+
+        self.handler = None
+        if progress is not None:
+            class _Handler(logging.Handler):
+                def emit(self, record):
+                    progress.say(f"{record.levelname.lower()}: {record.getMessage()}")
+
+            self.handler = _Handler(level=logging.WARNING)
+
+    def __enter__(self):
+        import logging
+
+        for name in self.LOGGERS if self.handler is not None else ():
+            logging.getLogger(name).addHandler(self.handler)
+        return self
+
+    def __exit__(self, *exc):
+        import logging
+
+        for name in self.LOGGERS if self.handler is not None else ():
+            logging.getLogger(name).removeHandler(self.handler)
+        return False
 
 
 class _SolveLog:

@@ -352,6 +352,25 @@ def test_the_solve_log_follows_a_case_and_ends_with_its_failure(tmp_path):
         "failed: SolveError:")
 
 
+def test_the_solve_log_takes_the_solvers_warnings_while_a_truth_solves():
+    """A load step cut back or a fallback is a warning of the solver or the face model: within
+    a truth solve it also goes to the case's log, on its clock; not outside one, and not the
+    records below warning."""
+    import logging
+
+    from planner.pipeline import Progress
+
+    lines = []
+    progress = Progress(echo=lines.append)
+    with synth._records_to(progress):
+        logging.getLogger("solver.newton").warning("step %d failed at load %.4g", 3, 0.75)
+        logging.getLogger("facemodel.simulation").warning("the face solve failed")
+        logging.getLogger("solver.newton").info("an info record")
+    logging.getLogger("solver.newton").warning("outside")
+    assert [line.split("] ", 1)[1] for line in lines] == [
+        "warning: step 3 failed at load 0.75", "warning: the face solve failed"]
+
+
 def test_a_head_of_the_other_family_is_a_case_whose_plan_follows_its_bones(tmp_path):
     """`faceplan synth --head-family alt`: a head of the second generator written as a case
     folder that loads (no teeth), its plan drawn from its own bones within `bone_plan`'s

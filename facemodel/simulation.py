@@ -295,7 +295,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     largest lip/teeth penetration accepted (mm). guess: the displacement field (n, 3) of a
     nearby solution on this model (the same case with other effect values): the full load is
     solved from it first, the load stepped only if that fails (`solver.newton.newton_solve`).
-    max_seconds: the solve's wall-clock budget (`SolverControl.max_seconds`; None: none).
+    max_seconds: the solve's wall-clock budget (`SolverControl.max_seconds`; None: none),
+    shared with the soft-contact fallbacks below (`FaceSolverSettings.fallback_budget_share`).
     neck: "free" (default) or "held", the boundary condition of the neck cut (module text).
     Raises `facemodel.errors.ModelInputError` (a
     ValueError) for motions, activations, materials or model parts it cannot use (contact
@@ -337,8 +338,17 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
                             callback=callback, guess=None if guess is None else X + np.asarray(guess, float))
 
     fallback = None
+    factors = tuple(FACE_SOLVER.fallback_lip_penalties or ()) if "lip_contact" in terms else ()
+
+    def budget(last: bool):
+        # each attempt but the last gets a share of what is left (`fallback_budget_share`)
+        if max_seconds is None:
+            return None
+        left = max_seconds - (time.perf_counter() - t0)
+        return left if last else FACE_SOLVER.fallback_budget_share * left
+
     try:
-        res = solve(body, constraints, terms, extra, lip_size, max_seconds)
+        res = solve(body, constraints, terms, extra, lip_size, budget(not factors))
     except SolveFailed as failure:
         # typically a final lip contact state the augmentations cannot reach (the stomion
         # corner pinched between the incisors and the other lip: docs/solver_control.md); any
@@ -346,10 +356,9 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
         # `FaceSolverSettings.fallback_lip_penalties` in turn, the final load left at the
         # penalty solution ("carried_penalty"); the penetration that leaves is reported
         # (contact_unmet_mm) and so is the fallback. Failing every one, the first failure stands.
-        factors = tuple(FACE_SOLVER.fallback_lip_penalties or ()) if "lip_contact" in terms else ()
         attempts = []
-        for f in factors:
-            left = None if max_seconds is None else max_seconds - (time.perf_counter() - t0)
+        for n, f in enumerate(factors):
+            left = budget(n == len(factors) - 1)
             if left is not None and left <= 0.0:
                 break
             factor = f * FACE_SOLVER.lip_penalty

@@ -71,6 +71,11 @@ class FaceSolverSettings:
     seeds 1016 and 1017 at standard), the softer penalty passes the corner; only the final
     augmentations fail there (docs/solver_control.md). At 0.03 the lips already end about 1 mm
     inside each other (held-out seed 1017's face scan), so the sequence ends there.
+    fallback_budget_share: with a wall-clock budget, each solve of that sequence but the last
+    gets this share of what is left of it (the nominal half, the first fallback a quarter, the
+    second the rest), so that a nominal solve creeping at a limit point of the lips cannot
+    spend the whole budget before the softer contact is tried; without a budget, or without
+    fallbacks, the one solve has all of it.
     """
 
     rtol: float = 1e-6
@@ -87,6 +92,7 @@ class FaceSolverSettings:
     lip_edge_release: float = 0.0
     lip_penalty: float = 1.0
     fallback_lip_penalties: tuple = (0.1, 0.03)
+    fallback_budget_share: float = 0.5
 
     def max_increment(self, lip_size: float | None, teeth_advance: float = 0.0) -> float:
         """The increment limit (mm) of a contact node: `increment_fraction` of the lip facets'

@@ -274,6 +274,43 @@ def test_a_failed_fallback_is_made_again_softer(face, seed7_motions, monkeypatch
     assert "forced failure 2" in fb["softer_attempts_failed"][0]["reason"]
 
 
+def test_a_budget_is_shared_so_that_the_fallbacks_are_tried(face, seed7_motions, monkeypatch):
+    """With a wall-clock budget, a nominal solve that creeps must not spend all of it before the
+    softer contact is tried: the nominal gets FACE_SOLVER.fallback_budget_share (half) of the
+    budget, the first fallback that share of what is left, the last all that is left."""
+    from facemodel.simulation import FACE_SOLVER
+    from facemodel.teeth import clear_teeth
+
+    import facemodel.simulation as fs
+    from solver.errors import SolveFailed
+
+    model, _ = clear_teeth(face)
+    budgets = []
+
+    real = fs.newton_solve
+
+    def newton(body, constraints, terms, **kw):
+        budgets.append(kw["control"].max_seconds)
+        if len(budgets) <= 2:
+            raise SolveFailed("forced failure", step=5, load=0.9, last_converged_load=0.8)
+        return real(body, constraints, terms, **kw)
+
+    monkeypatch.setattr(fs, "newton_solve", newton)
+    B, share = 600.0, FACE_SOLVER.fallback_budget_share
+    res = simulate(model, seed7_motions, {}, max_seconds=B)
+    assert res.converged and len(budgets) == 3
+    # the forced failures take no time, so each attempt but the last gets the share of nearly
+    # the whole budget (to the seconds the set-up between the solves takes), the last all of it
+    assert budgets[0] == pytest.approx(share * B, abs=1.0)
+    assert budgets[1] == pytest.approx(share * B, abs=5.0)
+    assert budgets[2] == pytest.approx(B, abs=5.0)
+    # without lip contact there is no fallback, and the one solve has the whole budget
+    budgets.clear()
+    monkeypatch.setattr(fs, "newton_solve", lambda *a, **kw: budgets.append(kw["control"].max_seconds) or real(*a, **kw))
+    simulate(face, seed7_motions, {}, contact=False, max_seconds=B)
+    assert budgets == [pytest.approx(B, abs=1.0)]
+
+
 def test_when_every_fallback_fails_the_first_failure_is_raised(face, seed7_motions, monkeypatch):
     from facemodel.simulation import FACE_SOLVER
     from solver.errors import SolveFailed

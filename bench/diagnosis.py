@@ -2,7 +2,7 @@
 
 The cohort comes from seeds used nowhere else (default 9901..., the `none` cases from the seed +
 500; seeds already taken by reported runs: 9101-9103, 9201-9202, 9501-9510, 9601, 9701,
-9801-9804, 10001-10003, 10301-10302 and the cohorts of docs/diagnosis.md, 10401-16212, each
+9801-9804, 10001-10003, 10301-10302 and the cohorts of docs/diagnosis.md, 10401-18206, each
 with its `none` seeds): `--random` cases with a random
 withheld effect and `--none` cases without any, written by `faceplan synth --withheld-effect
 random|none --key KEY` (its perturbed generic model on a finer mesh, scan-like surfaces), one
@@ -45,7 +45,7 @@ def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minu
     cmd = [sys.executable, "-m", "planner.cli", "synth", "--out", str(out), "--count", "1", "--seed", str(seed),
            "--withheld-effect", kind, "--key", str(root / kind / f"key_{seed}.json"),
            "--truth-resolution", truth_resolution, "--workers", "1", "--truth-neck", neck,
-           "--head-family", family]
+           "--head-family", family, "--solve-log", str(root / kind / "solve_logs")]
     if max_minutes:
         cmd += ["--case-max-minutes", str(max_minutes)]
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]) + os.pathsep
@@ -94,7 +94,8 @@ def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: s
             print(f"seed {s} ({kind}): not made yet; left out of this run", file=sys.stderr)
             continue
         if not kf.exists():
-            print(f"seed {s} ({kind}): faceplan synth could not make the case (see {kind}/synth_{s}.log); "
+            print(f"seed {s} ({kind}): faceplan synth could not make the case (see {kind}/synth_{s}.log and "
+                  f"{kind}/solve_logs/synth_{s:04d}.log); "
                   "left out", file=sys.stderr)
             continue
         for r in json.loads(kf.read_text()):
@@ -213,6 +214,8 @@ def main_bench(argv=None) -> int:
                          "differently built family without teeth, anatomy the method was not made on)")
     ap.add_argument("--boundary-uncertainty", default="neck", choices=("neck", "none"),
                     help="as faceplan diagnose --boundary-uncertainty")
+    ap.add_argument("--layer-uncertainty", default="thicker", choices=("thicker", "none"),
+                    help="as faceplan diagnose --layer-uncertainty")
     ap.add_argument("--skip-seeds", default="", help="comma-separated seeds whose truth synth cannot solve "
                     "(left out, and said so)")
     args = ap.parse_args(argv)
@@ -274,7 +277,8 @@ def main_bench(argv=None) -> int:
                 [ref], Runner(client), say, root / "solves", f"{Path(rec['case']).resolve()}|{ref_name}")
             out = diagnose_data([patient], [scan], forward=fwd, say=say,
                                 references=None if ref is None else [ref], reference_names=[ref_name],
-                                reference_forward=ref_fwd, boundary=args.boundary_uncertainty == "neck")
+                                reference_forward=ref_fwd, boundary=args.boundary_uncertainty == "neck",
+                                layers=args.layer_uncertainty == "thicker")
             d = out["record"]
             if args.keep:
                 (Path(rec["case"]) / "diagnosis.json").write_text(json.dumps(d, indent=1, default=str))

@@ -35,6 +35,11 @@ def add_arguments(p) -> None:
                    help="model boundary conditions whose other choice the error model carries as a "
                         "discrepancy direction (default neck: the baseline is also solved with the "
                         "neck cut's other condition, one more solve per case; none: not)")
+    p.add_argument("--layer-uncertainty", default="thicker", choices=("thicker", "none"),
+                   help="layer proportions the CT does not show, carried by the error model as "
+                        "discrepancy directions (default thicker: the baseline is also solved with "
+                        "the dermis, and with the deep layers, a fifth thicker, two more solves per "
+                        "case; none: not)")
     p.add_argument("--finite-differences", action="store_true",
                    help="sensitivities by finite differences of full solves instead of the model's "
                         "tangent (slower; a check of the tangent)")
@@ -102,7 +107,8 @@ def run(args) -> int:
         result = diagnose_cases(cases, resolution=args.resolution, runner=Runner(client), say=progress.say,
                                 effect_names=names, tangent=not args.finite_differences,
                                 reference=args.mesh_reference,
-                                boundary=args.boundary_uncertainty == "neck")
+                                boundary=args.boundary_uncertainty == "neck",
+                                layers=args.layer_uncertainty == "thicker")
     finally:
         for obj in closing:
             obj.close()

@@ -122,6 +122,10 @@ class CaseData:
     # "Boundary conditions"), and that condition; None when not solved
     boundary: np.ndarray | None = None
     boundary_condition: str | None = None
+    # changes of the gap with each layer group thicker (`discrepancy`, "Layer proportions"),
+    # (points, k), and their names; None when not solved
+    layers: np.ndarray | None = None
+    layer_directions: tuple = ()
 
     @property
     def folds(self) -> dict[str, np.ndarray]:
@@ -132,7 +136,8 @@ class CaseData:
         """The noise + discrepancy error model on this case's scan points."""
         if self._error is None:
             self._error = discrepancy.ErrorModel(self.gap.points, self.gap.weights, self.gap.noise_floor_mm,
-                                                 mesh_error=self.mesh_error, boundary=self.boundary)
+                                                 mesh_error=self.mesh_error, boundary=self.boundary,
+                                                 layers=self.layers)
         return self._error
 
 

@@ -78,6 +78,18 @@ so an effect is named only where it explains the gap beyond what the other bound
 could (the structural discrepancy of Brynjarsdottir & O'Hagan, *Inverse Problems* 30:114007,
 2014, given as a known direction instead of left to the generic field).
 
+Layer proportions. A CT segments the skin and the bones; the layers between (dermis,
+subcutaneous fat, muscle and mucosa) keep the generic mesh's proportions along each column
+from bone to skin, which the patient does not share. A deep layer thicker than the model's
+fills the lips and cheeks out a little over whole regions, a coherent pattern a bone
+correction's rigid parameters can copy. The baseline is therefore also solved with each
+layer group `LAYER_STEP` thicker (`facemodel.synthetic.perturb_layers`: the dermis, and the
+deep half of the column, the hypodermis between taking the difference, skin and bone
+surfaces unchanged), and the changes of the gap enter the error model like the boundary
+direction, Gaussian columns with coefficients N(0, 1) (`layers`): a coefficient of 1 is a
+layer `LAYER_STEP` thicker, the linearised response of a nuisance parameter of the model
+integrated out under its prior (the calibration inputs of Kennedy & O'Hagan 2001, sec. 4.3).
+
 The likelihood is evaluated on an area-uniform subsample of the scan points (one per cube of
 side `spacing`, at most `MAX_POINTS`), small enough for a dense eigendecomposition of the
 correlation matrix per correlation length.
@@ -89,7 +101,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["ErrorModel", "Fit", "subsample", "matern32", "smooth_basis", "LENGTHS_MM", "MAX_POINTS",
-           "REGION_P", "MESH_ERROR_SD", "BOUNDARY_SD"]
+           "REGION_P", "MESH_ERROR_SD", "BOUNDARY_SD", "LAYER_STEP", "LAYER_SD"]
 
 MAX_POINTS = 900                      # subsample size of the likelihood
 # prior standard deviation of the mesh-error coefficient (module text): the error of a mesh is
@@ -104,6 +116,12 @@ MESH_ERROR_SD = 2.0
 # the change from the model's condition to the other bracket (module text), so the truth lies
 # about 0..1 along it
 BOUNDARY_SD = 1.0
+# layer proportions (module text): each direction is the change of the gap with a layer group
+# this fraction thicker, the prior standard deviation of its coefficient LAYER_SD: a fifth of
+# a layer's thickness, the scale on which facial soft-tissue layers differ between adults of
+# one total thickness, which the CT fixes
+LAYER_STEP = 0.2
+LAYER_SD = 1.0
 # correlation lengths of the short scale (mm): from a few scan spacings to the size of a region
 LENGTHS_MM = (4.0, 6.0, 9.0, 13.0, 19.0, 28.0, 40.0)
 # short-scale amplitudes tried, relative to the gap's RMS (log grid; the maximum is unimodal in it)
@@ -173,12 +191,15 @@ class Fit:
     mesh_coef: np.ndarray | None = None   # its coefficient(s) on the mesh-error direction(s)
     boundary_mm: float = 0.0      # RMS of the estimated boundary-condition field over the points
     boundary_coef: np.ndarray | None = None   # its coefficient(s) on the boundary direction(s)
+    layer_mm: float = 0.0         # RMS of the estimated layer-proportion field over the points
+    layer_coef: np.ndarray | None = None      # its coefficients on the layer directions
 
     @property
     def discrepancy_mm(self) -> float:
-        """RMS of the whole discrepancy: both scales, the mesh error and the boundary field."""
+        """RMS of the whole discrepancy: both scales, the mesh error, the boundary and the
+        layer-proportion fields."""
         v = float(np.hypot(self.sigma_d, self.long_mm))
-        return float(np.hypot(np.hypot(v, self.mesh_mm), self.boundary_mm))
+        return float(np.hypot(np.hypot(np.hypot(v, self.mesh_mm), self.boundary_mm), self.layer_mm))
 
     def bic(self, n_eff: float) -> float:
         return float(-2.0 * self.loglik + self.k * np.log(max(n_eff, 2.0)))
@@ -207,7 +228,7 @@ class ErrorModel:
     def __init__(self, points: np.ndarray, weights: np.ndarray, sigma_n: float,
                  lengths: tuple[float, ...] = LENGTHS_MM, max_points: int = MAX_POINTS,
                  long_scale: bool = True, mesh_error: np.ndarray | None = None,
-                 boundary: np.ndarray | None = None):
+                 boundary: np.ndarray | None = None, layers: np.ndarray | None = None):
         self.idx = subsample(points, weights, max_points)
         self.points = np.asarray(points, float)[self.idx]
         self.area = float(np.sum(weights))
@@ -218,9 +239,10 @@ class ErrorModel:
         self.long_amplitudes = _LONG_AMPLITUDES if long_scale else np.zeros(1)
         # the mesh-error direction (module text, "The mesh's own error"): one column on the
         # subsample, its coefficient under a fixed Gaussian prior
-        # and the boundary-condition directions (module text, "Boundary conditions"), after it
+        # and the boundary-condition directions (module text, "Boundary conditions"), after it,
+        # then the layer-proportion directions ("Layer proportions")
         cols, sd2 = [], []
-        for field_, sd in ((mesh_error, MESH_ERROR_SD), (boundary, BOUNDARY_SD)):
+        for field_, sd in ((mesh_error, MESH_ERROR_SD), (boundary, BOUNDARY_SD), (layers, LAYER_SD)):
             m = np.zeros((len(self.idx), 0))
             if field_ is not None:
                 m = np.asarray(field_, float).reshape(len(points), -1)[self.idx]
@@ -229,6 +251,7 @@ class ErrorModel:
             cols.append(m)
             sd2.append(np.full(m.shape[1], sd ** 2))
         self.n_mesh = cols[0].shape[1]
+        self.n_boundary = cols[1].shape[1]
         self.N = np.concatenate(cols, axis=1)
         self._nsd2 = np.concatenate(sd2)
         BN = np.concatenate([self.B, self.N], axis=1)
@@ -328,11 +351,13 @@ class ErrorModel:
                 theta[free] = theta_a[free] + x
         long_mm = float(s_l * np.sqrt(np.mean(np.sum(self.B * self.B, axis=1)))) if self.B.size else 0.0
         nu = np.asarray(nu, float)
-        q = self.n_mesh
-        mesh_mm = float(np.sqrt(np.mean((self.N[:, :q] @ nu[:q]) ** 2))) if q else 0.0
-        boundary_mm = float(np.sqrt(np.mean((self.N[:, q:] @ nu[q:]) ** 2))) if self.N.shape[1] > q else 0.0
+        q, b = self.n_mesh, self.n_mesh + self.n_boundary
+
+        def rms(lo, hi):
+            return float(np.sqrt(np.mean((self.N[:, lo:hi] @ nu[lo:hi]) ** 2))) if hi > lo else 0.0
+
         return Fit(theta, float(s_d), float(ell), float(ll), nfree + int(extra_k), float(s_l), long_mm,
-                   mesh_mm, nu[:q], boundary_mm, nu[q:])
+                   rms(0, q), nu[:q], rms(q, b), nu[q:b], rms(b, self.N.shape[1]), nu[b:])
 
     def standard_errors(self, J: np.ndarray, fit: Fit) -> np.ndarray:
         """Standard errors of the parameters (columns of J) under the error model `fit`:

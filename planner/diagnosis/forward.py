@@ -316,6 +316,16 @@ class Forward:
         baseline) left deeper than twice their tolerance, {name: mm} ({} when met)."""
         return dict(self._unmet.get(self._key((i, tuple(strings))), {}))
 
+    def baseline_displacement(self, i: int) -> np.ndarray | None:
+        """The baseline's displacement field of case `i` (nodes, 3) once its tangent solve has
+        run, else None: the start of the solves of nearby problems."""
+        return self._guess.get(i)
+
+    def start_from(self, i: int, displacement: np.ndarray) -> None:
+        """Solve case `i`'s requests from `displacement` (a nearby problem's solution on the
+        same mesh) instead of from rest."""
+        self._guess[i] = np.asarray(displacement, float)
+
     def baseline(self, i: int) -> np.ndarray:
         skin = self.solve([(i, ())])[0]
         if isinstance(skin, str):

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from planner.diagnosis import analysis, fit
+from planner.diagnosis import analysis, discrepancy, fit
 from planner.diagnosis.effects import available_effects
 from planner.diagnosis.forward import Forward, Runner, prepare_case
 from planner.diagnosis.gap import measure_gap, region_table
@@ -81,7 +81,8 @@ def load_diagnosis_case(case_dir: Path, resolution: str | None, say, reference: 
 
 def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runner: Runner | None = None,
                    say=lambda s: None, effect_names: tuple[str, ...] | None = None,
-                   tangent: bool = True, reference: str | None = "auto", boundary: bool = True) -> dict:
+                   tangent: bool = True, reference: str | None = "auto", boundary: bool = True,
+                   layers: bool = True) -> dict:
     t0 = time.perf_counter()
     loaded = [load_diagnosis_case(Path(c), resolution, say, reference) for c in case_dirs]
     refs = [x[3] for x in loaded]
@@ -89,7 +90,7 @@ def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runn
                         effect_names=effect_names, tangent=tangent,
                         references=refs if any(r is not None for r in refs) else None,
                         reference_names=[mesh_reference(x[2], reference) for x in loaded],
-                        boundary=boundary)
+                        boundary=boundary, layers=layers)
     out["record"]["resolution"] = sorted({x[2] for x in loaded})
     out["record"]["timings_s"]["total"] = round(time.perf_counter() - t0, 2)
     return out
@@ -141,41 +142,91 @@ def other_neck(case):
     return dataclasses.replace(case, plan=plan)
 
 
-def boundary_errors(data: list, runner: Runner | None, say) -> None:
+# the layer groups of the layer-proportion directions (`discrepancy`, "Layer proportions"):
+# name -> `facemodel.synthetic.perturb_layers` keyword
+LAYER_GROUPS = {"dermis": "dermis", "deep layers": "deep"}
+
+
+def thicker_layer(case, group: str):
+    """The case model with the layer group `group` (`LAYER_GROUPS`) `discrepancy.LAYER_STEP`
+    thicker along every column from bone to skin, skin and bone surfaces unchanged; None when
+    the model has no column structure (a mesh not made by `generic_mesh`)."""
+    import dataclasses
+
+    from facemodel.synthetic import perturb_layers
+    from generic_mesh.builder import RESOLUTIONS
+
+    H = np.asarray(case.model.hexes)
+    for nk in sorted({int(r[3]) for r in RESOLUTIONS.values()}):
+        # the generic mesh's columns (node id = column * (nk + 1) + layer): every hexahedron
+        # spans two consecutive layers of its columns
+        layer = H % (nk + 1)
+        if len(case.model.nodes) % (nk + 1) == 0 and np.all(layer.max(axis=1) - layer.min(axis=1) == 1):
+            model = perturb_layers(case.model, nk, **{LAYER_GROUPS[group]: 1.0 + discrepancy.LAYER_STEP})
+            return dataclasses.replace(case, model=model, name=f"{case.name} ({group} thicker)")
+    return None
+
+
+def boundary_errors(data: list, runner: Runner | None, say, neck: bool = True, layers: bool = True,
+                    guesses: dict | None = None) -> None:
     """Per case the change of the gap when the baseline is solved with the other boundary
-    condition of the neck cut (`CaseData.boundary`, a model-uncertainty direction of the
-    error model: `discrepancy`, "Boundary conditions"), on the same scan points and pose;
-    before the mesh error is taken out of the gap (its estimate then integrates this direction
-    out). A case whose model has no neck cut, or whose other condition cannot be solved, goes
-    without it."""
-    idx = [i for i, d in enumerate(data) if "neck" in d.case.model.node_sets]
-    if not idx:
+    condition of the neck cut (`CaseData.boundary`, with `neck`) and with each layer group
+    thicker (`CaseData.layers`, with `layers`): model-uncertainty directions of the error model
+    (`discrepancy`, "Boundary conditions" and "Layer proportions"), on the same scan points and
+    pose, all in one batch of solves; before the mesh error is taken out of the gap (its
+    estimate then integrates these directions out). A case whose model has no neck cut, or
+    whose alternative cannot be solved, goes without that direction. guesses: {case index: the
+    baseline's displacement}, from which the thicker-layer solves start (the same mesh, its
+    interior nodes moved by a fraction of a layer); the neck's is solved from rest."""
+    jobs = []                   # (case index, kind, label, alternative case model)
+    for i, d in enumerate(data):
+        if neck and "neck" in d.case.model.node_sets:
+            alt = other_neck(d.case)
+            jobs.append((i, "boundary", f"neck {alt.plan.model.neck}", alt))
+        for group in (LAYER_GROUPS if layers else ()):
+            alt = thicker_layer(d.case, group)
+            if alt is not None:
+                jobs.append((i, "layers", f"{group} x{1.0 + discrepancy.LAYER_STEP:g}", alt))
+    if not jobs:
         return
-    alts = [other_neck(data[i].case) for i in idx]
-    say(f"baseline with the other neck condition of {len(idx)} case(s): a boundary-condition "
-        "uncertainty of the model")
-    skins = Forward(alts, runner, lambda s: None).solve([(j, ()) for j in range(len(idx))])
-    for j, i in enumerate(idx):
-        d, alt = data[i], alts[j]
-        if isinstance(skins[j], str):
-            say(f"  {d.case.name}: the baseline with the neck {alt.plan.model.neck} failed ({skins[j]}); "
-                "no boundary direction")
+    n = len({j[0] for j in jobs})
+    what = [w for w, on in (("the other neck condition", neck), ("each layer group thicker", layers)) if on]
+    say(f"baseline of {n} case(s) with {' and with '.join(what)}: model-uncertainty directions")
+    alternatives = Forward([j[3] for j in jobs], runner, lambda s: None)
+    for k, (i, kind, _, _) in enumerate(jobs):
+        if kind == "layers" and (guesses or {}).get(i) is not None:
+            alternatives.start_from(k, guesses[i])
+    skins = alternatives.solve([(k, ()) for k in range(len(jobs))])
+    found = {}
+    for (i, kind, label, alt), skin in zip(jobs, skins):
+        d = data[i]
+        if isinstance(skin, str):
+            say(f"  {d.case.name}: the baseline with the {label} failed ({skin}); no direction for it")
             continue
-        v, f = alt.predicted_surface(skins[j])
+        v, f = alt.predicted_surface(skin)
         r_alt = d.gap.distances_to(v, f)
-        if np.all(np.isfinite(r_alt)):
-            d.boundary = r_alt - d.r0
-            d.boundary_condition = f"neck {alt.plan.model.neck}"
-            d._error = None
-            rms = float(np.sqrt(np.average(d.boundary ** 2, weights=d.gap.weights)))
-            say(f"  {d.case.name}: the gap changes by {rms:.2f} mm RMS with the neck {alt.plan.model.neck}")
+        if not np.all(np.isfinite(r_alt)):
+            continue
+        col = r_alt - d.r0
+        found.setdefault((i, kind), []).append((label, col))
+        rms = float(np.sqrt(np.average(col ** 2, weights=d.gap.weights)))
+        say(f"  {d.case.name}: the gap changes by {rms:.2f} mm RMS with the {label}")
+    for (i, kind), cols in found.items():
+        d = data[i]
+        if kind == "boundary":
+            d.boundary = cols[0][1]
+            d.boundary_condition = cols[0][0]
+        else:
+            d.layers = np.column_stack([c for _, c in cols])
+            d.layer_directions = tuple(label for label, _ in cols)
+        d._error = None
 
 
 def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say=lambda s: None,
                   effect_names: tuple[str, ...] | None = None, forward: Forward | None = None,
                   effects: list | None = None, tangent: bool = True, references: list | None = None,
                   reference_names: list | None = None, reference_forward: Forward | None = None,
-                  boundary: bool = True) -> dict:
+                  boundary: bool = True, layers: bool = True) -> dict:
     """The diagnosis of prepared cases (`forward.CaseModel`) against their scans; returns
     {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}."""
     from planner.pipeline import unmet_text
@@ -211,8 +262,9 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
             f"scan roughness {gap.roughness_mm:.2f} mm); correlation length {gap.correlation_mm:.1f} mm")
         for w in gap.warnings:
             say(f"  warning: {w}")
-    if boundary:
-        boundary_errors(data, forward.runner, say)
+    if boundary or layers:
+        boundary_errors(data, forward.runner, say, neck=boundary, layers=layers,
+                        guesses={i: forward.baseline_displacement(i) for i in range(len(data))})
     if references is not None:
         mesh_errors(data, references, forward.runner, say, reference_names, reference_forward,
                     params=names if tangent else ())
@@ -380,6 +432,8 @@ def _error_entry(d, f) -> dict:
             "mesh_reference": d.mesh_reference,
             "boundary_mm": _r(f.boundary_mm) if d.boundary is not None else None,
             "boundary_direction": d.boundary_condition,
+            "layer_mm": _r(f.layer_mm) if d.layers is not None else None,
+            "layer_directions": list(d.layer_directions) or None,
             "level_mm": _r(float(np.hypot(f.discrepancy_mm, d.gap.noise_floor_mm))),
             "points": int(len(d.error.idx))}
 

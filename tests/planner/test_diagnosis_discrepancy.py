@@ -4,6 +4,7 @@ scan points carrying an exact Gaussian-process sample (Matern 3/2, known amplitu
 scan noise, and optionally an effect's pattern of known size. No forward solve: the candidates
 are built directly from their patterns (the gap is linear in the parameter).
 """
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -417,6 +418,70 @@ def test_boundary_direction_enters_the_covariance_after_the_mesh_error(sheet):
     se = 1.0 / np.sqrt(1.0 / discrepancy.BOUNDARY_SD ** 2 + be @ np.linalg.solve(S0, be))
     assert abs(f.boundary_coef[0] - 1.0) <= 3.0 * se
     assert f.boundary_mm == pytest.approx(abs(f.boundary_coef[0]) * np.sqrt(np.mean(be ** 2)), rel=1e-9)
+
+
+def test_layer_directions_enter_the_covariance_after_the_boundary(sheet):
+    """Layer-proportion directions (`discrepancy`, "Layer proportions"): two columns after the
+    boundary's, each integrated out under N(0, LAYER_SD^2); the fit reports each group's field
+    apart, and both coefficients are recovered within three posterior standard errors."""
+    P, w, _ = sheet
+    b = _boundary_direction(P)
+    L = np.column_stack([0.6 * _pattern(P, 40.0, 50.0, 18.0), -0.5 * _pattern(P, 20.0, 20.0, 30.0)])
+    em = discrepancy.ErrorModel(P, w, NOISE, boundary=b, layers=L)
+    delta, eps = _gp_sample(P, 64, SHORT_SIGMA, SHORT_ELL)
+    r = delta + eps + 1.0 * b + L @ np.array([1.5, -1.0])
+    f = em.fit(r)
+    S = em.covariance(f)
+    be, Le = b[em.idx], L[em.idx]
+    base = discrepancy.ErrorModel(P, w, NOISE).covariance(f)
+    expect = discrepancy.BOUNDARY_SD ** 2 * np.outer(be, be) + discrepancy.LAYER_SD ** 2 * Le @ Le.T
+    assert np.allclose(S - base, expect, atol=1e-12)
+    dense = -0.5 * (r @ np.linalg.solve(S, r) + np.linalg.slogdet(S)[1] + len(r) * np.log(2 * np.pi))
+    assert f.loglik == pytest.approx(dense, rel=1e-6)
+    assert f.boundary_coef.shape == (1,) and f.layer_coef.shape == (2,)
+    S0 = base + discrepancy.BOUNDARY_SD ** 2 * np.outer(be, be)
+    post = np.linalg.inv(np.eye(2) / discrepancy.LAYER_SD ** 2 + Le.T @ np.linalg.solve(S0, Le))
+    assert np.all(np.abs(f.layer_coef - [1.5, -1.0]) <= 3.0 * np.sqrt(np.diag(post)))
+    assert f.layer_mm == pytest.approx(np.sqrt(np.mean((Le @ f.layer_coef) ** 2)), rel=1e-9)
+    assert f.discrepancy_mm >= max(f.boundary_mm, f.layer_mm)
+
+
+def test_a_thicker_layer_keeps_skin_and_bone_and_finds_the_columns():
+    """`run.thicker_layer`: the registered model with a layer group LAYER_STEP thicker along
+    every column (`facemodel.synthetic.perturb_layers`): the skin and deep surfaces stay where
+    they are (the CT fixes them), the dermis is 1.2 times as thick (to round-off where the cap
+    of 45 % of the column does not bind), and a mesh without the generic column structure
+    gets no direction."""
+    import generic_mesh
+    from generic_mesh.builder import RESOLUTIONS
+    from planner.diagnosis.run import thicker_layer
+
+    model = generic_mesh.load("coarse")
+    nk = RESOLUTIONS["coarse"][3]
+    case = _Case(model=model, name="c")
+    alt = thicker_layer(case, "dermis")
+    X, Y = (np.asarray(m.nodes, float).reshape(-1, nk + 1, 3) for m in (model, alt.model))
+    assert np.array_equal(X[:, 0], Y[:, 0]) and np.array_equal(X[:, -1], Y[:, -1])
+    t0 = np.linalg.norm(X[:, -1] - X[:, -2], axis=1)
+    t1 = np.linalg.norm(Y[:, -1] - Y[:, -2], axis=1)
+    total = np.linalg.norm(np.diff(X, axis=1), axis=2).sum(axis=1)
+    free = 1.2 * t0 < 0.45 * total - 1e-9
+    assert free.mean() > 0.9
+    assert np.allclose(t1[free], 1.2 * t0[free], rtol=1e-6)
+    assert alt.name == "c (dermis thicker)"
+    deep = thicker_layer(case, "deep layers")
+    assert not np.allclose(deep.model.nodes, alt.model.nodes)
+    # hexahedra that do not follow the columns: not a generic mesh's model
+    H = np.asarray(model.hexes).copy()
+    H[0] = [0, 1, 2, 3, 0, 1, 2, 3]              # four layers of one column
+    odd = dataclasses.replace(model, hexes=H)
+    assert thicker_layer(_Case(model=odd, name="c"), "dermis") is None
+
+
+@dataclasses.dataclass
+class _Case:
+    model: object
+    name: str
 
 
 @pytest.mark.parametrize("seed", [62, 63])

@@ -214,7 +214,7 @@ def main_bench(argv=None) -> int:
                          "differently built family without teeth, anatomy the method was not made on)")
     ap.add_argument("--boundary-uncertainty", default="neck", choices=("neck", "none"),
                     help="as faceplan diagnose --boundary-uncertainty")
-    ap.add_argument("--layer-uncertainty", default="thicker", choices=("thicker", "none"),
+    ap.add_argument("--layer-uncertainty", default="none", choices=("thicker", "none"),
                     help="as faceplan diagnose --layer-uncertainty")
     ap.add_argument("--skip-seeds", default="", help="comma-separated seeds whose truth synth cannot solve "
                     "(left out, and said so)")

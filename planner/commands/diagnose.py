@@ -35,11 +35,11 @@ def add_arguments(p) -> None:
                    help="model boundary conditions whose other choice the error model carries as a "
                         "discrepancy direction (default neck: the baseline is also solved with the "
                         "neck cut's other condition, one more solve per case; none: not)")
-    p.add_argument("--layer-uncertainty", default="thicker", choices=("thicker", "none"),
+    p.add_argument("--layer-uncertainty", default="none", choices=("thicker", "none"),
                    help="layer proportions the CT does not show, carried by the error model as "
-                        "discrepancy directions (default thicker: the baseline is also solved with "
-                        "the dermis, and with the deep layers, a fifth thicker, two more solves per "
-                        "case; none: not)")
+                        "discrepancy directions (thicker: the baseline is also solved with the "
+                        "dermis, and with the deep layers, a fifth thicker, two more solves per "
+                        "case; default none: not)")
     p.add_argument("--finite-differences", action="store_true",
                    help="sensitivities by finite differences of full solves instead of the model's "
                         "tangent (slower; a check of the tangent)")

@@ -82,7 +82,7 @@ def load_diagnosis_case(case_dir: Path, resolution: str | None, say, reference: 
 def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runner: Runner | None = None,
                    say=lambda s: None, effect_names: tuple[str, ...] | None = None,
                    tangent: bool = True, reference: str | None = "auto", boundary: bool = True,
-                   layers: bool = True) -> dict:
+                   layers: bool = False) -> dict:
     t0 = time.perf_counter()
     loaded = [load_diagnosis_case(Path(c), resolution, say, reference) for c in case_dirs]
     refs = [x[3] for x in loaded]
@@ -226,7 +226,7 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
                   effect_names: tuple[str, ...] | None = None, forward: Forward | None = None,
                   effects: list | None = None, tangent: bool = True, references: list | None = None,
                   reference_names: list | None = None, reference_forward: Forward | None = None,
-                  boundary: bool = True, layers: bool = True) -> dict:
+                  boundary: bool = True, layers: bool = False) -> dict:
     """The diagnosis of prepared cases (`forward.CaseModel`) against their scans; returns
     {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}."""
     from planner.pipeline import unmet_text

@@ -340,15 +340,16 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     fallback = None
     factors = tuple(FACE_SOLVER.fallback_lip_penalties or ()) if "lip_contact" in terms else ()
 
-    def budget(last: bool):
-        # each attempt but the last gets a share of what is left (`fallback_budget_share`)
+    def budget(last: bool, first: bool = False):
+        # each attempt but the last gets a share of what is left (`fallback_budget_share`);
+        # the first has the whole budget ahead of it
         if max_seconds is None:
             return None
-        left = max_seconds - (time.perf_counter() - t0)
+        left = max_seconds - (0.0 if first else time.perf_counter() - t0)
         return left if last else FACE_SOLVER.fallback_budget_share * left
 
     try:
-        res = solve(body, constraints, terms, extra, lip_size, budget(not factors))
+        res = solve(body, constraints, terms, extra, lip_size, budget(not factors, first=True))
     except SolveFailed as failure:
         # typically a final lip contact state the augmentations cannot reach (the stomion
         # corner pinched between the incisors and the other lip: docs/solver_control.md); any

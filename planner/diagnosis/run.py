@@ -167,7 +167,7 @@ def thicker_layer(case, group: str):
     return None
 
 
-def boundary_errors(data: list, runner: Runner | None, say, neck: bool = True, layers: bool = True,
+def boundary_errors(data: list, runner: Runner | None, say, neck: bool = True, layers: bool = False,
                     guesses: dict | None = None) -> None:
     """Per case the change of the gap when the baseline is solved with the other boundary
     condition of the neck cut (`CaseData.boundary`, with `neck`) and with each layer group

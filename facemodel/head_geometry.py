@@ -41,6 +41,12 @@ PHI_LE_FORT = -4.0           # Le Fort I osteotomy at the midline (deg)
 CROWN_SPAN = 7.5             # crown height in elevation (deg): ~10 mm
 OVERJET = 2.5                # mm
 TEETH_GAP = 0.25             # mm between the lip mucosa and the labial surface of the teeth
+# mm from the mouth line to each front crown's incisal edge: the lips close in front of a
+# 2 x 1.5 mm interincisal gap, the interocclusal rest space of the mandible's rest position
+# (2-4 mm at the incisors; Garnick & Ramfjord, J Prosthet Dent 12:895-911, 1962). With the
+# edges on the mouth line the lips' inner corners lie between the incisal edges, and a jaw
+# move that slides one arch over the other pinches them there (docs/solver_control.md).
+INCISAL_CLEARANCE = 1.5
 BONE_SHELL = 7.0             # thickness of the bone segment shells (mm)
 OSTEOTOMY_KERF = 0.8         # deg between bone segments
 
@@ -408,8 +414,9 @@ def mouth_line_z() -> float:
 def teeth_arch(arch: str, shape: HeadShape = GENERIC, n_along: int = 24, n_height: int = 3,
                n_depth: int = 2):
     """Closed triangulated dental arch, 'upper' (maxilla) or 'lower' (mandible): crowns 10 mm
-    high from the occlusal plane, labial surface TEETH_GAP behind the lip mucosa on the
-    incisors (the lower arch OVERJET behind the upper), 7 mm (incisors) to 10 mm (molars)
+    high from the occlusal plane, the front ones' incisal edges INCISAL_CLEARANCE off the
+    mouth line (apart where the lips meet), labial surface TEETH_GAP behind the lip mucosa on
+    the incisors (the lower arch OVERJET behind the upper), 7 mm (incisors) to 10 mm (molars)
     deep, shifted with the jaw (maxilla_ap / mandible_ap) and warped with the head."""
     from facemodel._structured import box_surface, orient_outward
 
@@ -420,16 +427,19 @@ def teeth_arch(arch: str, shape: HeadShape = GENERIC, n_along: int = 24, n_heigh
     frac = np.abs(np.linspace(-1.0, 1.0, len(pts)))[iu]
     depth = 7.0 + 3.0 * frac**2
     xy = pts[iu] - normal[iu] * (TEETH_GAP + depth[:, None] * params[:, 2:3])
-    # crowns 9.7 mm high from the occlusal surface: the mouth-line cone (phi = PHI_STOMION
+    # crowns reaching 9.7 mm from the occlusal surface: the mouth-line cone (phi = PHI_STOMION
     # +- 0.3 deg seen from C, the surface the lips part along) at the front teeth, so that no
-    # lip node starts inside a tooth, blending into the flat occlusal plane at the back
+    # lip node starts inside a tooth, blending into the flat occlusal plane at the back; the
+    # front crowns' incisal edges INCISAL_CLEARANCE further off it (their other end kept)
     rh = np.hypot(xy[:, 0] - CENTRE[0], xy[:, 1] - CENTRE[1])
     az = np.degrees(np.abs(np.arctan2(xy[:, 0] - CENTRE[0], xy[:, 1] - CENTRE[1])))
     w_cone = 1.0 - smoothstep(16.0, 26.0, az)
     sgn = 1.0 if upper else -1.0
     cone = CENTRE[2] + rh * np.tan(np.radians(PHI_STOMION + sgn * 0.3))
     plane = mouth_line_z() + sgn * 0.3
-    z = w_cone * cone + (1.0 - w_cone) * plane + sgn * 9.7 * params[:, 1]
+    edge = w_cone * INCISAL_CLEARANCE
+    z = (w_cone * cone + (1.0 - w_cone) * plane + sgn * edge
+         + sgn * (9.7 - edge) * params[:, 1])
     if upper:
         xy[:, 1] += shape.maxilla_ap
     else:

@@ -48,9 +48,13 @@ def test_orbicularis_oris_activation_purses_and_protrudes_the_lips(face):
     assert width < width0 - 0.5
     for name in ("Ls", "Li", "Stms", "Stmi"):
         assert res.displacement[L[name], 1] > 0.2           # forward by > 0.2 mm
-    # symmetric face, symmetric activation: mirror symmetry of the solution (1e-6 mm scale
-    # of the solver tolerance, 1e-3 mm allowed for the augmented-Lagrangian tolerance)
-    assert abs(x[L["ChL"], 0] + x[L["ChR"], 0]) < 1e-3
+    # symmetric face, symmetric activation: mirror symmetry of the solution. Contact breaks
+    # it only where a node's status is decided at round-off on one side and not the other,
+    # and the augmentations then stop anywhere within the 0.05 mm penetration tolerance (the
+    # lip nodes differ from their mirrors by up to ~0.08 mm): at the commissures, away from
+    # the contact, 1/20 of that tolerance is allowed; a mirror-broken face or activation
+    # moves them apart by tenths of a millimetre
+    assert abs(x[L["ChL"], 0] + x[L["ChR"], 0]) < 2.5e-3
     pen = lip_penetrations(face, x)
     assert max(pen.values()) < 0.05
 

@@ -32,7 +32,9 @@ def test_teeth_pushed_into_the_lips_are_moved_back(coarse):
     # (the lips' deep surface is curved, so the deepest node need not be the frontmost)
     assert teeth_penetration(fixed)["upper"] <= -0.25 + 1e-6
     assert 1.25 <= shifts["upper"] <= 2.0
-    assert shifts["lower"] == 0.0
+    # the other arch is cleared on its own: pushing the upper one does not move it (the generic
+    # lower lip lies within micrometres of the 0.25 mm clearance, so its own shift need not be 0)
+    assert shifts["lower"] == clear_teeth(coarse, clearance=0.25)[1]["lower"] < 0.01
     moved = fixed.teeth["upper"][0] - v
     assert np.allclose(moved, moved[0])                       # rigid translation
     with pytest.raises(ValueError):

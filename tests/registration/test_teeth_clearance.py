@@ -1,9 +1,9 @@
 """Lips clear of the teeth after Mesh-Match-and-Repair (coarse generic mesh, synthetic heads).
 
-Seed 7 (class II: its registered lower lip started up to 2.2 mm inside the transported lower
-arch) with the arches moved with their segments, and a strong class III (seed 13, mandible
-9 mm ahead of the maxilla) with the patient's own teeth (`teeth=`), whose lower incisors
-start inside the registered lower lip. Checked independently of
+Seed 7 (class II: its registered lower lip started inside the transported lower arch) with
+the arches moved with their segments, and a strong class III (seed 13, mandible 9 mm ahead
+of the maxilla) with the patient's own teeth (`teeth=`), its lower arch raised to the mouth line
+so that its incisors start inside the registered lower lip. Checked independently of
 the report with trimesh's signed distance: no node off the skin / bones inside an arch, the
 scaled-Jacobian gate, and the skin fit equal to the fit before the clearance stage.
 """
@@ -28,6 +28,16 @@ def registered(request, generic):
     # leaves this head's lips crossing by 0.4 mm after the lip separation: README, known
     # limitations)
     head = synthetic.synthetic_head(seed, size=3.0, zoom=1.0)
+    if own:
+        # the patient's lower arch raised by INCISAL_CLEARANCE, its incisal edges back on the
+        # mouth line: with them clear of it this head's own arches start clear of the
+        # registered lips, and the stage must be shown doing work
+        from dataclasses import replace
+
+        from facemodel import head_geometry as hg
+
+        v, f, seg = head.teeth["lower"]
+        head = replace(head, teeth={**head.teeth, "lower": (np.asarray(v, float) + [0.0, 0.0, hg.INCISAL_CLEARANCE], f, seg)})
     seen = {}
     stage = mm.clear_teeth
     # the patient's arches as `planner.case` gives them (Case.teeth: trimesh per arch)

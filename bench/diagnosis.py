@@ -258,6 +258,9 @@ def main_bench(argv=None) -> int:
             stored = Path(rec["case"]) / "bench_row.json"
             if args.resume and args.keep and stored.exists():
                 rows.append(json.loads(stored.read_text()))
+                # rows stored before the effect's skin change was recorded: from the key
+                if "change_rms" not in rows[-1] and rec["effect"]:
+                    rows[-1]["change_rms"] = (rec.get("effect_skin_change_mm") or {}).get("rms_mm")
                 _print_row(rows[-1])
                 continue
             say = (lambda m: print(m, file=sys.stderr, flush=True)) if args.verbose else (lambda m: None)
@@ -289,7 +292,11 @@ def main_bench(argv=None) -> int:
             # mesh gave it (the fitted values are then the converged mesh's)
             kappa = entry.get("mesh_extrapolation_factor")
             shrink = d.get("shrinkage") or {}
+            # the withheld effect's own change of the skin the scan sees (RMS, key), to read a miss
+            # against the noise floor: a change below it is not there to be found
+            change = (rec.get("effect_skin_change_mm") or {}).get("rms_mm") if rec["effect"] else None
             rows.append({"case": Path(rec["case"]).name, "truth": rec["effect"], "value": rec["value"],
+                         "change_rms": change,
                          "verdict": v["effect"], "confidence": v["confidence"],
                          "supported": v.get("supported_not_named") or [],
                          "rms0": d["method"]["baseline_rms_mm"],
@@ -324,8 +331,9 @@ def main_bench(argv=None) -> int:
           "attributable = of the gap beyond noise + discrepancy, see diagnosis.json method.shrinkage)")
     print("(noise mm: the noise floor; ceiling %: 1 - noise / RMS0, the most the whole gap can shrink when the "
           "effect is found exactly, the scan noise staying)")
+    print("(effect mm: the withheld effect's own RMS change of the skin the scan sees, from the key)")
     print(f"{'case':<12}{'withheld':<16}{'verdict':<16}{'conf':>6}{'RMS0 mm':>9}{'held-out mm':>12}"
-          f"{'total %':>9}{'noise mm':>9}{'ceiling %':>10}{'e mm':>7}{'attrib %':>9}")
+          f"{'total %':>9}{'noise mm':>9}{'ceiling %':>10}{'e mm':>7}{'attrib %':>9}{'effect mm':>10}")
 
     def _f(x, w, d=1):
         return f"{x:>{w}.{d}f}" if isinstance(x, (int, float)) else f"{'-':>{w}}"
@@ -333,7 +341,8 @@ def main_bench(argv=None) -> int:
     for r in rows:
         print(f"{r['case']:<12}{str(r['truth']):<16}{str(r['verdict']):<16}{_f(r['confidence'], 6, 2)}"
               f"{_f(r['rms0'], 9, 3)}{_f(r['heldout_after'], 12, 3)}{_f(r['heldout_shrink'], 9)}"
-              f"{_f(r.get('noise'), 9, 3)}{_f(_ceiling(r), 10)}{_f(r['level'], 7, 2)}{_f(r['attributable'], 9)}")
+              f"{_f(r.get('noise'), 9, 3)}{_f(_ceiling(r), 10)}{_f(r['level'], 7, 2)}{_f(r['attributable'], 9)}"
+              f"{_f(r.get('change_rms'), 10, 3)}")
     effect_rows = [r for r in rows if r["truth"] is not None]
     none_rows = [r for r in rows if r["truth"] is None]
     named = sum(r["verdict"] == r["truth"] for r in effect_rows)
@@ -349,6 +358,11 @@ def main_bench(argv=None) -> int:
           f"{sum(r['verdict'] not in (None, 'unexplained') and r['confidence'] > 0.5 for r in none_rows)}/{len(none_rows)}; "
           "fitted values within 25% of the key: "
           f"{sum(e <= 0.25 for e in errs)}/{len(errs)}")
+    faint = [r for r in effect_rows if isinstance(r.get("change_rms"), (int, float))
+             and isinstance(r.get("noise"), (int, float)) and r["change_rms"] < r["noise"]]
+    listed = ", ".join(f"{r['case']} {r['truth']}" for r in faint) or "none"
+    print(f"withheld effects changing the seen skin by less than the noise floor (RMS): {len(faint)}/"
+          f"{len(effect_rows)} ({listed}), named {sum(r['verdict'] == r['truth'] for r in faint)} of them")
     if not_diagnosed:
         print(f"not diagnosed (faceplan could not register or load the case): {len(not_diagnosed)}: "
               + "; ".join(f"{c} ({t}): {why}" for c, t, why in not_diagnosed))

@@ -181,6 +181,13 @@ def _print_row(r: dict) -> None:
           flush=True)
 
 
+def _effect_change(rec: dict):
+    """The withheld effect's own RMS change (mm) of the skin the scan sees, from its key record
+    (None for a case without an effect): a miss is read against the noise floor, and a change
+    below it is not there to be found."""
+    return (rec.get("effect_skin_change_mm") or {}).get("rms_mm") if rec.get("effect") else None
+
+
 def main_bench(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--random", type=int, default=3, help="random-effect cases (issue target: 12)")
@@ -259,8 +266,7 @@ def main_bench(argv=None) -> int:
             if args.resume and args.keep and stored.exists():
                 rows.append(json.loads(stored.read_text()))
                 # rows stored before the effect's skin change was recorded: from the key
-                if "change_rms" not in rows[-1] and rec["effect"]:
-                    rows[-1]["change_rms"] = (rec.get("effect_skin_change_mm") or {}).get("rms_mm")
+                rows[-1].setdefault("change_rms", _effect_change(rec))
                 _print_row(rows[-1])
                 continue
             say = (lambda m: print(m, file=sys.stderr, flush=True)) if args.verbose else (lambda m: None)
@@ -292,11 +298,8 @@ def main_bench(argv=None) -> int:
             # mesh gave it (the fitted values are then the converged mesh's)
             kappa = entry.get("mesh_extrapolation_factor")
             shrink = d.get("shrinkage") or {}
-            # the withheld effect's own change of the skin the scan sees (RMS, key), to read a miss
-            # against the noise floor: a change below it is not there to be found
-            change = (rec.get("effect_skin_change_mm") or {}).get("rms_mm") if rec["effect"] else None
             rows.append({"case": Path(rec["case"]).name, "truth": rec["effect"], "value": rec["value"],
-                         "change_rms": change,
+                         "change_rms": _effect_change(rec),
                          "verdict": v["effect"], "confidence": v["confidence"],
                          "supported": v.get("supported_not_named") or [],
                          "rms0": d["method"]["baseline_rms_mm"],

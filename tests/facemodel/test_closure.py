@@ -1,10 +1,11 @@
 """Closing the mandible 8 mm on the coarse generic face (issue 5), from a mouth open enough.
 
 The generic face is in occlusion (the planning CT is taken with the teeth together), its
-incisal edges level but for the gap left where the lips meet, so an 8 mm upward translation of the mandible would drive the lower
-incisors into the upper ones: checked below, it is why the closure starts from the face with
-the mouth opened 8 mm about the condylar hinge axis (`facemodel.jaw.opened_model`) and closes
-by the reverse hinge rotation, with lip-lip and lip-teeth contact.
+incisal edges level but for the gap left where the lips meet, so an 8 mm upward translation
+of the mandible would drive the lower incisors into the upper ones: checked below, it is why
+the closure starts from the face with the mouth opened 8 mm about the condylar hinge axis
+(`facemodel.jaw.opened_model`) and closes by the reverse hinge rotation, with lip-lip and
+lip-teeth contact.
 """
 import numpy as np
 import pytest

@@ -73,3 +73,23 @@ def test_an_arch_in_a_slot_of_tissue_is_moved_where_it_clears_both_sides():
     # a slot too narrow for any move within max_shift is refused, naming the arch
     with pytest.raises(ValueError, match="upper"):
         clear_teeth(tissue, clearance=0.25, max_shift=1.0)
+
+
+def test_the_lips_corners_are_not_at_the_incisal_edges(coarse):
+    """The lips' inner corners (the nodes shared by a lip's contact surface and its teeth
+    surface) meet on the mouth line, and each arch's incisal edge stands INCISAL_CLEARANCE off
+    it, so that a jaw move sliding one arch over the other does not pinch the corners between
+    the edges (docs/solver_control.md, Limitations). With the edges on the mouth line the
+    upper lip's corner lay 0.26 mm from the upper incisal edge."""
+    from facemodel import head_geometry as hg
+    from facemodel import jaw
+
+    X = np.asarray(coarse.nodes)
+    fs = {k: set(np.asarray(v).ravel().tolist()) for k, v in coarse.facet_sets.items()}
+    edges = np.array(list(jaw.incisal_edges(coarse).values()))
+    for lip in ("upper", "lower"):
+        corner = np.array(sorted(fs[f"lip_{lip}_contact"] & fs[f"lip_{lip}_teeth"]))
+        mid = corner[np.argmin(np.abs(X[corner, 0]))]           # the midsagittal corner node
+        assert abs(X[mid, 0]) < 1e-6
+        # the edge points are the stored teeth's (rounded to 1e-6 mm): no other tolerance
+        assert np.linalg.norm(edges - X[mid], axis=1).min() >= hg.INCISAL_CLEARANCE

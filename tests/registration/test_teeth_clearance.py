@@ -2,8 +2,8 @@
 
 Seed 7 (class II: its registered lower lip started inside the transported lower arch) with
 the arches moved with their segments, and a strong class III (seed 13, mandible 9 mm ahead
-of the maxilla) with the patient's own teeth (`teeth=`), its lower arch raised to the mouth line
-so that its incisors start inside the registered lower lip. Checked independently of
+of the maxilla) with the patient's own teeth (`teeth=`), its lower arch raised to the mouth
+line so that its incisors start inside the registered lower lip. Checked independently of
 the report with trimesh's signed distance: no node off the skin / bones inside an arch, the
 scaled-Jacobian gate, and the skin fit equal to the fit before the clearance stage.
 """
@@ -37,7 +37,8 @@ def registered(request, generic):
         from facemodel import head_geometry as hg
 
         v, f, seg = head.teeth["lower"]
-        head = replace(head, teeth={**head.teeth, "lower": (np.asarray(v, float) + [0.0, 0.0, hg.INCISAL_CLEARANCE], f, seg)})
+        raised = np.asarray(v, float) + [0.0, 0.0, hg.INCISAL_CLEARANCE]
+        head = replace(head, teeth={**head.teeth, "lower": (raised, f, seg)})
     seen = {}
     stage = mm.clear_teeth
     # the patient's arches as `planner.case` gives them (Case.teeth: trimesh per arch)

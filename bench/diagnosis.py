@@ -35,7 +35,7 @@ SEED_BASE = 9901
 
 
 def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minutes: float | None = None,
-               neck: str = "free", family: str = "own"):
+               neck: str = "free", family: str = "own", floor: str = "free"):
     """A subprocess writing one case with `faceplan synth` (its own folder and key), its truth
     solves within `max_minutes` (`--case-max-minutes`)."""
     import os
@@ -45,6 +45,7 @@ def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minu
     cmd = [sys.executable, "-m", "planner.cli", "synth", "--out", str(out), "--count", "1", "--seed", str(seed),
            "--withheld-effect", kind, "--key", str(root / kind / f"key_{seed}.json"),
            "--truth-resolution", truth_resolution, "--workers", "1", "--truth-neck", neck,
+           "--truth-floor", floor,
            "--head-family", family, "--solve-log", str(root / kind / "solve_logs")]
     if max_minutes:
         cmd += ["--case-max-minutes", str(max_minutes)]
@@ -56,7 +57,8 @@ def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minu
 
 def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: str,
                 truth_resolution: str, workers: int, skip: tuple[int, ...] = (), make: bool = True,
-                max_minutes: float | None = None, neck: str = "free", family: str = "own") -> list[dict]:
+                max_minutes: float | None = None, neck: str = "free", family: str = "own",
+                floor: str = "free") -> list[dict]:
     """Case folders with post-op scans and their key, one `faceplan synth` per seed (`workers`
     at a time). A seed whose truth cannot be solved, or whose synth runs longer than
     `max_minutes` (a plan whose solve creeps at a limit point of the lips), is reported and
@@ -71,7 +73,7 @@ def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: s
     while todo or running:
         while todo and len(running) < max(workers, 1):
             kind, s = todo.pop(0)
-            running.append((kind, s, _synth_one(root, kind, s, truth_resolution, max_minutes, neck, family),
+            running.append((kind, s, _synth_one(root, kind, s, truth_resolution, max_minutes, neck, family, floor),
                             time.perf_counter()))
         time.sleep(2.0)
         for job in list(running):
@@ -216,10 +218,13 @@ def main_bench(argv=None) -> int:
     ap.add_argument("--truth-neck", default="free", choices=("free", "held", "random"),
                     help="the truths' neck cut (faceplan synth --truth-neck; held: a boundary condition "
                          "the diagnosis's model does not share)")
+    ap.add_argument("--truth-floor", default="free", choices=("free", "held", "random"),
+                    help="the truths' floor of the mouth (faceplan synth --truth-floor; held: a boundary "
+                         "condition the diagnosis's model does not share)")
     ap.add_argument("--head-family", default="own", choices=("own", "alt"),
                     help="the heads' generator (faceplan synth --head-family; alt: a second, "
                          "differently built family without teeth, anatomy the method was not made on)")
-    ap.add_argument("--boundary-uncertainty", default="neck", choices=("neck", "none"),
+    ap.add_argument("--boundary-uncertainty", default="neck,floor", metavar="neck,floor|none",
                     help="as faceplan diagnose --boundary-uncertainty")
     ap.add_argument("--layer-uncertainty", default="none", choices=("thicker", "none"),
                     help="as faceplan diagnose --layer-uncertainty")
@@ -228,7 +233,9 @@ def main_bench(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from planner.diagnosis.forward import Runner
-    from planner.diagnosis.run import diagnose_data, load_diagnosis_case, mesh_reference
+    from planner.diagnosis.run import diagnose_data, load_diagnosis_case, mesh_reference, parse_boundaries
+
+    boundaries = parse_boundaries(args.boundary_uncertainty)
 
     t_all = time.perf_counter()
     tmp = None if args.keep else tempfile.TemporaryDirectory(prefix="faceplan-bench-diagnosis-")
@@ -239,7 +246,8 @@ def main_bench(argv=None) -> int:
     key = make_cohort(root, args.random, args.none, args.seed, args.resolution,
                       args.truth_resolution or finer[args.resolution], args.workers,
                       tuple(int(x) for x in args.skip_seeds.split(",") if x.strip()), make=not args.no_make,
-                      max_minutes=args.synth_max_minutes, neck=args.truth_neck, family=args.head_family)
+                      max_minutes=args.synth_max_minutes, neck=args.truth_neck, family=args.head_family,
+                      floor=args.truth_floor)
     if args.skip_seeds:
         print(f"seeds left out (their truth could not be solved by synth): {args.skip_seeds}", flush=True)
     t_cohort = time.perf_counter() - t0
@@ -286,7 +294,7 @@ def main_bench(argv=None) -> int:
                 [ref], Runner(client), say, root / "solves", f"{Path(rec['case']).resolve()}|{ref_name}")
             out = diagnose_data([patient], [scan], forward=fwd, say=say,
                                 references=None if ref is None else [ref], reference_names=[ref_name],
-                                reference_forward=ref_fwd, boundary=args.boundary_uncertainty == "neck",
+                                reference_forward=ref_fwd, boundary=boundaries,
                                 layers=args.layer_uncertainty == "thicker")
             d = out["record"]
             if args.keep:

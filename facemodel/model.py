@@ -28,6 +28,9 @@ ATTACHMENT_SETS = {"skull": "attach_skull", "maxilla": "attach_maxilla",
                    "mandible": "attach_mandible", "chin": "attach_chin"}
 # the boundary conditions of the mesh's cut through the neck (node set "neck"; `facemodel.simulation`)
 NECK_CONDITIONS = ("free", "held")
+# the boundary conditions of the free deep surface under the mandible (node set
+# "floor_of_mouth"; `facemodel.simulation`)
+FLOOR_CONDITIONS = ("free", "held")
 LANDMARK_NAMES = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "ChL", "ChR", "Pog", "Me")
 FORMAT_VERSION = 1
 

@@ -27,7 +27,12 @@ that cut is free (traction-free): the submental tissue hangs from the mandible's
 and follows it. `neck="held"` holds the cut in place instead, the tissue continuing down a
 neck the operation does not move. The two bracket the truth (the hyoid and the tissue below
 follow a mandibular move in part); `planner.diagnosis` uses their difference as a
-model-uncertainty direction.
+model-uncertainty direction. The floor of the mouth (node set "floor_of_mouth", the free deep
+surface under the mandible) is likewise free by default: the submental tissue rests on no
+support. `floor="held"` holds it in place instead, as if tied to suprahyoid muscles and a hyoid
+that the operation does not move; the tissue's deep side under the chin then stays while its
+skin follows the mandible. The two bracket the floor of the mouth, which in a patient is
+stretched between the advanced mandible and a hyoid that follows it only in part.
 """
 from __future__ import annotations
 
@@ -40,7 +45,7 @@ import numpy as np
 from facemodel.attachments import attachment_sets, bone_frames
 from facemodel.errors import ModelInputError
 from facemodel.materials import default_materials
-from facemodel.model import MUSCLES, NECK_CONDITIONS
+from facemodel.model import FLOOR_CONDITIONS, MUSCLES, NECK_CONDITIONS
 from facemodel.solver_settings import FACE_SOLVER
 from solver.bc import LocalFrame, Prescribed
 from solver.constitution.muscle import Muscle
@@ -53,8 +58,10 @@ from solver.mesh import HexMesh
 from solver.newton import newton_solve
 
 NECK_OWNER = "neck"          # the owner of the held cut's constraint: no segment moves it
+FLOOR_OWNER = "floor"        # the owner of the held floor of the mouth's: likewise
 
 __all__ = ["simulate", "build_problem", "moved_constraints", "SimulationResult", "MUSCLES", "NECK_CONDITIONS",
+           "FLOOR_CONDITIONS",
            "lip_penetrations", "rigid_motion_ok", "teeth_advance"]
 
 log = logging.getLogger("facemodel.simulation")
@@ -127,7 +134,7 @@ def _shear_modulus(mat) -> float:
 def build_problem(model, motions=None, activations=None, *, contact=True, sliding=(),
                   sliding_nodes=None, materials=None, growth=None, body_force=None,
                   penalty_factor=1.0, contact_tolerance=0.05, neck="free", lip_penalty=None,
-                  uzawa_schedule="carried"):
+                  uzawa_schedule="carried", floor="free"):
     """The FE problem `simulate` solves: (SolidBody, constraints, contact terms {name: term},
     other terms [body force], lip facet size or None); arguments as `simulate`'s. The body's
     `constraint_segments` names the segment each constraint follows, its `bridge_nodes` counts
@@ -199,20 +206,26 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
         if len(tied):
             constraints.append(Prescribed(tied, _rigid_displacement(X[tied], T)))
             owners.append(seg)
-    if neck not in NECK_CONDITIONS:
-        raise ModelInputError(f"neck must be one of {', '.join(NECK_CONDITIONS)}, got {neck!r}")
-    if neck == "held":
-        # the neck cut held in place: the tissue goes on below it down the neck, which the
-        # operation does not move (attached nodes keep their bone's motion)
-        if "neck" not in model.node_sets:
-            raise ModelInputError("neck: held asked for, but the face model has no node set 'neck' "
-                                  "(its inferior border)")
-        held = np.setdiff1d(np.asarray(model.node_sets["neck"], dtype=np.int64),
-                            np.concatenate([np.asarray(v, dtype=np.int64) for v in attach.values()]
-                                           or [np.zeros(0, np.int64)]))
+    # the held boundaries (module text): nodes that no bone moves, held in place; attached
+    # nodes keep their bone's motion, and a node both sets hold is held once (by the neck)
+    tied_ids = np.concatenate([np.asarray(v, dtype=np.int64) for v in attach.values()]
+                              or [np.zeros(0, np.int64)])
+    for option, value, conditions, set_name, owner, what in (
+            ("neck", neck, NECK_CONDITIONS, "neck", NECK_OWNER, "its inferior border"),
+            ("floor", floor, FLOOR_CONDITIONS, "floor_of_mouth", FLOOR_OWNER,
+             "the free deep surface under the mandible")):
+        if value not in conditions:
+            raise ModelInputError(f"{option} must be one of {', '.join(conditions)}, got {value!r}")
+        if value != "held":
+            continue
+        if set_name not in model.node_sets:
+            raise ModelInputError(f"{option}: held asked for, but the face model has no node set "
+                                  f"{set_name!r} ({what})")
+        held = np.setdiff1d(np.asarray(model.node_sets[set_name], dtype=np.int64), tied_ids)
         if len(held):
             constraints.append(Prescribed(held, 0.0))
-            owners.append(NECK_OWNER)
+            owners.append(owner)
+            tied_ids = np.union1d(tied_ids, held)
 
     # --- contact: lips against each other, lip mucosa against the teeth
     lip_size = None
@@ -276,7 +289,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
              materials: dict | None = None, growth=None, body_force=None,
              n_steps: int = 4, log=None, penalty_factor: float = 1.0,
              contact_tolerance: float = 0.05, max_iterations: int = 25,
-             guess=None, max_seconds: float | None = None, neck: str = "free") -> SimulationResult:
+             guess=None, max_seconds: float | None = None, neck: str = "free",
+             floor: str = "free") -> SimulationResult:
     """Solve the face for bone `motions` {segment: 4x4} and muscle `activations` {muscle: a}.
 
     contact: lip-lip and lip-teeth contact on/off. sliding: segments whose deep nodes slide
@@ -297,7 +311,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     solved from it first, the load stepped only if that fails (`solver.newton.newton_solve`).
     max_seconds: the solve's wall-clock budget (`SolverControl.max_seconds`; None: none),
     shared with the soft-contact fallbacks below (`FaceSolverSettings.fallback_budget_share`).
-    neck: "free" (default) or "held", the boundary condition of the neck cut (module text).
+    neck: "free" (default) or "held", the boundary condition of the neck cut (module text);
+    floor: likewise, of the floor of the mouth (node set "floor_of_mouth").
     Raises `facemodel.errors.ModelInputError` (a
     ValueError) for motions, activations, materials or model parts it cannot use (contact
     asked of a model without lip contact surfaces) and `solver.errors.SolveFailed` if Newton
@@ -310,7 +325,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
         return build_problem(
             model, motions, activations, contact=contact, sliding=sliding, sliding_nodes=sliding_nodes,
             materials=materials, growth=growth, body_force=body_force, penalty_factor=penalty_factor,
-            contact_tolerance=contact_tolerance, neck=neck, **contact_options)
+            contact_tolerance=contact_tolerance, neck=neck, floor=floor, **contact_options)
 
     body, constraints, terms, extra, lip_size = problem()
     X = np.asarray(model.nodes, dtype=float)

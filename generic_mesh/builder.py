@@ -288,6 +288,10 @@ def build(resolution: str = "standard") -> FaceModel:
     # the neck cut: the mesh's inferior border row (every layer), where the tissue goes on down
     # the neck; free unless a plan holds it (`model.neck`, `facemodel.simulation.build_problem`)
     node_sets["neck"] = grid[0].ravel()
+    # the floor of the mouth: the free deep surface under the mandible (where the suprahyoid
+    # muscles and the hyoid lie); free unless a plan holds it (`model.floor`,
+    # `facemodel.simulation.build_problem`)
+    node_sets["floor_of_mouth"] = deep_nodes[free & (n_phi[deep_nodes] < FLOOR_OF_MOUTH)]
 
     # ---------------------------------------------------------------- facet sets
     faces = hexes[:, HEX_FACES]                                        # (m, 6, 4)

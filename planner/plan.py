@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from facemodel.model import MUSCLES, NECK_CONDITIONS
+from facemodel.model import FLOOR_CONDITIONS, MUSCLES, NECK_CONDITIONS
 from planner.errors import InputError
 from planner.itk_transform import LPS_FROM_RAS, read_itk_transform
 
@@ -53,7 +53,7 @@ _TOP_KEYS = ("faceplan", "frame", "segments", "muscles", "model", "limits", "des
 _SEGMENT_KEYS = ("translation", "rotation", "matrix", "itk_transform", "cut_planes", "from",
                  "description")
 _ROTATION_KEYS = ("axis", "angle_deg", "euler_deg", "order", "center")
-_MODEL_KEYS = ("resolution", "sliding", "contact", "materials", "effects", "neck")
+_MODEL_KEYS = ("resolution", "sliding", "contact", "materials", "effects", "neck", "floor")
 _LIMIT_KEYS = ("translation_mm", "rotation_deg")
 
 
@@ -96,6 +96,7 @@ class ModelOptions:
     materials: dict[str, dict[str, float]] = field(default_factory=dict)
     effects: dict = field(default_factory=dict)   # flat {name: value} (facemodel.effects)
     neck: str = "free"                     # the neck cut: "free" or "held" (facemodel.simulation)
+    floor: str = "free"                    # the floor of the mouth: "free" or "held" (likewise)
 
 
 @dataclass(frozen=True)
@@ -128,7 +129,8 @@ class Plan:
             "muscles": dict(self.muscles),
             "model": {"resolution": self.model.resolution, "sliding": list(self.model.sliding),
                       "contact": self.model.contact, "materials": self.model.materials,
-                      "effects": dict(self.model.effects), "neck": self.model.neck},
+                      "effects": dict(self.model.effects), "neck": self.model.neck,
+                      "floor": self.model.floor},
             "limits": {"translation_mm": self.max_translation_mm, "rotation_deg": self.max_rotation_deg},
         }
 
@@ -418,10 +420,12 @@ def parse_plan(data: Any, file: str = "plan.yaml", plan_dir: Path | None = None,
         effects = parse_effects(eff).as_dict()
     except EffectError as exc:
         r.fail(f"model.effects.{exc.field}", str(exc))
-    neck = mt.get("neck", "free")
-    if neck not in NECK_CONDITIONS:
-        r.fail("model.neck", f"must be one of {', '.join(NECK_CONDITIONS)}, got {neck!r}")
-    model = ModelOptions(resolution, sliding_t, contact, materials, effects, neck)
+    held = {}
+    for key, conditions in (("neck", NECK_CONDITIONS), ("floor", FLOOR_CONDITIONS)):
+        held[key] = mt.get(key, "free")
+        if held[key] not in conditions:
+            r.fail(f"model.{key}", f"must be one of {', '.join(conditions)}, got {held[key]!r}")
+    model = ModelOptions(resolution, sliding_t, contact, materials, effects, **held)
     return Plan(file, int(version), frame, plans, muscles, model, max_t, max_r)
 
 

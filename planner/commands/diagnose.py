@@ -31,10 +31,11 @@ def add_arguments(p) -> None:
     p.add_argument("--mesh-reference", default="auto", choices=("auto", "none") + tuple(RESOLUTIONS),
                    help="second mesh whose baseline estimates the model mesh's own discretisation error "
                         "(default auto: the next coarser resolution, none at coarse)")
-    p.add_argument("--boundary-uncertainty", default="neck", choices=("neck", "none"),
+    p.add_argument("--boundary-uncertainty", default="neck,floor", metavar="neck,floor|none",
                    help="model boundary conditions whose other choice the error model carries as a "
-                        "discrepancy direction (default neck: the baseline is also solved with the "
-                        "neck cut's other condition, one more solve per case; none: not)")
+                        "discrepancy direction (default neck,floor: the baseline is also solved "
+                        "with the neck cut's, and with the floor of the mouth's, other condition, "
+                        "one more solve per case each; none: not)")
     p.add_argument("--layer-uncertainty", default="none", choices=("thicker", "none"),
                    help="layer proportions the CT does not show, carried by the error model as "
                         "discrepancy directions (thicker: the baseline is also solved with the "
@@ -69,6 +70,12 @@ def _check(args) -> tuple[list[Path], tuple[str, ...] | None]:
                              field="--effects")
     if len(set(c.resolve() for c in cases)) < len(cases):
         raise InputError("a case is given twice", field="CASE")
+    from planner.diagnosis.run import parse_boundaries
+
+    try:
+        args.boundaries = parse_boundaries(args.boundary_uncertainty)
+    except ValueError as exc:
+        raise InputError(str(exc), field="--boundary-uncertainty") from None
     return cases, names
 
 
@@ -107,7 +114,7 @@ def run(args) -> int:
         result = diagnose_cases(cases, resolution=args.resolution, runner=Runner(client), say=progress.say,
                                 effect_names=names, tangent=not args.finite_differences,
                                 reference=args.mesh_reference,
-                                boundary=args.boundary_uncertainty == "neck",
+                                boundary=args.boundaries,
                                 layers=args.layer_uncertainty == "thicker")
     finally:
         for obj in closing:

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facemodel.model import NECK_CONDITIONS
+from facemodel.model import FLOOR_CONDITIONS, NECK_CONDITIONS
 from planner.errors import InputError, SolveError
 
 # Ranges of the withheld effects (skin change where the post-op scan sees the skin, the largest
@@ -102,6 +102,11 @@ def add_arguments(parser) -> None:
                         help="boundary condition of the truth model's neck cut (default free, as the "
                              "model faceplan predicts with; held: the cut held in place, a model-form "
                              "difference the diagnosis does not share; random: either, per case)")
+    parser.add_argument("--truth-floor", choices=(*FLOOR_CONDITIONS, "random"), default="free",
+                        help="boundary condition of the truth model's floor of the mouth (default "
+                             "free, as the model faceplan predicts with; held: the free deep surface "
+                             "under the mandible held in place, a model-form difference the diagnosis "
+                             "does not share; random: either, per case)")
     parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
                         help="dask scheduler to run the cases on (default: a local cluster)")
     parser.add_argument("--workers", type=int, default=2, help="local cluster worker processes (default 2)")
@@ -520,7 +525,7 @@ def prolonged_patient(generic, companion_generic, companion):
 
 def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                 contact: bool = True, timings: dict | None = None, log=None,
-                deadline: float | None = None, neck: str = "free") -> dict:
+                deadline: float | None = None, neck: str = "free", floor: str = "free") -> dict:
     """Predict and write `folder`/postop/skin.stl (and plan_actual.yaml) for an existing case
     folder; return the key record's post-op fields. contact: lip contact in the truth model
     (on for every case the command makes; off only to keep tests on coarse meshes short).
@@ -532,7 +537,8 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     Newton iteration); deadline: `time.perf_counter()` by which every truth solve must have
     ended (each gets what is left as its budget; a `SolveError` when it is spent); neck: the
     truth model's neck cut, "free" (the predicting model's), "held" or "random" (either, drawn
-    from the seed on a stream of its own, so the rest of the case is the same)."""
+    from the seed on a stream of its own, so the rest of the case is the same); floor: the truth
+    model's floor of the mouth, likewise (a stream of its own too)."""
     import dataclasses
 
     import trimesh
@@ -586,13 +592,17 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     overrides, mat_record = sy.perturbed_materials(rng)
     if neck == "random":
         neck = ("free", "held")[int(_rng(seed + 2 * 10**6).integers(2))]
+    if floor == "random":
+        floor = ("free", "held")[int(_rng(seed + 3 * 10**6).integers(2))]
     truth_plan = dataclasses.replace(plan, model=dataclasses.replace(plan.model, materials=overrides,
-                                                                     contact=bool(contact), neck=neck))
+                                                                     contact=bool(contact), neck=neck,
+                                                                     floor=floor))
     timings = {} if timings is None else timings
     companion = REGISTERED_AT.get(truth_resolution, truth_resolution)
     clock = time.perf_counter()
     say(f"truth model: registering the perturbed generic model (layers dermis x{dermis:.3f}, deep "
-        f"x{deep:.3f}; moduli x{json.dumps(mat_record['modulus_factors'])}; neck {neck}) at {companion}")
+        f"x{deep:.3f}; moduli x{json.dumps(mat_record['modulus_factors'])}; neck {neck}; floor {floor}) at "
+        f"{companion}")
     try:
         patient, _ = registration.mesh_match_and_repair(
             perturbed(companion), case.skin, case.bones, landmarks=case.landmarks or None,
@@ -721,7 +731,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     return {"effect": name, "value": value if name else None,
             "perturbation": {"truth_resolution": truth_resolution, "registered_at": companion,
                              "layer_thickness_factors": {"dermis": round(dermis, 4), "deep": round(deep, 4)},
-                             "neck": neck,
+                             "neck": neck, "floor": floor,
                              **mat_record, "scan": scan},
             "plan_actual": plan_actual is not None, "value_reductions": reductions,
             "value_corrections": corrections,
@@ -770,6 +780,7 @@ def make_case(root: str, seed: int, options: dict) -> dict:
         with _SolveLog(options.get("solve_log"), name) as log:
             record.update(make_postop(str(target), seed, tuple(withheld), options["truth_resolution"],
                                       contact=options.get("contact", True), neck=options.get("truth_neck", "free"),
+                                      floor=options.get("truth_floor", "free"),
                                       deadline=None if budget is None else start + 60.0 * float(budget),
                                       log=log))
     return record
@@ -872,7 +883,7 @@ def run(args) -> int:
     options = {"withheld": parse_withheld(args.withheld_effect), "truth_resolution": args.truth_resolution,
                "surface_size": args.surface_size, "mesher": args.mesher, "ct": args.ct,
                "ct_spacing": args.ct_spacing, "case_max_minutes": args.case_max_minutes,
-               "truth_neck": args.truth_neck, "head_family": args.head_family,
+               "truth_neck": args.truth_neck, "truth_floor": args.truth_floor, "head_family": args.head_family,
                "solve_log": None if args.solve_log is None else str(Path(args.solve_log).resolve())}
     seeds = [args.seed + i for i in range(args.count)]
     with atomic_output_dir(out) as tmp:

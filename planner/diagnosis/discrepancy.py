@@ -66,11 +66,13 @@ enough to hide the effects as well.
 
 Boundary conditions. The model's boundary conditions are choices, and an independent model of
 the same face makes other ones: the neck cut, free in faceplan's model, is held by models
-whose mesh goes on down the neck (`facemodel.simulation`). Where the gap is measured on the
-chin and the lower face, such a difference moves the skin as a sliding chin or a bone
-correction would, and an effect would be named for it. The baseline is therefore also solved
-with the other condition (`boundary`: the change b of the gap, on the same scan points and
-pose), and b enters the error model like the mesh error, one more Gaussian column with a
+whose mesh goes on down the neck, and the floor of the mouth, free under the submental tissue
+in faceplan's model, is held by models that mesh the suprahyoid muscles down to a hyoid
+(`facemodel.simulation`). Where the gap is measured on the chin and the lower face, such a
+difference moves the skin as a sliding chin or a bone correction would, and an effect would
+be named for it. The baseline is therefore also solved with each boundary's other condition
+(`boundary`: one column b per boundary, the change of the gap on the same scan points and
+pose), and each b enters the error model like the mesh error, one more Gaussian column with a
 coefficient c ~ N(0, BOUNDARY_SD^2): Sigma gains BOUNDARY_SD^2 b b^T. It is not taken out of
 the gap (nothing says which condition the patient's tissue is nearer, and an estimate on the
 baseline gap would take the part of a true effect that resembles it); every model carries it,

@@ -20,7 +20,13 @@ from planner.diagnosis.forward import Forward, Runner, prepare_case
 from planner.diagnosis.gap import measure_gap, region_table
 from planner.errors import InputError
 
-__all__ = ["load_diagnosis_case", "diagnose_cases", "diagnose_data", "build_record", "mesh_reference"]
+__all__ = ["load_diagnosis_case", "diagnose_cases", "diagnose_data", "build_record", "mesh_reference",
+           "BOUNDARIES", "parse_boundaries"]
+
+# the boundary conditions the model chooses and an independent model may choose otherwise
+# (`facemodel.simulation`, `discrepancy` "Boundary conditions"): plan option (`model.<option>`,
+# "free" or "held") -> the node set it holds, which the case model must have
+BOUNDARIES = {"neck": "neck", "floor": "floor_of_mouth"}
 
 
 def mesh_reference(resolution: str, choice: str | None = "auto") -> str | None:
@@ -81,8 +87,8 @@ def load_diagnosis_case(case_dir: Path, resolution: str | None, say, reference: 
 
 def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runner: Runner | None = None,
                    say=lambda s: None, effect_names: tuple[str, ...] | None = None,
-                   tangent: bool = True, reference: str | None = "auto", boundary: bool = True,
-                   layers: bool = False) -> dict:
+                   tangent: bool = True, reference: str | None = "auto",
+                   boundary: tuple[str, ...] = tuple(BOUNDARIES), layers: bool = False) -> dict:
     t0 = time.perf_counter()
     loaded = [load_diagnosis_case(Path(c), resolution, say, reference) for c in case_dirs]
     refs = [x[3] for x in loaded]
@@ -133,13 +139,29 @@ def mesh_errors(data: list, references: list, runner: Runner | None, say, names:
             say(f"  {d.case.name}: the gap changes by {rms:.2f} mm RMS on the {name} mesh")
 
 
-def other_neck(case):
-    """The case model with the other boundary condition of the neck cut (free <-> held)."""
+def other_boundary(case, option: str):
+    """The case model with the other condition (free <-> held) of the boundary `option`
+    (`BOUNDARIES`); None when the model lacks the boundary's node set."""
     import dataclasses
 
-    neck = "held" if case.plan.model.neck == "free" else "free"
-    plan = dataclasses.replace(case.plan, model=dataclasses.replace(case.plan.model, neck=neck))
+    if BOUNDARIES[option] not in case.model.node_sets:
+        return None
+    other = "held" if getattr(case.plan.model, option) == "free" else "free"
+    plan = dataclasses.replace(case.plan, model=dataclasses.replace(case.plan.model, **{option: other}))
     return dataclasses.replace(case, plan=plan)
+
+
+def parse_boundaries(text: str) -> tuple[str, ...]:
+    """`--boundary-uncertainty` text -> boundary options: a comma-separated list of
+    `BOUNDARIES` names, or "none"; ValueError for anything else."""
+    names = tuple(dict.fromkeys(t.strip() for t in str(text).split(",") if t.strip()))
+    if names == ("none",):
+        return ()
+    bad = [n for n in names if n not in BOUNDARIES]
+    if bad or not names:
+        raise ValueError(f"boundary conditions are a comma-separated list of {', '.join(BOUNDARIES)} "
+                         f"or none, got {text!r}")
+    return names
 
 
 # the layer groups of the layer-proportion directions (`discrepancy`, "Layer proportions"):
@@ -167,22 +189,24 @@ def thicker_layer(case, group: str):
     return None
 
 
-def boundary_errors(data: list, runner: Runner | None, say, neck: bool = True, layers: bool = False,
-                    guesses: dict | None = None) -> None:
-    """Per case the change of the gap when the baseline is solved with the other boundary
-    condition of the neck cut (`CaseData.boundary`, with `neck`) and with each layer group
-    thicker (`CaseData.layers`, with `layers`): model-uncertainty directions of the error model
-    (`discrepancy`, "Boundary conditions" and "Layer proportions"), on the same scan points and
-    pose, all in one batch of solves; before the mesh error is taken out of the gap (its
-    estimate then integrates these directions out). A case whose model has no neck cut, or
-    whose alternative cannot be solved, goes without that direction. guesses: {case index: the
-    baseline's displacement}, from which the thicker-layer solves start (the same mesh, its
-    interior nodes moved by a fraction of a layer); the neck's is solved from rest."""
+def boundary_errors(data: list, runner: Runner | None, say, boundaries: tuple[str, ...] = tuple(BOUNDARIES),
+                    layers: bool = False, guesses: dict | None = None) -> None:
+    """Per case the change of the gap when the baseline is solved with the other condition of
+    each boundary in `boundaries` (`BOUNDARIES`; `CaseData.boundary`, one column each) and with
+    each layer group thicker (`CaseData.layers`, with `layers`): model-uncertainty directions
+    of the error model (`discrepancy`, "Boundary conditions" and "Layer proportions"), on the
+    same scan points and pose, all in one batch of solves; before the mesh error is taken out
+    of the gap (its estimate then integrates these directions out). A case whose model lacks a
+    boundary's node set, or whose alternative cannot be solved, goes without that direction.
+    guesses: {case index: the baseline's displacement}, from which the thicker-layer solves
+    start (the same mesh, its interior nodes moved by a fraction of a layer); a boundary's is
+    solved from rest (the held nodes have moved in the baseline)."""
     jobs = []                   # (case index, kind, label, alternative case model)
     for i, d in enumerate(data):
-        if neck and "neck" in d.case.model.node_sets:
-            alt = other_neck(d.case)
-            jobs.append((i, "boundary", f"neck {alt.plan.model.neck}", alt))
+        for option in boundaries:
+            alt = other_boundary(d.case, option)
+            if alt is not None:
+                jobs.append((i, "boundary", f"{option} {getattr(alt.plan.model, option)}", alt))
         for group in (LAYER_GROUPS if layers else ()):
             alt = thicker_layer(d.case, group)
             if alt is not None:
@@ -190,7 +214,8 @@ def boundary_errors(data: list, runner: Runner | None, say, neck: bool = True, l
     if not jobs:
         return
     n = len({j[0] for j in jobs})
-    what = [w for w, on in (("the other neck condition", neck), ("each layer group thicker", layers)) if on]
+    what = [w for w, on in ((f"the other {' and '.join(boundaries)} condition", bool(boundaries)),
+                            ("each layer group thicker", layers)) if on]
     say(f"baseline of {n} case(s) with {' and with '.join(what)}: model-uncertainty directions")
     alternatives = Forward([j[3] for j in jobs], runner, lambda s: None)
     for k, (i, kind, _, _) in enumerate(jobs):
@@ -214,8 +239,8 @@ def boundary_errors(data: list, runner: Runner | None, say, neck: bool = True, l
     for (i, kind), cols in found.items():
         d = data[i]
         if kind == "boundary":
-            d.boundary = cols[0][1]
-            d.boundary_condition = cols[0][0]
+            d.boundary = np.column_stack([c for _, c in cols])
+            d.boundary_condition = ", ".join(label for label, _ in cols)
         else:
             d.layers = np.column_stack([c for _, c in cols])
             d.layer_directions = tuple(label for label, _ in cols)
@@ -226,7 +251,7 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
                   effect_names: tuple[str, ...] | None = None, forward: Forward | None = None,
                   effects: list | None = None, tangent: bool = True, references: list | None = None,
                   reference_names: list | None = None, reference_forward: Forward | None = None,
-                  boundary: bool = True, layers: bool = False) -> dict:
+                  boundary: tuple[str, ...] = tuple(BOUNDARIES), layers: bool = False) -> dict:
     """The diagnosis of prepared cases (`forward.CaseModel`) against their scans; returns
     {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}."""
     from planner.pipeline import unmet_text
@@ -263,7 +288,7 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
         for w in gap.warnings:
             say(f"  warning: {w}")
     if boundary or layers:
-        boundary_errors(data, forward.runner, say, neck=boundary, layers=layers,
+        boundary_errors(data, forward.runner, say, boundaries=tuple(boundary), layers=layers,
                         guesses={i: forward.baseline_displacement(i) for i in range(len(data))})
     if references is not None:
         mesh_errors(data, references, forward.runner, say, reference_names, reference_forward,

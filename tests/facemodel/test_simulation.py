@@ -171,25 +171,28 @@ def test_a_contact_left_deeper_than_its_tolerance_is_reported(face, seed7_motion
     assert all(v <= 0.1 for k, v in res.info["penetration_mm"].items() if k != "lip_contact")
 
 
-def test_a_held_neck_cut_stays_put_and_holds_the_submental_tissue_back(face):
+@pytest.mark.parametrize("option, node_set", [("neck", "neck"), ("floor", "floor_of_mouth")])
+def test_a_held_boundary_stays_put_and_holds_the_submental_tissue_back(face, option, node_set):
     """`neck="held"`: the mesh's inferior border row (node set "neck", the cut through the neck)
-    is held in place, the attachments still moving with their bones. Mandible and chin advanced
-    6 mm (no contact): with the cut free the submental tissue hangs from the mandible and
-    follows it nearly rigidly; held, it is stretched between the moving bone and the still neck,
-    so it moves forward less (mean forward displacement of the submental skin at least 1 mm
-    smaller, of about 5 mm free), the neck row itself by nothing (exactly: a prescribed zero),
-    and the face far from the cut hardly changes (the nose's skin within 0.05 mm: the cut is
-    held, not the face). Left-right symmetric to 1e-6 mm as the mesh is."""
+    is held in place, the attachments still moving with their bones; `floor="held"` likewise
+    the floor of the mouth (node set "floor_of_mouth", the free deep surface under the
+    mandible). Mandible and chin advanced 6 mm (no contact): with both free the submental
+    tissue hangs from the mandible and follows it nearly rigidly; with either held it is
+    stretched between the moving bone and the still boundary, so it moves forward less (mean
+    forward displacement of the submental skin at least 1 mm smaller, of about 5 mm free), the
+    held nodes by nothing (exactly: a prescribed zero), and the face far from it hardly changes
+    (the nose's skin within 0.05 mm: a boundary is held, not the face). Left-right symmetric to
+    1e-6 mm as the mesh is."""
     from scipy.spatial import cKDTree
 
     T = _translation(dy=6.0)
     motions = {"mandible": T, "chin": T}
     free = simulate(face, motions, contact=False)
-    held = simulate(face, motions, contact=False, neck="held")
+    held = simulate(face, motions, contact=False, **{option: "held"})
     assert free.converged and held.converged
-    neck = np.asarray(face.node_sets["neck"])
+    boundary = np.asarray(face.node_sets[node_set])
     attached = np.concatenate([v for k, v in face.node_sets.items() if k.startswith("attach_")])
-    cut = np.setdiff1d(neck, attached)
+    cut = np.setdiff1d(boundary, attached)
     assert len(cut) > 20
     assert np.all(held.displacement[cut] == 0.0)
     assert np.linalg.norm(free.displacement[cut], axis=1).mean() > 2.0
@@ -204,8 +207,22 @@ def test_a_held_neck_cut_stays_put_and_holds_the_submental_tissue_back(face):
     pair = d < 1e-6
     np.testing.assert_allclose(held.displacement[sub][pair], held.displacement[sub][j[pair]] * mirror,
                                atol=1e-6)
-    with pytest.raises(ValueError, match="neck"):
-        simulate(face, motions, contact=False, neck="clamped")
+    with pytest.raises(ValueError, match=option):
+        simulate(face, motions, contact=False, **{option: "clamped"})
+
+
+def test_the_floor_of_the_mouth_is_the_free_deep_surface_under_the_mandible(face):
+    """Node set "floor_of_mouth": deep nodes, none tied to a bone, all below the mandible's
+    attachments (under the chin and the mandible's body), mirror-symmetric as the mesh is."""
+    from scipy.spatial import cKDTree
+
+    floor = np.asarray(face.node_sets["floor_of_mouth"])
+    assert len(floor) > 20
+    assert np.all(np.isin(floor, face.node_sets["deep_free"]))
+    X = face.nodes
+    assert X[floor, 2].max() < np.median(X[face.node_sets["attach_mandible"], 2])
+    d, _ = cKDTree(X[floor] * [-1.0, 1.0, 1.0]).query(X[floor])
+    assert d.max() < 1e-6
 
 
 def _failing_first(monkeypatch, fails=1):

@@ -391,33 +391,42 @@ def _boundary_direction(P):
     return -1.5 * _pattern(P, 70.0, 30.0, 25.0)
 
 
+def _floor_direction(P):
+    """The second boundary's (the floor of the mouth held): under the chin, lower on the face."""
+    return -1.2 * _pattern(P, 68.0, 12.0, 14.0)
+
+
 def _sled(P):
     return -_pattern(P, 66.0, 26.0, 20.0)
 
 
-def test_boundary_direction_enters_the_covariance_after_the_mesh_error(sheet):
+def test_boundary_directions_enter_the_covariance_after_the_mesh_error(sheet):
+    """Two boundary directions (the neck's and the floor of the mouth's), one column each after
+    the mesh error's, each integrated out under N(0, BOUNDARY_SD^2); both coefficients are
+    recovered within three posterior standard errors."""
     P, w, _ = sheet
-    b, m = _boundary_direction(P), _mesh_direction(P)
+    b, m = np.column_stack([_boundary_direction(P), _floor_direction(P)]), _mesh_direction(P)
     em = discrepancy.ErrorModel(P, w, NOISE, mesh_error=m, boundary=b)
     delta, eps = _gp_sample(P, 61, SHORT_SIGMA, SHORT_ELL)
-    r = delta + eps + 0.8 * m + 1.0 * b
+    c_true = np.array([1.0, -0.7])
+    r = delta + eps + 0.8 * m + b @ c_true
     f = em.fit(r)
-    # both coefficients integrated out under their priors: Sigma gains MESH_ERROR_SD^2 m m^T +
-    # BOUNDARY_SD^2 b b^T, and the profile likelihood is the dense Gaussian's (1e-6 relative)
+    # every coefficient integrated out under its prior: Sigma gains MESH_ERROR_SD^2 m m^T +
+    # BOUNDARY_SD^2 B B^T, and the profile likelihood is the dense Gaussian's (1e-6 relative)
     S = em.covariance(f)
     be, me = b[em.idx], m[em.idx]
     base = discrepancy.ErrorModel(P, w, NOISE).covariance(f)
-    expect = discrepancy.MESH_ERROR_SD ** 2 * np.outer(me, me) + discrepancy.BOUNDARY_SD ** 2 * np.outer(be, be)
+    expect = discrepancy.MESH_ERROR_SD ** 2 * np.outer(me, me) + discrepancy.BOUNDARY_SD ** 2 * be @ be.T
     assert np.allclose(S - base, expect, atol=1e-12)
     dense = -0.5 * (r @ np.linalg.solve(S, r) + np.linalg.slogdet(S)[1] + len(r) * np.log(2 * np.pi))
     assert f.loglik == pytest.approx(dense, rel=1e-6)
     # the mesh coefficient is the mesh column's alone (what `remove_mesh_error` takes out)
-    # and the boundary coefficient is recovered within three posterior standard errors
-    assert f.mesh_coef.shape == (1,) and f.boundary_coef.shape == (1,)
+    # and the boundary coefficients are recovered within three posterior standard errors
+    assert f.mesh_coef.shape == (1,) and f.boundary_coef.shape == (2,)
     S0 = base + discrepancy.MESH_ERROR_SD ** 2 * np.outer(me, me)
-    se = 1.0 / np.sqrt(1.0 / discrepancy.BOUNDARY_SD ** 2 + be @ np.linalg.solve(S0, be))
-    assert abs(f.boundary_coef[0] - 1.0) <= 3.0 * se
-    assert f.boundary_mm == pytest.approx(abs(f.boundary_coef[0]) * np.sqrt(np.mean(be ** 2)), rel=1e-9)
+    post = np.linalg.inv(np.eye(2) / discrepancy.BOUNDARY_SD ** 2 + be.T @ np.linalg.solve(S0, be))
+    assert np.all(np.abs(f.boundary_coef - c_true) <= 3.0 * np.sqrt(np.diag(post)))
+    assert f.boundary_mm == pytest.approx(np.sqrt(np.mean((be @ f.boundary_coef) ** 2)), rel=1e-9)
 
 
 def test_layer_directions_enter_the_covariance_after_the_boundary(sheet):

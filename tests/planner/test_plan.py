@@ -126,6 +126,8 @@ def test_options_muscles_model_and_cut_planes():
     assert plan.model.resolution == "coarse" and plan.model.sliding == ("maxilla",)
     assert plan.model.neck == "free"                      # the default: the cut is traction-free
     assert plan_of({}, model={"neck": "held"}).model.neck == "held"
+    assert plan.model.floor == "free"                     # the floor of the mouth likewise
+    assert plan_of({}, model={"floor": "held"}).model.floor == "held"
     assert set(plan.motions()) == {"chin"}
     assert plan_of({}).motions() == {}
 
@@ -151,6 +153,7 @@ BAD = [
     ({"faceplan": 1, "muscles": {"masseter": 0.5}}, "muscles.masseter"),
     ({"faceplan": 1, "model": {"resolution": "ultra"}}, "model.resolution"),
     ({"faceplan": 1, "model": {"neck": "fixed"}}, "model.neck"),
+    ({"faceplan": 1, "model": {"floor": "tied"}}, "model.floor"),
     ({"faceplan": 1, "segments": {"skull": {"translation": [0, 1, 0]}}}, "segments.skull"),
     ({"faceplan": 1, "segments": {"chin": {"matrix": [[1, 0, 0, 0]] * 4, "translation": [0, 1, 0]}}}, "segments.chin"),
     ({"faceplan": 1, "segments": {"chin": {"itk_transform": "missing.tfm"}}}, "segments.chin.itk_transform"),

@@ -193,16 +193,16 @@ def test_cohort_on_a_two_worker_cluster_matches_one_process(tmp_path):
 
     info = yaml.safe_load((tmp_path / "cluster" / "synth_0021" / "case.yaml").read_text())
     assert info["follow_up_months"] == r["follow_up_months"]
-    # --truth-neck held: the same case (head, plan, perturbed model) with the truth's neck cut
-    # held, a boundary condition the predicting model does not share; the post-op face then
-    # differs (the plan moves the mandible), and so does its scan (its extent, and with it the
-    # noise and offset drawn after it)
-    assert p["neck"] == "free"
-    held = synth.make_case(str(tmp_path / "held"), 22, {**opts, "truth_neck": "held"})
+    # --truth-neck held --truth-floor held: the same case (head, plan, perturbed model) with the
+    # truth's neck cut and floor of the mouth held, boundary conditions the predicting model
+    # does not share; the post-op face then differs (the plan moves the mandible), and so does
+    # its scan (its extent, and with it the noise and offset drawn after it)
+    assert p["neck"] == "free" and p["floor"] == "free"
+    held = synth.make_case(str(tmp_path / "held"), 22, {**opts, "truth_neck": "held", "truth_floor": "held"})
     c = trimesh.load(tmp_path / "held" / "synth_0022" / "postop" / "skin.stl")
     held.pop("plan"), held.pop("shape")
-    assert held["perturbation"].pop("neck") == "held"
-    one["perturbation"].pop("neck")
+    assert held["perturbation"].pop("neck") == "held" and held["perturbation"].pop("floor") == "held"
+    one["perturbation"].pop("neck"), one["perturbation"].pop("floor")
     scans = held["perturbation"].pop("scan"), one["perturbation"].pop("scan")
     assert json.dumps(held, sort_keys=True) == json.dumps(one, sort_keys=True)
     assert scans[0] != scans[1]

@@ -35,7 +35,7 @@ SEED_BASE = 9901
 
 
 def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minutes: float | None = None,
-               neck: str = "free", family: str = "own", floor: str = "free"):
+               neck: str = "free", family: str = "own", floor: str = "free", scanner: str = "frontal"):
     """A subprocess writing one case with `faceplan synth` (its own folder and key), its truth
     solves within `max_minutes` (`--case-max-minutes`)."""
     import os
@@ -45,7 +45,7 @@ def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minu
     cmd = [sys.executable, "-m", "planner.cli", "synth", "--out", str(out), "--count", "1", "--seed", str(seed),
            "--withheld-effect", kind, "--key", str(root / kind / f"key_{seed}.json"),
            "--truth-resolution", truth_resolution, "--workers", "1", "--truth-neck", neck,
-           "--truth-floor", floor,
+           "--truth-floor", floor, "--scanner", scanner,
            "--head-family", family, "--solve-log", str(root / kind / "solve_logs")]
     if max_minutes:
         cmd += ["--case-max-minutes", str(max_minutes)]
@@ -58,7 +58,7 @@ def _synth_one(root: Path, kind: str, seed: int, truth_resolution: str, max_minu
 def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: str,
                 truth_resolution: str, workers: int, skip: tuple[int, ...] = (), make: bool = True,
                 max_minutes: float | None = None, neck: str = "free", family: str = "own",
-                floor: str = "free") -> list[dict]:
+                floor: str = "free", scanner: str = "frontal") -> list[dict]:
     """Case folders with post-op scans and their key, one `faceplan synth` per seed (`workers`
     at a time). A seed whose truth cannot be solved, or whose synth runs longer than
     `max_minutes` (a plan whose solve creeps at a limit point of the lips), is reported and
@@ -73,7 +73,8 @@ def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: s
     while todo or running:
         while todo and len(running) < max(workers, 1):
             kind, s = todo.pop(0)
-            running.append((kind, s, _synth_one(root, kind, s, truth_resolution, max_minutes, neck, family, floor),
+            running.append((kind, s, _synth_one(root, kind, s, truth_resolution, max_minutes, neck, family, floor,
+                                                    scanner),
                             time.perf_counter()))
         time.sleep(2.0)
         for job in list(running):
@@ -221,6 +222,9 @@ def main_bench(argv=None) -> int:
     ap.add_argument("--truth-floor", default="free", choices=("free", "held", "random"),
                     help="the truths' floor of the mouth (faceplan synth --truth-floor; held: a boundary "
                          "condition the diagnosis's model does not share)")
+    ap.add_argument("--scanner", default="frontal", choices=("frontal", "wide"),
+                    help="the post-op scans' scanner (faceplan synth --scanner; wide: ear to ear and "
+                         "under the chin)")
     ap.add_argument("--head-family", default="own", choices=("own", "alt"),
                     help="the heads' generator (faceplan synth --head-family; alt: a second, "
                          "differently built family without teeth, anatomy the method was not made on)")
@@ -247,7 +251,7 @@ def main_bench(argv=None) -> int:
                       args.truth_resolution or finer[args.resolution], args.workers,
                       tuple(int(x) for x in args.skip_seeds.split(",") if x.strip()), make=not args.no_make,
                       max_minutes=args.synth_max_minutes, neck=args.truth_neck, family=args.head_family,
-                      floor=args.truth_floor)
+                      floor=args.truth_floor, scanner=args.scanner)
     if args.skip_seeds:
         print(f"seeds left out (their truth could not be solved by synth): {args.skip_seeds}", flush=True)
     t_cohort = time.perf_counter() - t0

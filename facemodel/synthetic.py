@@ -372,66 +372,136 @@ def _zbuffer(V, F, x0, z0, h, nx, nz):
     return depth
 
 
+# The scanners a synthetic post-op scan can come from: each a list of views (yaw about the
+# vertical axis, pitch about the transverse axis, degrees; (0, 0) looks at the face from in
+# front) and how far below menton the scan goes (mm; None: to the mandible's lower border, which
+# a frontal view cannot see past).
+# - frontal: one range camera in front of the face (a structured-light or laser scanner's single
+#   view);
+# - wide: a stereophotogrammetry system of several pods (as 3dMDface / 3dMDtrio capture the face
+#   ear to ear): in front, either side at 50 deg, and below the face looking up at 40 deg, so
+#   that under the chin is seen down to 30 mm below menton.
+SCANNERS = {"frontal": {"views": ((0.0, 0.0),), "below_menton_mm": None},
+            "wide": {"views": ((0.0, 0.0), (-50.0, 0.0), (50.0, 0.0), (0.0, -40.0)),
+                     "below_menton_mm": 30.0}}
+
+
+MIN_PATCH = 200          # triangles: a smaller piece of a pod's patch is a speck, not scanned
+
+
+def _view_rotation(yaw: float, pitch: float) -> np.ndarray:
+    """R with x_view = R x: the viewer of (yaw, pitch) looks along -y_view (yaw turns the viewer
+    towards +x about +z, pitch below the face about +x)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("zx", [yaw, -pitch], degrees=True).as_matrix()
+
+
+def _range_image(V, F, keep, spacing, R, centre, window=None):
+    """One view's range image of the surface (V, F): grid points (world frame) and their grid
+    triangles (only cells whose 4 corners pass `keep(points)`), in the view frame R about
+    `centre` (x_view = R (x - centre)); window: the grid's (x0, z0, nx, nz) in that frame
+    (default: the box of the vertices `keep` passes)."""
+    Vv = (V - centre) @ R.T
+    if window is None:
+        inside = keep(V)
+        lo, hi = Vv[inside].min(axis=0), Vv[inside].max(axis=0)
+        window = (lo[0], lo[2], int((hi[0] - lo[0]) / spacing) + 1, int((hi[2] - lo[2]) / spacing) + 1)
+    x0, z0, nx, nz = window
+    depth = _zbuffer(np.ascontiguousarray(Vv), np.ascontiguousarray(F), x0, z0, spacing, nx, nz)
+    gx, gz = np.meshgrid(x0 + spacing * np.arange(nx), z0 + spacing * np.arange(nz))
+    ok = np.isfinite(depth)
+    pv = np.stack([gx, np.where(ok, depth, 0.0), gz], axis=-1)
+    pw = pv @ R + centre
+    ok &= keep(pw.reshape(-1, 3)).reshape(ok.shape)
+    idx = -np.ones((nz, nx), np.int64)
+    idx[ok] = np.arange(ok.sum())
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    tri = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
+    return pw[ok], tri[(tri >= 0).all(axis=1)]
+
+
 def scan_like_surface(vertices, faces, landmarks: dict, rng, *, spacing: float = 0.6,
                       noise: float = 0.2, max_shift: float = 2.0, max_angle_deg: float = 2.0,
-                      grazing: float = 0.3):
-    """The surface as a frontal surface scanner gives it: a range image on a `spacing` mm grid
-    seen along -y (RAS: the viewer in front), triangulated (0.6 mm grid: median triangle edge
-    ~0.8 mm with the diagonals and the face's slopes); the front of the face only (the
-    landmarks' box: ear to ear is not seen), no triangle seen at a grazing angle (|n_y| <
-    `grazing`: the sides and under the chin), nothing across depth jumps, holes at the mouth
-    slit (between the stomia, commissure to commissure) and the nostrils (beside subnasale);
-    Gaussian noise of `noise` mm along the normals and a random rigid offset (translation up
-    to `max_shift` mm, rotation up to `max_angle_deg` about the scan's centroid).
-    Returns (vertices, faces, record of what was drawn)."""
+                      grazing: float = 0.3, scanner: str = "frontal"):
+    """The surface as a surface scanner gives it (`SCANNERS`): per view a range image on a
+    `spacing` mm grid (the frontal view along -y, RAS: the viewer in front), triangulated (0.6
+    mm grid: median triangle edge ~0.8 mm with the diagonals and the face's slopes); the front
+    of the face only (the landmarks' box: ear to ear is not seen; the wide scanner's box is 20
+    mm wider either side), no triangle seen at a grazing angle (n . view < `grazing`: the frontal
+    view misses the sides and under the chin), nothing across depth jumps, holes at the mouth
+    slit (between the stomia, commissure to commissure) and the nostrils (beside subnasale).
+    With several views each part of the face is taken from the view it faces most (the pods'
+    patches, stitched without overlap). Gaussian noise of `noise` mm along the normals and a
+    random rigid offset (translation up to `max_shift` mm, rotation up to `max_angle_deg`
+    about the scan's centroid). Returns (vertices, faces, record of what was drawn)."""
+    import trimesh
+
+    if scanner not in SCANNERS:
+        raise ValueError(f"scanner must be one of {', '.join(SCANNERS)}, got {scanner!r}")
+    spec = SCANNERS[scanner]
     V = np.asarray(vertices, float)
     F = np.asarray(faces, np.int64)
     lm = {k: np.asarray(v, float) for k, v in landmarks.items()}
     x_half = 0.5 * abs(lm["ChL"][0] - lm["ChR"][0]) + 30.0
-    # menton is the lowest point of the face: below it a frontal view sees the neck
-    z_lo, z_hi = lm["Me"][2] - 1.0, lm["Prn"][2] + 50.0
-    x0, z0 = -x_half, z_lo
-    nx, nz = int(2 * x_half / spacing) + 1, int((z_hi - z_lo) / spacing) + 1
-    depth = _zbuffer(np.ascontiguousarray(V), np.ascontiguousarray(F), x0, z0, spacing, nx, nz)
-    gx, gz = np.meshgrid(x0 + spacing * np.arange(nx), z0 + spacing * np.arange(nz))
-    ok = np.isfinite(depth)
-    # the face ends at the lower border of the mandible, rising from menton towards the
-    # angles (~0.9 mm per mm sideways from 12 mm off the midline): below it the view sees
-    # the neck
-    ok &= gz >= lm["Me"][2] - 1.0 + 0.9 * np.maximum(np.abs(gx - lm["Me"][0]) - 12.0, 0.0)
-    # holes: the mouth slit (the stomion line between the commissures, 1.2 mm high) and the
-    # nostrils (ellipses 3 x 2 mm at 6 mm either side of subnasale, 2 mm above it)
+    below = spec["below_menton_mm"]
     z_st = 0.5 * (lm["Stms"][2] + lm["Stmi"][2])
     half_w = 0.5 * abs(lm["ChL"][0] - lm["ChR"][0])
-    ok &= ~((np.abs(gx - 0.5 * (lm["ChL"][0] + lm["ChR"][0])) < 0.95 * half_w) & (np.abs(gz - z_st) < 0.6))
-    for side in (-1.0, 1.0):
-        cx, cz = lm["Sn"][0] + 6.0 * side, lm["Sn"][2] + 2.0
-        ok &= ~(((gx - cx) / 3.0) ** 2 + ((gz - cz) / 2.0) ** 2 < 1.0)
-    idx = -np.ones((nz, nx), np.int64)
-    idx[ok] = np.arange(ok.sum())
-    pts = np.stack([gx[ok], depth[ok], gz[ok]], axis=1)
-    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
-    tri = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
-    tri = tri[(tri >= 0).all(axis=1)]
-    p = pts[tri]
-    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    if np.median(n[:, 1]) < 0:                       # outward: towards the viewer (+y)
-        tri = tri[:, [0, 2, 1]]
-        n = -n
-    edge = np.max(np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2), axis=1)
-    tri = tri[(n[:, 1] >= grazing) & (edge < 4.0 * spacing)]
-    used = np.unique(tri)
-    remap = -np.ones(len(pts), np.int64)
-    remap[used] = np.arange(len(used))
-    pts, tri = pts[used], remap[tri]
-    import trimesh
 
-    mesh = trimesh.Trimesh(pts, tri, process=False)
-    # keep the largest connected piece (specks left between holes are not scanned)
-    parts = mesh.split(only_watertight=False)
-    if len(parts) > 1:
-        mesh = max(parts, key=lambda m: len(m.faces))
+    def keep(P):
+        gx, gz = P[:, 0], P[:, 2]
+        if below is None:
+            # menton is the lowest point of the face: below it a frontal view sees the neck;
+            # the face ends at the lower border of the mandible, rising from menton towards
+            # the angles (~0.9 mm per mm sideways from 12 mm off the midline)
+            ok = (gx >= -x_half) & (gx <= x_half) & (gz <= lm["Prn"][2] + 50.0)
+            ok &= gz >= lm["Me"][2] - 1.0 + 0.9 * np.maximum(np.abs(gx - lm["Me"][0]) - 12.0, 0.0)
+        else:
+            ok = (np.abs(gx) <= x_half + 20.0) & (gz <= lm["Prn"][2] + 50.0) & (gz >= lm["Me"][2] - below)
+            # the back of the head and neck is no scanner's: in front of the ears' plane
+            ok &= P[:, 1] >= lm["Me"][1] - 90.0
+        # holes: the mouth slit (the stomion line between the commissures, 1.2 mm high) and
+        # the nostrils (ellipses 3 x 2 mm at 6 mm either side of subnasale, 2 mm above it)
+        ok &= ~((np.abs(gx - 0.5 * (lm["ChL"][0] + lm["ChR"][0])) < 0.95 * half_w) & (np.abs(gz - z_st) < 0.6))
+        for side in (-1.0, 1.0):
+            cx, cz = lm["Sn"][0] + 6.0 * side, lm["Sn"][2] + 2.0
+            ok &= ~(((gx - cx) / 3.0) ** 2 + ((gz - cz) / 2.0) ** 2 < 1.0)
+        return ok
+
+    views = spec["views"]
+    rotations = [_view_rotation(*v) for v in views]
+    towards = np.array([R[1] for R in rotations])        # world directions to each viewer
+    centre, window = lm["Prn"] - np.array([0.0, 40.0, 0.0]), None
+    if below is None:
+        # the frontal camera's window: the landmarks' box, from 1 mm below menton
+        z_lo = lm["Me"][2] - 1.0
+        centre, window = np.zeros(3), (-x_half, z_lo, int(2 * x_half / spacing) + 1,
+                                       int((lm["Prn"][2] + 50.0 - z_lo) / spacing) + 1)
+    parts = []
+    for k, R in enumerate(rotations):
+        pts, tri = _range_image(V, F, keep, spacing, R, centre, window)
+        p = pts[tri]
+        n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        if np.median(n @ towards[k]) < 0:                # outward: towards the viewer
+            tri = tri[:, [0, 2, 1]]
+            n = -n
+        edge = np.max(np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2), axis=1)
+        facing = n @ towards.T                            # (triangles, views)
+        ok = (facing[:, k] >= grazing) & (edge < 4.0 * spacing) & (np.argmax(facing, axis=1) == k)
+        mesh = trimesh.Trimesh(pts, tri[ok], process=False)
+        mesh.remove_unreferenced_vertices()
+        if not len(mesh.faces):
+            continue
+        # keep the largest connected piece (specks left between holes are not scanned); of a
+        # pod's patch, which the other pods' border in several places, every piece but specks
+        pieces = mesh.split(only_watertight=False)
+        if len(pieces) > 1:
+            big = max(len(m.faces) for m in pieces)
+            pieces = [m for m in pieces if len(m.faces) == big or (len(views) > 1 and len(m.faces) >= MIN_PATCH)]
+            mesh = pieces[0] if len(pieces) == 1 else trimesh.util.concatenate(pieces)
+        parts.append(mesh)
+    mesh = parts[0] if len(parts) == 1 else trimesh.util.concatenate(parts)
     pts = np.asarray(mesh.vertices, float).copy()
     tri = np.asarray(mesh.faces, np.int64)
     pts += rng.normal(0.0, noise, size=(len(pts), 1)) * np.asarray(mesh.vertex_normals, float)
@@ -447,7 +517,7 @@ def scan_like_surface(vertices, faces, landmarks: dict, rng, *, spacing: float =
     centre = pts.mean(axis=0)
     pts = (pts - centre) @ R.T + centre + shift
     e = np.linalg.norm(pts[tri] - pts[np.roll(tri, 1, axis=1)], axis=2)
-    record = {"grid_mm": spacing, "median_edge_mm": round(float(np.median(e)), 3),
+    record = {"scanner": scanner, "grid_mm": spacing, "median_edge_mm": round(float(np.median(e)), 3),
               "noise_sigma_mm": noise, "rigid_offset": {
                   "translation_mm": [round(float(v), 4) for v in shift],
                   "rotation_axis": [round(float(v), 4) for v in axis], "rotation_deg": round(angle, 4),
@@ -456,16 +526,17 @@ def scan_like_surface(vertices, faces, landmarks: dict, rng, *, spacing: float =
     return pts, tri, record
 
 
-def scan_coverage(points, vertices, faces, landmarks: dict, *, tol: float = 1.0) -> np.ndarray:
+def scan_coverage(points, vertices, faces, landmarks: dict, *, tol: float = 1.0,
+                  scanner: str = "frontal") -> np.ndarray:
     """Which of `points` (near the surface `vertices`, `faces`: the nodes of a skin registered
-    onto it) the frontal scan of `scan_like_surface` sees (its window, crop, holes and grazing
-    rule): those within `tol` mm of a vertex of that scan made without noise or offset. The
-    scan's vertices lie on a 0.6 mm grid (x, z), so a point on the scanned surface is within
-    about 0.4 mm of one, more where the surface slopes away from the viewer."""
+    onto it) the `scanner`'s scan of `scan_like_surface` sees (its window, crop, holes and
+    grazing rule): those within `tol` mm of a vertex of that scan made without noise or offset.
+    The scan's vertices lie on a 0.6 mm grid per view, so a point on the scanned surface is
+    within about 0.4 mm of one, more where the surface slopes away from the viewer."""
     from scipy.spatial import cKDTree
 
     V, _, _ = scan_like_surface(vertices, faces, landmarks, np.random.default_rng(0), noise=0.0,
-                                max_shift=0.0, max_angle_deg=0.0)
+                                max_shift=0.0, max_angle_deg=0.0, scanner=scanner)
     d, _ = cKDTree(V).query(np.asarray(points, float), distance_upper_bound=tol)
     return np.isfinite(d)
 

@@ -17,7 +17,10 @@ standard resolution and carried to the fine mesh, `prolonged_patient`, its effec
 the standard model), seen as a frontal surface scanner
 sees it (`facemodel.synthetic.scan_like_surface`: a range image on a 0.6 mm grid, median edge
 ~0.8 mm, the front of the face only, holes at the mouth slit, nostrils and under the chin, 0.2 mm noise along the
-normals, a rigid offset up to 2 mm / 2 deg); case.yaml gets `follow_up_months` (3-12), and
+normals, a rigid offset up to 2 mm / 2 deg; `--scanner wide`: a multi-pod system's patches,
+ear to ear and under the chin); with `--truth-neck held` / `--truth-floor held` the truth
+model holds the neck cut / the floor of the mouth, boundary conditions the predicting model
+leaves free; case.yaml gets `follow_up_months` (3-12), and
 postop/plan_actual.yaml is written for a random half of the bone_execution cases. Effect
 values are drawn per case from published ranges (`draw_effect`; swelling, posture and tone from
 a skin-change target met where the scan sees the skin, with one secant correction when the change reached leaves the range, and
@@ -107,6 +110,10 @@ def add_arguments(parser) -> None:
                              "free, as the model faceplan predicts with; held: the free deep surface "
                              "under the mandible held in place, a model-form difference the diagnosis "
                              "does not share; random: either, per case)")
+    parser.add_argument("--scanner", choices=("frontal", "wide"), default="frontal",
+                        help="the post-op scan's scanner (default frontal: one range camera in "
+                             "front of the face; wide: a multi-pod stereophotogrammetry system, ear "
+                             "to ear and under the chin)")
     parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
                         help="dask scheduler to run the cases on (default: a local cluster)")
     parser.add_argument("--workers", type=int, default=2, help="local cluster worker processes (default 2)")
@@ -342,14 +349,14 @@ def _region_ids(model, regions, seen):
     return ids, mask
 
 
-def _seen_nodes(model, case) -> np.ndarray:
-    """The model's skin nodes (pre-op, in `skin_surface` order) a frontal scan of the case's
-    pre-op skin sees (`facemodel.synthetic.scan_coverage`)."""
+def _seen_nodes(model, case, scanner: str = "frontal") -> np.ndarray:
+    """The model's skin nodes (pre-op, in `skin_surface` order) the `scanner`'s scan of the
+    case's pre-op skin sees (`facemodel.synthetic.scan_coverage`)."""
     from facemodel import synthetic as sy
     from planner.pipeline import skin_surface
 
     x, _, _ = skin_surface(model)
-    return sy.scan_coverage(x, case.skin.vertices, case.skin.faces, case.landmarks)
+    return sy.scan_coverage(x, case.skin.vertices, case.skin.faces, case.landmarks, scanner=scanner)
 
 
 def _skin_change(pred, base, seen, regions=None) -> dict:
@@ -525,7 +532,8 @@ def prolonged_patient(generic, companion_generic, companion):
 
 def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
                 contact: bool = True, timings: dict | None = None, log=None,
-                deadline: float | None = None, neck: str = "free", floor: str = "free") -> dict:
+                deadline: float | None = None, neck: str = "free", floor: str = "free",
+                scanner: str = "frontal") -> dict:
     """Predict and write `folder`/postop/skin.stl (and plan_actual.yaml) for an existing case
     folder; return the key record's post-op fields. contact: lip contact in the truth model
     (on for every case the command makes; off only to keep tests on coarse meshes short).
@@ -538,7 +546,8 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     ended (each gets what is left as its budget; a `SolveError` when it is spent); neck: the
     truth model's neck cut, "free" (the predicting model's), "held" or "random" (either, drawn
     from the seed on a stream of its own, so the rest of the case is the same); floor: the truth
-    model's floor of the mouth, likewise (a stream of its own too)."""
+    model's floor of the mouth, likewise (a stream of its own too); scanner: the post-op scan's
+    (`facemodel.synthetic.SCANNERS`), whose view the skin-change targets are met in."""
     import dataclasses
 
     import trimesh
@@ -626,7 +635,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     timings["solve_base_s"] = time.perf_counter() - clock
     solves = [_solve_record("base", base)]
     timings["solves"] = solves
-    seen = _seen_nodes(base.model, case)
+    seen = _seen_nodes(base.model, case, scanner)
     target = None
     if name is not None and value is None:
         # the value that changes the skin by a target drawn from the published range, from
@@ -724,7 +733,7 @@ def make_postop(folder: str, seed: int, withheld: tuple, truth_resolution: str,
     clock = time.perf_counter()
     x_pre, tris, ids = skin_surface(pred.model)
     moved_skin = sy.displaced_surface(case.skin.vertices, x_pre, tris, pred.displacement[ids])
-    V, F, scan = sy.scan_like_surface(moved_skin, case.skin.faces, case.landmarks, rng)
+    V, F, scan = sy.scan_like_surface(moved_skin, case.skin.faces, case.landmarks, rng, scanner=scanner)
     (folder / "postop").mkdir(exist_ok=True)
     trimesh.Trimesh(V, F, process=False).export(folder / "postop" / "skin.stl")
     timings["scan_s"] = time.perf_counter() - clock
@@ -781,6 +790,7 @@ def make_case(root: str, seed: int, options: dict) -> dict:
             record.update(make_postop(str(target), seed, tuple(withheld), options["truth_resolution"],
                                       contact=options.get("contact", True), neck=options.get("truth_neck", "free"),
                                       floor=options.get("truth_floor", "free"),
+                                      scanner=options.get("scanner", "frontal"),
                                       deadline=None if budget is None else start + 60.0 * float(budget),
                                       log=log))
     return record
@@ -883,7 +893,8 @@ def run(args) -> int:
     options = {"withheld": parse_withheld(args.withheld_effect), "truth_resolution": args.truth_resolution,
                "surface_size": args.surface_size, "mesher": args.mesher, "ct": args.ct,
                "ct_spacing": args.ct_spacing, "case_max_minutes": args.case_max_minutes,
-               "truth_neck": args.truth_neck, "truth_floor": args.truth_floor, "head_family": args.head_family,
+               "truth_neck": args.truth_neck, "truth_floor": args.truth_floor, "scanner": args.scanner,
+               "head_family": args.head_family,
                "solve_log": None if args.solve_log is None else str(Path(args.solve_log).resolve())}
     seeds = [args.seed + i for i in range(args.count)]
     with atomic_output_dir(out) as tmp:

@@ -122,6 +122,41 @@ def test_scan_coverage_is_the_front_of_the_face():
     assert box.sum() > 20 and seen[box].mean() > 0.9
 
 
+def test_a_wide_scanner_sees_ear_to_ear_and_under_the_chin_once():
+    """`scanner="wide"` (a multi-pod system, `facemodel.synthetic.SCANNERS`), noise and offset
+    off: every scan point lies on the skin (the range images interpolate its triangles: 1e-6
+    mm); the scan reaches 15-30 mm below menton (its crop: 30 mm; the submental skin faces the
+    pod below) and 10 mm or more further to each side than the frontal scan; the mouth slit and
+    the nostrils stay holes; and the pods' patches do not overlap: the scan's area is that of
+    the skin it covers (within 10 %, where two overlapping pods would double it)."""
+    import trimesh
+
+    shape = sy.random_shape(3)
+    skin = sy.skin_surface(shape, size=3.0, distance=0.25, seed=3)
+    lm = {k: np.asarray(v, float) for k, v in sy.landmarks(shape, skin).items()}
+    quiet = dict(noise=0.0, max_shift=0.0, max_angle_deg=0.0)
+    V, F, rec = sy.scan_like_surface(skin.vertices, skin.faces, lm, np.random.default_rng(1), scanner="wide", **quiet)
+    Vf, _, _ = sy.scan_like_surface(skin.vertices, skin.faces, lm, np.random.default_rng(1), **quiet)
+    assert rec["scanner"] == "wide"
+    sk = trimesh.Trimesh(skin.vertices, skin.faces, process=False)
+    _, dist, tri = trimesh.proximity.closest_point(sk, V)
+    assert dist.max() < 1e-6
+    assert 15.0 <= lm["Me"][2] - V[:, 2].min() <= 30.0 + 1e-6
+    assert V[:, 0].max() >= Vf[:, 0].max() + 10.0 and V[:, 0].min() <= Vf[:, 0].min() - 10.0
+    st = 0.5 * (lm["Stms"] + lm["Stmi"])
+    assert not ((np.abs(V[:, 0] - st[0]) < 5.0) & (np.abs(V[:, 2] - st[2]) < 0.3)).any()
+    for side in (-1, 1):
+        n = lm["Sn"] + [6.0 * side, 0, 2.0]
+        assert not ((np.abs(V[:, 0] - n[0]) < 1.0) & (np.abs(V[:, 2] - n[2]) < 0.8)
+                    & (np.abs(V[:, 1] - n[1]) < 10.0)).any()
+    scan_area = trimesh.Trimesh(V, F, process=False).area
+    covered = sk.area_faces[np.unique(tri)].sum()
+    assert scan_area == pytest.approx(covered, rel=0.1)
+    # the skin-change targets of a wide scan are met where it sees: under the chin too
+    seen = sy.scan_coverage(skin.vertices, skin.vertices, skin.faces, lm, scanner="wide")
+    assert np.any(seen & (skin.vertices[:, 2] < lm["Me"][2] - 10.0))
+
+
 @pytest.mark.slow
 def test_a_posture_target_is_met_where_the_scan_sees(tmp_path):
     """A withheld posture's value is set so that the skin the post-op scan sees changes by a

@@ -228,7 +228,7 @@ def main_bench(argv=None) -> int:
     ap.add_argument("--head-family", default="own", choices=("own", "alt"),
                     help="the heads' generator (faceplan synth --head-family; alt: a second, "
                          "differently built family without teeth, anatomy the method was not made on)")
-    ap.add_argument("--boundary-uncertainty", default="neck,floor", metavar="neck,floor|none",
+    ap.add_argument("--boundary-uncertainty", default="neck", metavar="neck[,floor]|none",
                     help="as faceplan diagnose --boundary-uncertainty")
     ap.add_argument("--layer-uncertainty", default="none", choices=("thicker", "none"),
                     help="as faceplan diagnose --layer-uncertainty")

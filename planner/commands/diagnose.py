@@ -31,11 +31,11 @@ def add_arguments(p) -> None:
     p.add_argument("--mesh-reference", default="auto", choices=("auto", "none") + tuple(RESOLUTIONS),
                    help="second mesh whose baseline estimates the model mesh's own discretisation error "
                         "(default auto: the next coarser resolution, none at coarse)")
-    p.add_argument("--boundary-uncertainty", default="neck,floor", metavar="neck,floor|none",
+    p.add_argument("--boundary-uncertainty", default="neck", metavar="neck[,floor]|none",
                    help="model boundary conditions whose other choice the error model carries as a "
-                        "discrepancy direction (default neck,floor: the baseline is also solved "
-                        "with the neck cut's, and with the floor of the mouth's, other condition, "
-                        "one more solve per case each; none: not)")
+                        "discrepancy direction, one more solve per case each (default neck: the "
+                        "neck cut's; floor: the floor of the mouth's, nearly the neck's direction; "
+                        "none: not)")
     p.add_argument("--layer-uncertainty", default="none", choices=("thicker", "none"),
                    help="layer proportions the CT does not show, carried by the error model as "
                         "discrepancy directions (thicker: the baseline is also solved with the "

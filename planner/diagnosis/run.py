@@ -21,12 +21,16 @@ from planner.diagnosis.gap import measure_gap, region_table
 from planner.errors import InputError
 
 __all__ = ["load_diagnosis_case", "diagnose_cases", "diagnose_data", "build_record", "mesh_reference",
-           "BOUNDARIES", "parse_boundaries"]
+           "BOUNDARIES", "DEFAULT_BOUNDARIES", "parse_boundaries"]
 
 # the boundary conditions the model chooses and an independent model may choose otherwise
 # (`facemodel.simulation`, `discrepancy` "Boundary conditions"): plan option (`model.<option>`,
 # "free" or "held") -> the node set it holds, which the case model must have
 BOUNDARIES = {"neck": "neck", "floor": "floor_of_mouth"}
+# the boundaries carried by default: the floor of the mouth held changes the skin nearly as the
+# neck held does (the same submental tissue held back from an advanced mandible), so the neck's
+# direction carries it too and its own solve adds little (docs/diagnosis.md)
+DEFAULT_BOUNDARIES = ("neck",)
 
 
 def mesh_reference(resolution: str, choice: str | None = "auto") -> str | None:
@@ -88,7 +92,7 @@ def load_diagnosis_case(case_dir: Path, resolution: str | None, say, reference: 
 def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runner: Runner | None = None,
                    say=lambda s: None, effect_names: tuple[str, ...] | None = None,
                    tangent: bool = True, reference: str | None = "auto",
-                   boundary: tuple[str, ...] = tuple(BOUNDARIES), layers: bool = False) -> dict:
+                   boundary: tuple[str, ...] = DEFAULT_BOUNDARIES, layers: bool = False) -> dict:
     t0 = time.perf_counter()
     loaded = [load_diagnosis_case(Path(c), resolution, say, reference) for c in case_dirs]
     refs = [x[3] for x in loaded]
@@ -189,7 +193,7 @@ def thicker_layer(case, group: str):
     return None
 
 
-def boundary_errors(data: list, runner: Runner | None, say, boundaries: tuple[str, ...] = tuple(BOUNDARIES),
+def boundary_errors(data: list, runner: Runner | None, say, boundaries: tuple[str, ...] = DEFAULT_BOUNDARIES,
                     layers: bool = False, guesses: dict | None = None) -> None:
     """Per case the change of the gap when the baseline is solved with the other condition of
     each boundary in `boundaries` (`BOUNDARIES`; `CaseData.boundary`, one column each) and with
@@ -251,7 +255,7 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
                   effect_names: tuple[str, ...] | None = None, forward: Forward | None = None,
                   effects: list | None = None, tangent: bool = True, references: list | None = None,
                   reference_names: list | None = None, reference_forward: Forward | None = None,
-                  boundary: tuple[str, ...] = tuple(BOUNDARIES), layers: bool = False) -> dict:
+                  boundary: tuple[str, ...] = DEFAULT_BOUNDARIES, layers: bool = False) -> dict:
     """The diagnosis of prepared cases (`forward.CaseModel`) against their scans; returns
     {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}."""
     from planner.pipeline import unmet_text

@@ -211,6 +211,21 @@ def test_a_held_boundary_stays_put_and_holds_the_submental_tissue_back(face, opt
         simulate(face, motions, contact=False, **{option: "clamped"})
 
 
+def test_a_held_floor_changes_the_skin_as_a_held_neck_does(face):
+    """Both hold the submental tissue back from an advanced mandible (6 mm with the chin, no
+    contact): their changes of the skin's displacement are nearly parallel (cosine above 0.9
+    over the skin), which is why the diagnosis's neck direction carries a held floor too
+    (`planner.diagnosis.run.DEFAULT_BOUNDARIES`)."""
+    T = _translation(dy=6.0)
+    motions = {"mandible": T, "chin": T}
+    skin = np.asarray(face.node_sets["skin"])
+    u = {k: simulate(face, motions, contact=False, **kw).displacement[skin]
+         for k, kw in (("free", {}), ("neck", {"neck": "held"}), ("floor", {"floor": "held"}))}
+    a, b = u["neck"] - u["free"], u["floor"] - u["free"]
+    assert np.sqrt(np.mean(np.sum(b * b, axis=1))) > 0.5          # a change, not noise
+    assert np.sum(a * b) / np.sqrt(np.sum(a * a) * np.sum(b * b)) > 0.9
+
+
 def test_the_floor_of_the_mouth_is_the_free_deep_surface_under_the_mandible(face):
     """Node set "floor_of_mouth": deep nodes, none tied to a bone, all below the mandible's
     attachments (under the chin and the mandible's body), mirror-symmetric as the mesh is."""

@@ -73,11 +73,10 @@ def test_withheld_muscle_tone_is_named(patient, forward):
     assert best["params"]["muscle_tone"] == pytest.approx(0.15, rel=0.25)
     assert best["heldout_shrink_pct"] >= 25.0
     assert {"upper_lip", "lower_lip"} & set(rec["verdict"]["regions"])
-    # the baseline was also solved with the neck cut held and with the floor of the mouth held
-    # (the plan's are free): their differences are in the error model, and the field the
-    # baseline gap holds along them is reported
+    # the baseline was also solved with the neck cut held (the plan's is free): its difference
+    # is in the error model, and the field the baseline gap holds along it is reported
     em = rec["error_model"]
-    assert em["boundary_direction"] == "neck held, floor held" and em["boundary_mm"] is not None
+    assert em["boundary_direction"] == "neck held" and em["boundary_mm"] is not None
     assert 0.0 <= em["boundary_mm"] <= em["discrepancy_mm"] + 1e-9
     # the layer-proportion directions are asked for (`layers=True`), not solved by default
     assert em["layer_directions"] is None and em["layer_mm"] is None
@@ -185,6 +184,30 @@ def test_perturbation_only_is_not_forced_onto_an_effect(patient, forward):
     assert v["effect"] in (None, "unexplained") or v["confidence"] <= 0.5
     if v["effect"] in (None, "unexplained"):
         _check_supported_not_named(rec)
+
+
+def test_a_held_floor_of_the_mouth_is_carried_by_the_neck_direction(patient, forward):
+    """A truth that holds the floor of the mouth (`model.floor: held`: a boundary choice the
+    diagnosed model does not share; perturbed model), no effect, scanned under the chin too.
+    Its submental skin lags the advanced mandible as a held neck cut's does (the two changes are
+    nearly parallel: `tests/facemodel/test_simulation.py`), so the neck's direction, solved by
+    default, carries it:
+    the error model puts a boundary field into the gap, and the verdict is null or
+    unexplained, never an effect with confidence > 0.5 (the issue's rule for a model-form gap)."""
+    import dataclasses
+    from pathlib import Path
+
+    truth = perturbed_case(patient, 5)
+    truth = dataclasses.replace(truth, plan=dataclasses.replace(
+        truth.plan, model=dataclasses.replace(truth.plan.model, floor="held")))
+    skin, _ = solve_skin(truth, ())
+    v, f = scan_like(skin, patient.skin_faces, seed=5, front_only=False)
+    rec = diagnose_data([patient], [Surface(v, f, Path("synthetic-floor.stl"))], forward=forward,
+                        effect_names=EFFECTS)["record"]
+    em = rec["error_model"]
+    assert em["boundary_direction"] == "neck held" and em["boundary_mm"] > 0.1
+    verdict = rec["verdict"]
+    assert verdict["effect"] in (None, "unexplained") or verdict["confidence"] <= 0.5
 
 
 def _check_supported_not_named(rec):

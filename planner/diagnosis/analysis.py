@@ -135,9 +135,11 @@ class CaseData:
     def error(self) -> discrepancy.ErrorModel:
         """The noise + discrepancy error model on this case's scan points."""
         if self._error is None:
+            names = self.gap.region_names
+            border = np.isin(self.gap.region, [names.index(r) for r in discrepancy.BORDER_REGIONS if r in names])
             self._error = discrepancy.ErrorModel(self.gap.points, self.gap.weights, self.gap.noise_floor_mm,
                                                  mesh_error=self.mesh_error, boundary=self.boundary,
-                                                 layers=self.layers)
+                                                 layers=self.layers, border=border)
         return self._error
 
 

@@ -92,6 +92,16 @@ direction, Gaussian columns with coefficients N(0, 1) (`layers`): a coefficient 
 layer `LAYER_STEP` thicker, the linearised response of a nuisance parameter of the model
 integrated out under its prior (the calibration inputs of Kennedy & O'Hagan 2001, sec. 4.3).
 
+Under the mandible. The regions below the mandible's lower border (submental, submandibular)
+hold the tissue whose boundaries the model chooses (the neck cut, the floor of the mouth) and
+which the head's posture in the scan (the neck's flexion) moves: a model-form gap is largest
+there, and a single amplitude for the whole face would take its size from them and hide the
+effects elsewhere. Where the scan sees them (a share of the points of at least
+`MIN_BORDER_SHARE`), the short scale is a sum of two independent fields: s_d (g + sqrt(rho) m
+h), with g and h of the same Matern kernel and m the mask of those points, so Sigma gains
+s_d^2 (K + rho M K M); rho is profiled over `BORDER_RATIOS` (0: the stationary field) with the
+amplitude and length, shared by every model of the case.
+
 The likelihood is evaluated on an area-uniform subsample of the scan points (one per cube of
 side `spacing`, at most `MAX_POINTS`), small enough for a dense eigendecomposition of the
 correlation matrix per correlation length.
@@ -103,7 +113,8 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["ErrorModel", "Fit", "subsample", "matern32", "smooth_basis", "LENGTHS_MM", "MAX_POINTS",
-           "REGION_P", "MESH_ERROR_SD", "BOUNDARY_SD", "LAYER_STEP", "LAYER_SD"]
+           "REGION_P", "MESH_ERROR_SD", "BOUNDARY_SD", "LAYER_STEP", "LAYER_SD", "BORDER_REGIONS",
+           "BORDER_RATIOS", "MIN_BORDER_SHARE"]
 
 MAX_POINTS = 900                      # subsample size of the likelihood
 # prior standard deviation of the mesh-error coefficient (module text): the error of a mesh is
@@ -124,6 +135,13 @@ BOUNDARY_SD = 1.0
 # one total thickness, which the CT fixes
 LAYER_STEP = 0.2
 LAYER_SD = 1.0
+# the regions under the mandible (module text, "Under the mandible"), the variance ratios rho of
+# their own field tried (a log grid up to a hundredfold variance: a gap ten times the face's
+# there), and the share of the subsample they must hold for the term to be fitted at all (below
+# it, too few points to tell its amplitude from the face's)
+BORDER_REGIONS = ("submental", "submandibular_left", "submandibular_right")
+BORDER_RATIOS = (0.0, 1.0, 4.0, 16.0, 64.0)
+MIN_BORDER_SHARE = 0.05
 # correlation lengths of the short scale (mm): from a few scan spacings to the size of a region
 LENGTHS_MM = (4.0, 6.0, 9.0, 13.0, 19.0, 28.0, 40.0)
 # short-scale amplitudes tried, relative to the gap's RMS (log grid; the maximum is unimodal in it)
@@ -195,12 +213,15 @@ class Fit:
     boundary_coef: np.ndarray | None = None   # its coefficient(s) on the boundary direction(s)
     layer_mm: float = 0.0         # RMS of the estimated layer-proportion field over the points
     layer_coef: np.ndarray | None = None      # its coefficients on the layer directions
+    border_ratio: float = 0.0     # rho: the variance ratio of the field under the mandible
+    border_share: float = 0.0     # the share of the points under the mandible
 
     @property
     def discrepancy_mm(self) -> float:
         """RMS of the whole discrepancy: both scales, the mesh error, the boundary and the
         layer-proportion fields."""
-        v = float(np.hypot(self.sigma_d, self.long_mm))
+        short = self.sigma_d * np.sqrt(1.0 + self.border_ratio * self.border_share)
+        v = float(np.hypot(short, self.long_mm))
         return float(np.hypot(np.hypot(np.hypot(v, self.mesh_mm), self.boundary_mm), self.layer_mm))
 
     def bic(self, n_eff: float) -> float:
@@ -230,7 +251,8 @@ class ErrorModel:
     def __init__(self, points: np.ndarray, weights: np.ndarray, sigma_n: float,
                  lengths: tuple[float, ...] = LENGTHS_MM, max_points: int = MAX_POINTS,
                  long_scale: bool = True, mesh_error: np.ndarray | None = None,
-                 boundary: np.ndarray | None = None, layers: np.ndarray | None = None):
+                 boundary: np.ndarray | None = None, layers: np.ndarray | None = None,
+                 border: np.ndarray | None = None):
         self.idx = subsample(points, weights, max_points)
         self.points = np.asarray(points, float)[self.idx]
         self.area = float(np.sum(weights))
@@ -257,10 +279,17 @@ class ErrorModel:
         self.N = np.concatenate(cols, axis=1)
         self._nsd2 = np.concatenate(sd2)
         BN = np.concatenate([self.B, self.N], axis=1)
-        self._eig = []
+        # the points under the mandible (module text): their own field where there are enough
+        m = np.zeros(len(self.idx)) if border is None else np.asarray(border, bool)[self.idx].astype(float)
+        self.border_share = float(m.mean())
+        self.ratios = BORDER_RATIOS if self.border_share >= MIN_BORDER_SHARE else (0.0,)
+        self._mm = np.outer(m, m)
+        self._eig = []                  # (ell, rho, eigenvalues, eigenvectors, U^T [B N])
         for ell in self.lengths:
-            lam, U = np.linalg.eigh(matern32(self._d, ell))
-            self._eig.append((np.clip(lam, 0.0, None), U, U.T @ BN))
+            K = matern32(self._d, ell)
+            for rho in self.ratios:
+                lam, U = np.linalg.eigh(K + rho * self._mm * K if rho else K)
+                self._eig.append((ell, rho, np.clip(lam, 0.0, None), U, U.T @ BN))
 
     def n_eff(self, ell: float) -> float:
         """Independent samples of the face for correlation length ell: area / (pi l^2)."""
@@ -270,7 +299,10 @@ class ErrorModel:
         """Sigma on the subsample (rows/columns `sel`) under the error model `fit`."""
         sel = np.ones(len(self.idx), bool) if sel is None else np.asarray(sel, bool)
         d, B, N = self._d[np.ix_(sel, sel)], self.B[sel], self.N[sel]
-        return (fit.sigma_d ** 2 * matern32(d, fit.ell) + fit.sigma_long ** 2 * (B @ B.T)
+        K = matern32(d, fit.ell)
+        if fit.border_ratio:
+            K = K + fit.border_ratio * self._mm[np.ix_(sel, sel)] * K
+        return (fit.sigma_d ** 2 * K + fit.sigma_long ** 2 * (B @ B.T)
                 + (N * self._nsd2) @ N.T + self.sigma_n ** 2 * np.eye(int(sel.sum())))
 
     def _profiles(self, zr, zJ, C, v, longs, lo, hi):
@@ -333,7 +365,7 @@ class ErrorModel:
         scale = float(np.sqrt(np.mean(r * r))) or self.sigma_n
         longs = self.long_amplitudes if long_scale else np.zeros(1)
         best = None
-        for ell, (lam, U, UB) in zip(self.lengths, self._eig):
+        for ell, rho, lam, U, UB in self._eig:
             zr = U.T @ r
             zJ = U.T @ Jf if nfree else None
             here = -np.inf
@@ -341,11 +373,11 @@ class ErrorModel:
                 v = s_d * s_d * lam + self.sigma_n ** 2
                 top = self._profiles(zr, zJ, UB, v, scale * longs, lo, hi)
                 if best is None or top[0] > best[0]:
-                    best = (top[0], s_d, ell, top[1], top[2], top[3])
+                    best = (top[0], s_d, ell, top[1], top[2], top[3], rho)
                 if top[0] < here - 1e-9:
                     break               # past this length's maximum in s_d (unimodal)
                 here = top[0]
-        ll, s_d, ell, x, s_l, nu = best
+        ll, s_d, ell, x, s_l, nu, rho = best
         theta = None
         if theta_a is not None:
             theta = np.array(theta_a, float)
@@ -359,7 +391,8 @@ class ErrorModel:
             return float(np.sqrt(np.mean((self.N[:, lo:hi] @ nu[lo:hi]) ** 2))) if hi > lo else 0.0
 
         return Fit(theta, float(s_d), float(ell), float(ll), nfree + int(extra_k), float(s_l), long_mm,
-                   rms(0, q), nu[:q], rms(q, b), nu[q:b], rms(b, self.N.shape[1]), nu[b:])
+                   rms(0, q), nu[:q], rms(q, b), nu[q:b], rms(b, self.N.shape[1]), nu[b:],
+                   float(rho), self.border_share if rho else 0.0)
 
     def standard_errors(self, J: np.ndarray, fit: Fit) -> np.ndarray:
         """Standard errors of the parameters (columns of J) under the error model `fit`:

@@ -552,3 +552,60 @@ def test_the_verdict_names_the_likelier_of_effects_the_shrinkage_cannot_tell_apa
     d = s("gravity", 49.0, 4.0, 1.0, significant=False)
     assert analysis._leading([a, d], a) is a
     assert analysis._leading([d], None) is None
+
+
+# Under the mandible (`discrepancy`, "Under the mandible"): a model-form gap confined to the
+# regions below the mandible (here the sheet's lowest third of a band, y < 30 mm: 23 % of the
+# points) besides a small one over the whole face, and an effect on the face above it.
+BORDER_SIGMA, FACE_SIGMA = 1.2, 0.1
+
+
+def _border_gap(P, seed):
+    border = P[:, 1] < 30.0
+    far, eps = _gp_sample(P, seed, BORDER_SIGMA, ELL)
+    near, _ = _gp_sample(P, seed + 1, FACE_SIGMA, ELL)
+    return border, near + np.where(border, far, 0.0) + eps
+
+
+@pytest.mark.parametrize("seed", [71, 72])
+def test_a_gap_under_the_mandible_gets_its_own_amplitude_and_does_not_hide_an_effect(sheet, seed):
+    """With the border mask the error model gives the regions under the mandible their own
+    variance (rho of `BORDER_RATIOS`, here the largest ones: the truth's is (1.2 / 0.1)^2), the
+    face keeps its small amplitude (below 0.3 mm against 1.2 mm), and an effect on the face (0.5
+    mm peak, above the border) is determined better than under a stationary field sized by the
+    border: a smaller standard error, strong evidence, the value within three standard errors."""
+    P, w, _ = sheet
+    border, r = _border_gap(P, seed)
+    pat = _pattern(P, 70.0, 95.0, 18.0)
+    theta_true = 0.5
+    r = r + theta_true * pat
+    J = -pat[:, None]
+    em_b = discrepancy.ErrorModel(P, w, NOISE, border=border)
+    em_s = discrepancy.ErrorModel(P, w, NOISE)
+    assert em_b.ratios == discrepancy.BORDER_RATIOS and em_s.ratios == (0.0,)
+    fb0, fs0 = em_b.fit(r), em_s.fit(r)
+    assert fb0.border_ratio >= 16.0 and fb0.sigma_d < 0.3 < fs0.sigma_d
+    assert fb0.loglik > fs0.loglik
+    fb1 = em_b.fit(r, J, np.zeros(1), [-5.0], [5.0], np.ones(1, bool))
+    fs1 = em_s.fit(r, J, np.zeros(1), [-5.0], [5.0], np.ones(1, bool))
+    se_b, se_s = em_b.standard_errors(J, fb1)[0], em_s.standard_errors(J, fs1)[0]
+    assert se_b < 0.8 * se_s
+    assert fb0.bic(em_b.n_eff(fb0.ell)) - fb1.bic(em_b.n_eff(fb0.ell)) >= fit.STRONG_EVIDENCE
+    assert abs(fb1.theta[0] - theta_true) <= 3.0 * se_b
+    # the covariance is the profiled one: the dense Gaussian's likelihood (1e-6 relative)
+    S = em_b.covariance(fb0)
+    x = r[em_b.idx]
+    dense = -0.5 * (x @ np.linalg.solve(S, x) + np.linalg.slogdet(S)[1] + len(x) * np.log(2 * np.pi))
+    assert fb0.loglik == pytest.approx(dense, rel=1e-6)
+
+
+def test_a_stationary_gap_keeps_a_stationary_field_and_few_border_points_none(sheet):
+    """Where the gap is one stationary field, the border's own variance stays small (rho of 4
+    at most: one grid step either side of equal, the estimate's scatter over ~10 independent
+    patches under the mandible); a border of under `MIN_BORDER_SHARE` of the points gets none."""
+    P, w, _ = sheet
+    delta, eps = _gp_sample(P, 73, SIGMA_D, ELL)
+    em = discrepancy.ErrorModel(P, w, NOISE, border=P[:, 1] < 30.0)
+    assert em.fit(delta + eps).border_ratio <= 4.0
+    few = discrepancy.ErrorModel(P, w, NOISE, border=P[:, 1] < 4.0)
+    assert few.ratios == (0.0,)

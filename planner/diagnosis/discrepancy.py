@@ -100,7 +100,7 @@ effects elsewhere. Where the scan sees them (a share of the points of at least
 `MIN_BORDER_SHARE`), the short scale is a sum of two independent fields: s_d (g + sqrt(rho) m
 h), with g and h of the same Matern kernel and m the mask of those points, so Sigma gains
 s_d^2 (K + rho M K M); rho is profiled over `BORDER_RATIOS` (0: the stationary field) with the
-amplitude and length, shared by every model of the case.
+amplitude and length of each model.
 
 The likelihood is evaluated on an area-uniform subsample of the scan points (one per cube of
 side `spacing`, at most `MAX_POINTS`), small enough for a dense eigendecomposition of the

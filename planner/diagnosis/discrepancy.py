@@ -282,8 +282,9 @@ class ErrorModel:
         # the points under the mandible (module text): their own field where there are enough
         m = np.zeros(len(self.idx)) if border is None else np.asarray(border, bool)[self.idx].astype(float)
         self.border_share = float(m.mean())
-        self.ratios = BORDER_RATIOS if self.border_share >= MIN_BORDER_SHARE else (0.0,)
-        self._mm = np.outer(m, m)
+        self.has_border = self.border_share >= MIN_BORDER_SHARE
+        self.ratios = BORDER_RATIOS if self.has_border else (0.0,)
+        self._mm = np.outer(m, m) if self.has_border else None
         self._eig = []                  # (ell, rho, eigenvalues, eigenvectors, U^T [B N])
         for ell in self.lengths:
             K = matern32(self._d, ell)

@@ -459,7 +459,7 @@ def _error_entry(d, f) -> dict:
             # the short scale under the mandible (`discrepancy`, "Under the mandible"), null
             # where the scan holds too few points there for a field of its own
             "short_scale_under_mandible_mm": (_r(f.sigma_d * np.sqrt(1.0 + f.border_ratio))
-                                              if d.error.border_share >= discrepancy.MIN_BORDER_SHARE else None),
+                                              if d.error.has_border else None),
             "long_scale_mm": _r(f.long_mm), "long_scale_basis": "offset and tilts of the whole face (linear polynomial)",
             "mesh_error_mm": _r(d.gap.mesh_error_mm) if d.mesh_error is not None else None,
             "mesh_reference": d.mesh_reference,

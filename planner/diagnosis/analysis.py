@@ -31,7 +31,10 @@ least `MIN_HELDOUT_SHRINK_PCT` of the held-out gap beyond the scan noise and twi
 shrinkage's bootstrap spread;
 a model-form gap may remain beside it (its regions are reported). Pairs with the effect of
 largest held-out shrinkage (significant or not: two effects can act together where neither
-does alone) are tried when it leaves a gap above the noise. The verdict is the best significant
+does alone) are tried when it leaves a gap above the noise. A partner with discrete choices (a
+switch such as which segments' tissue slides) is paired once per choice, each anchored at a
+full solve of the lead's fitted values with that switch, and the pair that fits best after
+refinement is kept: with the lead's effect present another switch can fit than alone. The verdict is the best significant
 effect (or pair, when the pair is itself significant, shrinks the held-out gap further than
 each of its members and, if a single effect is significant, is strongly better than it); else null when no region's gap stands
 out of noise + discrepancy, "unexplained" (with those regions) when some does. Its confidence
@@ -713,23 +716,65 @@ def evidence(cand: Candidate | None, data: list[CaseData]) -> tuple[list, float]
     return fits, float(-2.0 * loglik + k * np.log(max(n, 2.0)))
 
 
-def _pair(a: Candidate, b: Candidate, data: list[CaseData]) -> Candidate:
-    """a+b: b's continuous parameters added to a's, the anchors at a's fit."""
+def _pair(a: Candidate, b: Candidate, data: list[CaseData], b_choices: list | None = None) -> Candidate:
+    """a+b: b's continuous parameters added to a's, the anchors at a's fit. b_choices: per case
+    the partner's discrete choices in place of its own (their mesh corrections from
+    `CaseData.choice_mesh`); the anchors are then not a solve, `_pairs_with` makes them."""
     n = len(data)
     cand = Candidate(f"{a.name}+{b.name}", a.effects + b.effects, a.shared and b.shared and n > 1, n,
                      a.params + b.params)
-    for c in range(n):
-        cand.choices.append(tuple(a.choices[c] if a.choices else ()) + tuple(b.choices[c] if b.choices else ()))
+    for c, d in enumerate(data):
+        own = tuple(b.choices[c] if b.choices else ())
+        mb = b.M[c] if b.M else None
+        if b_choices is not None and tuple(b_choices[c]) != own:
+            own = tuple(b_choices[c])
+            mb = d.choice_mesh.get(effect_strings(dict(own)))
+        cand.choices.append(tuple(a.choices[c] if a.choices else ()) + own)
         cand.theta.append(np.concatenate([a.theta[c], b.origin]))
         cand.J.append(np.concatenate([a.J[c], b.J[c]], axis=1))
         cand.C.append(np.concatenate([a.C[c], b.C[c]], axis=1))
         cand.KR.append(np.concatenate([a.KR[c], b.KR[c]], axis=1)
                        if a.KR[c] is not None and b.KR[c] is not None else None)
-        ms = [m for m in (a.M[c] if a.M else None, b.M[c] if b.M else None) if m is not None]
+        ms = [m for m in (a.M[c] if a.M else None, mb) if m is not None]
         cand.M.append(sum(ms) if ms else None)
         cand.anchor_r.append(a.anchor_r[c])
     cand.sensitivity = a.sensitivity
     return cand
+
+
+def _pairs_with(a: Candidate, b: Candidate, data: list[CaseData], forward) -> list[Candidate]:
+    """The pairs of lead a with partner b to refine (module text). A partner without discrete
+    choices gives one, anchored at a's fit. A partner with them gives one per choice (the same
+    switch in every case) and its own per-case choices, each anchored at the full solve of a's
+    fitted values with that switch: the linear model about a's anchor does not hold a switch's
+    change, and a refinement step that is not better than a's anchor is refused, so anchored
+    there a pair whose switch only helps beside a's effect would stay a's fit. Variants whose
+    anchor solve fails are left out (all failing: the one anchored at a's fit)."""
+    n = len(data)
+    switches = [ch for e in b.effects for ch in e.choices]
+    if not switches or not b.choices:
+        return [_pair(a, b, data)]
+    options = [list(b.choices)]
+    for ch in switches:
+        opt = [tuple(ch)] * n
+        if opt not in options:
+            options.append(opt)
+    variants = [_pair(a, b, data, opt) for opt in options]
+    skins = iter(forward.solve([(c, v.strings(c)) for v in variants for c in range(n)]))
+    kept = []
+    for v in variants:
+        results = [next(skins) for _ in range(n)]
+        v.solves += n
+        if all(_ok(s) for s in results):
+            v.anchor_r = [v.corrected(c, data[c], data[c].gap.distances(s), v.theta[c])
+                          for c, s in enumerate(results)]
+            kept.append(v)
+    return kept or [_pair(a, b, data)]
+
+
+def _best_fit(cands: list[Candidate], data: list[CaseData]) -> Candidate:
+    """The candidate whose anchors leave the smallest weighted residual over every case."""
+    return min(cands, key=lambda cand: sum(_rss(d, r) for d, r in zip(data, cand.anchor_r)))
 
 
 def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: None,
@@ -793,8 +838,9 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
         if partners:
             say(f"{lead.cand.name} leaves a significant gap: trying pairs with "
                 + ", ".join(p.cand.name for p in partners))
-            pair_cands = [_pair(lead.cand, p.cand, data) for p in partners]
-            refine(pair_cands, data, forward)
+            variants = [_pairs_with(lead.cand, p.cand, data, forward) for p in partners]
+            refine([v for vs in variants for v in vs], data, forward)
+            pair_cands = [_best_fit(vs, data) for vs in variants]
             pairs = [score(c, data, rms0, n_eff) for c in pair_cands]
             _judge(pairs, gp0, lpd0)
     prob = probabilities(gp0, lpd0, scored + pairs)

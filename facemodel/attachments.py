@@ -1,6 +1,7 @@
 """Attachments that depend on the operation: the tissue a genioplasty degloves slides on bone,
 the tissue over every osteotomy the plan opens bridges it, tied to neither segment
-(`osteotomy_bridges`, `attachment_sets`).
+(`osteotomy_bridges`, `attachment_sets`), and a sagittal split leaves the tissue on the
+mandible's proximal segments (ramus, angle) with the skull (`attachment_sets`' `proximal`).
 
 An intra-oral sliding genioplasty is reached through a vestibular incision in the lower labial
 sulcus; the periosteum and the mentalis are stripped (subperiosteal degloving) from the
@@ -47,9 +48,11 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["RELEASE_SET", "BRIDGE_WIDTH_MM", "has_genioplasty", "release_for_plan",
+from facemodel.model import PROXIMAL_CONDITIONS, PROXIMAL_SET
+
+__all__ = ["RELEASE_SET", "BRIDGE_WIDTH_MM", "PROXIMAL", "has_genioplasty", "release_for_plan",
            "genioplasty_sliding", "attachment_sets", "osteotomy_bridges", "bone_normals",
-           "bone_frames"]
+           "bone_frames", "segment_motion", "has_split"]
 
 RELEASE_SET = "release_genioplasty"
 ANTERIOR = np.array([0.0, 1.0, 0.0])      # patient RAS
@@ -61,12 +64,28 @@ INFERIOR = np.array([0.0, 0.0, -1.0])
 BRIDGE_WIDTH_MM = 2.5
 
 
+# the owner of the tissue on the mandible's proximal segments when a sagittal split leaves
+# them seated (`attachment_sets`); it follows the skull
+PROXIMAL = "proximal"
+
+
+def segment_motion(motions: dict, seg: str) -> np.ndarray:
+    """The 4x4 motion of segment `seg` in `motions` (identity when not given); the proximal
+    segments of a sagittal split follow the skull, whose condylar fossae seat them."""
+    T = motions.get("skull" if seg == PROXIMAL else seg)
+    return np.eye(4) if T is None else np.asarray(T, dtype=float)
+
+
 def _moves_apart(motions: dict, a: str, b: str, tol: float = 1e-9) -> bool:
     """True if segments a and b move relative to each other in `motions` (an identity is
     assumed for a segment not given)."""
-    eye = np.eye(4)
-    return bool(np.abs(np.asarray(motions.get(a, eye), float)
-                       - np.asarray(motions.get(b, eye), float)).max() > tol)
+    return bool(np.abs(segment_motion(motions, a) - segment_motion(motions, b)).max() > tol)
+
+
+def has_split(motions: dict, tol: float = 1e-9) -> bool:
+    """True if `motions` move the mandible relative to the skull: a sagittal split (BSSO)
+    unless the plan says the whole mandible moves (`model.proximal: moved`)."""
+    return _moves_apart(motions, "mandible", "skull", tol)
 
 
 def osteotomy_bridges(model, owners: dict, motions: dict,
@@ -111,12 +130,28 @@ def osteotomy_bridges(model, owners: dict, motions: dict,
     return np.unique(np.concatenate(out))
 
 
-def attachment_sets(model, motions: dict, bridge_width: float | None = None) -> dict:
+def attachment_sets(model, motions: dict, bridge_width: float | None = None,
+                    proximal: str = "seated") -> dict:
     """{segment: node ids} of the tissue tied to each bone segment for the plan's `motions`:
     the "attach_<segment>" node sets with one owner per node (a node listed by two segments
     goes to the later of `model.segments`), less the nodes that bridge an osteotomy
     (`osteotomy_bridges` of `bridge_width`, None: `BRIDGE_WIDTH_MM` as it is at the call;
-    0: none released)."""
+    0: none released).
+
+    proximal: "seated" (default) or "moved" (`facemodel.model.PROXIMAL_CONDITIONS`). When the
+    mandible moves relative to the skull, "seated" reads the move as a sagittal split: its
+    attached nodes in node set "mandible_proximal" (ramus and angle) get their own owner,
+    `PROXIMAL`, which follows the skull (`segment_motion`). In a bilateral sagittal split the
+    buccal cut runs down the body at the second molar and the lingual cut above the lingula;
+    the proximal segments keep the condyles, which the surgeon seats back in the fossae before
+    fixation, and with them the masseter and medial pterygoid insertions, while the distal
+    segment carries the teeth (Trauner R., Obwegeser H., Oral Surg Oral Med Oral Pathol
+    10:677-689, 1957; Dal Pont G., J Oral Surg 19:42-47, 1961; Reyneke 2010, ch. on BSSO).
+    The cut itself then opens between the two owners, and `osteotomy_bridges` releases the
+    tissue over it. "moved": the whole mandible moves as one body (a mandible that only
+    autorotates about its condyles, no split)."""
+    if proximal not in PROXIMAL_CONDITIONS:
+        raise ValueError(f"proximal must be one of {', '.join(PROXIMAL_CONDITIONS)}, got {proximal!r}")
     if bridge_width is None:
         bridge_width = BRIDGE_WIDTH_MM
     owner = {}
@@ -128,6 +163,12 @@ def attachment_sets(model, motions: dict, bridge_width: float | None = None) -> 
         ids = np.array(sorted(i for i, s in owner.items() if s == seg), dtype=np.int64)
         if len(ids):
             sets[seg] = ids
+    if proximal == "seated" and "mandible" in sets and has_split(motions):
+        behind = np.asarray(model.node_sets.get(PROXIMAL_SET, ()), dtype=np.int64)
+        ids = np.intersect1d(sets["mandible"], behind)
+        if len(ids):
+            sets[PROXIMAL] = ids
+            sets["mandible"] = np.setdiff1d(sets["mandible"], ids)
     if bridge_width > 0.0:
         bridge = osteotomy_bridges(model, sets, motions, bridge_width)
         if len(bridge):

@@ -31,6 +31,11 @@ NECK_CONDITIONS = ("free", "held")
 # the boundary conditions of the free deep surface under the mandible (node set
 # "floor_of_mouth"; `facemodel.simulation`)
 FLOOR_CONDITIONS = ("free", "held")
+# what the mandible's proximal segments (node set "mandible_proximal": ramus and angle) do when
+# the plan moves the mandible: "seated", a sagittal split leaves them with the condyles in the
+# fossae; "moved", the whole mandible moves as one body (`facemodel.attachments`)
+PROXIMAL_CONDITIONS = ("seated", "moved")
+PROXIMAL_SET = "mandible_proximal"
 LANDMARK_NAMES = ("Prn", "Sn", "Ls", "Stms", "Stmi", "Li", "ChL", "ChR", "Pog", "Me")
 FORMAT_VERSION = 1
 

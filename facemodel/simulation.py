@@ -5,7 +5,9 @@ orthognathic-surgery face model (Chabanas, Luboz & Payan 2003; Nazari et al. 201
 muscle and lip-contact set-up): every attachment node set "attach_<segment>" moves with its
 bone segment's rigid motion (the skull stays fixed), ramped with the load fraction, but for the
 tissue that bridges an osteotomy of the plan, tied to neither segment
-(`facemodel.attachments.osteotomy_bridges`); the teeth
+(`facemodel.attachments.osteotomy_bridges`), and the tissue on the mandible's proximal segments
+(ramus and angle), which a sagittal split leaves with the skull unless `proximal="moved"`
+(`facemodel.attachments.attachment_sets`); the teeth
 move with their segment and the lip mucosa cannot enter them (rigid contact); the upper and
 lower lips cannot enter each other (two-pass deformable contact); each muscle label gets the
 active transversely isotropic `solver.constitution.muscle.Muscle` law at its activation
@@ -42,10 +44,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from facemodel.attachments import attachment_sets, bone_frames
+from facemodel.attachments import attachment_sets, bone_frames, segment_motion
 from facemodel.errors import ModelInputError
 from facemodel.materials import default_materials
-from facemodel.model import FLOOR_CONDITIONS, MUSCLES, NECK_CONDITIONS
+from facemodel.model import FLOOR_CONDITIONS, MUSCLES, NECK_CONDITIONS, PROXIMAL_CONDITIONS
 from facemodel.solver_settings import FACE_SOLVER
 from solver.bc import LocalFrame, Prescribed
 from solver.constitution.muscle import Muscle
@@ -60,8 +62,8 @@ from solver.newton import newton_solve
 NECK_OWNER = "neck"          # the owner of the held cut's constraint: no segment moves it
 FLOOR_OWNER = "floor"        # the owner of the held floor of the mouth's: likewise
 
-__all__ = ["simulate", "build_problem", "moved_constraints", "SimulationResult", "MUSCLES", "NECK_CONDITIONS",
-           "FLOOR_CONDITIONS",
+__all__ = ["simulate", "build_problem", "held_boundaries", "moved_constraints", "SimulationResult", "MUSCLES", "NECK_CONDITIONS",
+           "FLOOR_CONDITIONS", "PROXIMAL_CONDITIONS",
            "lip_penetrations", "rigid_motion_ok", "teeth_advance"]
 
 log = logging.getLogger("facemodel.simulation")
@@ -96,11 +98,6 @@ class SimulationResult:
     problem: tuple = ()             # (SolidBody, constraints, terms) as solved, for sensitivities
 
 
-def _segment_motion(motions, seg):
-    T = motions.get(seg)
-    return np.eye(4) if T is None else np.asarray(T, dtype=float)
-
-
 def _typical_size(X, facets):
     if not len(facets):
         return 1.0
@@ -131,10 +128,37 @@ def _shear_modulus(mat) -> float:
     return 5.0
 
 
+def held_boundaries(model, attach: dict, *, neck: str = "free", floor: str = "free") -> list:
+    """[(owner, node ids)] of the boundaries held in place (module text): "neck" for
+    `neck="held"`, "floor" for `floor="held"`. Nodes no bone moves: the attached ones of
+    `attach` {segment: ids} keep their bone's motion, and a node both sets hold is held once
+    (by the neck). Raises `ModelInputError` for a condition it does not know or a model
+    without the node set."""
+    tied_ids = np.concatenate([np.asarray(v, dtype=np.int64) for v in attach.values()]
+                              or [np.zeros(0, np.int64)])
+    out = []
+    for option, value, conditions, set_name, owner, what in (
+            ("neck", neck, NECK_CONDITIONS, "neck", NECK_OWNER, "its inferior border"),
+            ("floor", floor, FLOOR_CONDITIONS, "floor_of_mouth", FLOOR_OWNER,
+             "the free deep surface under the mandible")):
+        if value not in conditions:
+            raise ModelInputError(f"{option} must be one of {', '.join(conditions)}, got {value!r}")
+        if value != "held":
+            continue
+        if set_name not in model.node_sets:
+            raise ModelInputError(f"{option}: held asked for, but the face model has no node set "
+                                  f"{set_name!r} ({what})")
+        held = np.setdiff1d(np.asarray(model.node_sets[set_name], dtype=np.int64), tied_ids)
+        if len(held):
+            out.append((owner, held))
+            tied_ids = np.union1d(tied_ids, held)
+    return out
+
+
 def build_problem(model, motions=None, activations=None, *, contact=True, sliding=(),
                   sliding_nodes=None, materials=None, growth=None, body_force=None,
                   penalty_factor=1.0, contact_tolerance=0.05, neck="free", lip_penalty=None,
-                  uzawa_schedule="carried", floor="free"):
+                  uzawa_schedule="carried", floor="free", proximal="seated"):
     """The FE problem `simulate` solves: (SolidBody, constraints, contact terms {name: term},
     other terms [body force], lip facet size or None); arguments as `simulate`'s. The body's
     `constraint_segments` names the segment each constraint follows, its `bridge_nodes` counts
@@ -183,7 +207,9 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
                      growth=growth)
 
     # --- essential conditions: attachments tied to their bone (sliding ones excepted)
-    attach = attachment_sets(model, motions)
+    if proximal not in PROXIMAL_CONDITIONS:
+        raise ModelInputError(f"proximal must be one of {', '.join(PROXIMAL_CONDITIONS)}, got {proximal!r}")
+    attach = attachment_sets(model, motions, proximal=proximal)
     constraints, terms = [], {}
     owners = []                                     # the segment each constraint follows
     sliding_nodes = dict(sliding_nodes or {})
@@ -193,7 +219,7 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
     on_bone = np.zeros(len(X), dtype=bool)          # nodes of the deep facets on the bone
     on_bone[np.asarray(model.facet_sets.get("deep_bone", np.zeros((0, 4))), dtype=np.int64)] = True
     for seg, ids in attach.items():
-        T = _segment_motion(motions, seg)
+        T = segment_motion(motions, seg)
         glide = np.intersect1d(np.asarray(sliding_nodes.get(seg, ()), dtype=np.int64), ids)
         if seg in sliding:
             # the whole segment: every attached node on its bone surface slides
@@ -206,26 +232,9 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
         if len(tied):
             constraints.append(Prescribed(tied, _rigid_displacement(X[tied], T)))
             owners.append(seg)
-    # the held boundaries (module text): nodes that no bone moves, held in place; attached
-    # nodes keep their bone's motion, and a node both sets hold is held once (by the neck)
-    tied_ids = np.concatenate([np.asarray(v, dtype=np.int64) for v in attach.values()]
-                              or [np.zeros(0, np.int64)])
-    for option, value, conditions, set_name, owner, what in (
-            ("neck", neck, NECK_CONDITIONS, "neck", NECK_OWNER, "its inferior border"),
-            ("floor", floor, FLOOR_CONDITIONS, "floor_of_mouth", FLOOR_OWNER,
-             "the free deep surface under the mandible")):
-        if value not in conditions:
-            raise ModelInputError(f"{option} must be one of {', '.join(conditions)}, got {value!r}")
-        if value != "held":
-            continue
-        if set_name not in model.node_sets:
-            raise ModelInputError(f"{option}: held asked for, but the face model has no node set "
-                                  f"{set_name!r} ({what})")
-        held = np.setdiff1d(np.asarray(model.node_sets[set_name], dtype=np.int64), tied_ids)
-        if len(held):
-            constraints.append(Prescribed(held, 0.0))
-            owners.append(owner)
-            tied_ids = np.union1d(tied_ids, held)
+    for owner, held in held_boundaries(model, attach, neck=neck, floor=floor):
+        constraints.append(Prescribed(held, 0.0))
+        owners.append(owner)
 
     # --- contact: lips against each other, lip mucosa against the teeth
     lip_size = None
@@ -255,7 +264,7 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
             for name, (V, F, seg) in dict(getattr(model, "teeth", {}) or {}).items():
                 terms[f"teeth_{name}"] = RigidSurfaceContact(
                     X, np.asarray(V, float), np.asarray(F, np.int64), slave_facets=mucosa,
-                    motion=_segment_motion(motions, seg),
+                    motion=segment_motion(motions, seg),
                     penalty=penalty_factor * 3.0 * mu / h, tolerance=contact_tolerance,
                     search_radius=max(2.0, h), max_depth=max(3.0, 1.5 * h), smooth=True,
                     tangent="projected", uzawa_schedule=uzawa_schedule)
@@ -290,7 +299,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
              n_steps: int = 4, log=None, penalty_factor: float = 1.0,
              contact_tolerance: float = 0.05, max_iterations: int = 25,
              guess=None, max_seconds: float | None = None, neck: str = "free",
-             floor: str = "free") -> SimulationResult:
+             floor: str = "free", proximal: str = "seated") -> SimulationResult:
     """Solve the face for bone `motions` {segment: 4x4} and muscle `activations` {muscle: a}.
 
     contact: lip-lip and lip-teeth contact on/off. sliding: segments whose deep nodes slide
@@ -312,7 +321,9 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     max_seconds: the solve's wall-clock budget (`SolverControl.max_seconds`; None: none),
     shared with the soft-contact fallbacks below (`FaceSolverSettings.fallback_budget_share`).
     neck: "free" (default) or "held", the boundary condition of the neck cut (module text);
-    floor: likewise, of the floor of the mouth (node set "floor_of_mouth").
+    floor: likewise, of the floor of the mouth (node set "floor_of_mouth"). proximal:
+    "seated" (default) or "moved", the mandible's proximal segments when the mandible moves
+    (`facemodel.attachments.attachment_sets`).
     Raises `facemodel.errors.ModelInputError` (a
     ValueError) for motions, activations, materials or model parts it cannot use (contact
     asked of a model without lip contact surfaces) and `solver.errors.SolveFailed` if Newton
@@ -325,7 +336,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
         return build_problem(
             model, motions, activations, contact=contact, sliding=sliding, sliding_nodes=sliding_nodes,
             materials=materials, growth=growth, body_force=body_force, penalty_factor=penalty_factor,
-            contact_tolerance=contact_tolerance, neck=neck, floor=floor, **contact_options)
+            contact_tolerance=contact_tolerance, neck=neck, floor=floor, proximal=proximal,
+            **contact_options)
 
     body, constraints, terms, extra, lip_size = problem()
     X = np.asarray(model.nodes, dtype=float)
@@ -451,7 +463,7 @@ def teeth_advance(model, motions: dict | None, load: float) -> float:
     out = 0.0
     for V, _, seg in dict(getattr(model, "teeth", {}) or {}).values():
         V = np.asarray(V, dtype=float)
-        T = ramped_rigid_motion(_segment_motion(dict(motions or {}), seg), load)
+        T = ramped_rigid_motion(segment_motion(dict(motions or {}), seg), load)
         d = V @ T[:3, :3].T + T[:3, 3] - V
         out = max(out, float(np.sqrt(np.einsum("ij,ij->i", d, d).max(initial=0.0))))
     return out
@@ -487,7 +499,7 @@ def lip_penetrations(model, x, load: float = 1.0, motions: dict | None = None,
     if mucosa:
         nodes = np.unique(np.vstack(mucosa))
         for name, (V, F, seg) in dict(getattr(model, "teeth", {}) or {}).items():
-            T = ramped_rigid_motion(_segment_motion(motions or {}, seg), load)
+            T = ramped_rigid_motion(segment_motion(motions or {}, seg), load)
             Vm = np.asarray(V, float) @ T[:3, :3].T + T[:3, 3]
             out[f"in_teeth_{name}"] = _depth(TriangleSurface(Vm, F), x[nodes], band)
     return out

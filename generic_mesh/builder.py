@@ -292,6 +292,12 @@ def build(resolution: str = "standard") -> FaceModel:
     # muscles and the hyoid lie); free unless a plan holds it (`model.floor`,
     # `facemodel.simulation.build_problem`)
     node_sets["floor_of_mouth"] = deep_nodes[free & (n_phi[deep_nodes] < FLOOR_OF_MOUTH)]
+    # the proximal segments of a sagittal split (BSSO): the mandible's attached tissue behind
+    # the released band around the buccal cut (ramus, angle: the masseter's insertion), which
+    # stays with the condyles when the split moves the tooth-bearing mandible
+    # (`model.proximal`, `facemodel.attachments.attachment_sets`)
+    mand = node_sets[ATTACHMENT_SETS["mandible"]]
+    node_sets["mandible_proximal"] = mand[np.abs(n_theta[mand]) >= BSSO_RELEASE[1]]
 
     # ---------------------------------------------------------------- facet sets
     faces = hexes[:, HEX_FACES]                                        # (m, 6, 4)

@@ -27,7 +27,9 @@
   U = k/4 (J^2 - 1 - 2 ln J) is the one our solver uses), the skull-attached nodes fixed and
   every moved bone segment's attached nodes given the segment's rigid displacement
   u = R X + t - X as a nodal map of a "prescribed displacement" per axis, ramped by a linear
-  load curve. Muscles are written with their passive Yeoh matrix only, and lip/teeth contact
+  load curve; the attachments are the ones faceplan's solve ties (osteotomy bridges released,
+  a sagittal split's proximal segments fixed with the skull) and a held neck or floor of the
+  mouth is a fixed node set ("held_neck", "held_floor"). Muscles are written with their passive Yeoh matrix only, and lip/teeth contact
   and tissue sliding on bone are not written (FEBio needs surfaces and rigid bodies for them):
   the file reproduces the tied, passive problem.
 """
@@ -41,7 +43,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from facemodel.attachments import attachment_sets
+from facemodel.attachments import attachment_sets, segment_motion
+from facemodel.simulation import held_boundaries
 
 __all__ = ["BlendedFace", "blend_face", "write_mesh_glb", "write_mesh_obj", "write_markups",
            "write_feb", "SLICER_SCHEMA"]
@@ -234,17 +237,22 @@ def _g(v: float) -> str:
 
 
 def write_feb(model, motions: Mapping[str, np.ndarray], materials: Mapping[str, Mapping[str, float]],
-              path: os.PathLike | str, steps: int = 10, title: str = "faceplan prediction") -> Path:
+              path: os.PathLike | str, steps: int = 10, title: str = "faceplan prediction", *,
+              proximal: str = "seated", neck: str = "free", floor: str = "free") -> Path:
     """FEBio 4 input file of `model` (nodes, hexes, labels, label_names, node_sets with
     `attach_<segment>`) under the rigid segment `motions` ({segment: 4x4}); `materials`:
-    {label: {"C10", "C20", "C30" (optional), "K"}} in kPa (see the module text)."""
+    {label: {"C10", "C20", "C30" (optional), "K"}} in kPa (see the module text). The
+    attachments and held boundaries are faceplan's own: `proximal`, `neck` and `floor` as in
+    `facemodel.simulation.simulate` (every segment's tied nodes, a seated BSSO's proximal
+    segments fixed with the skull, a held neck or floor fixed)."""
     x = np.asarray(model.nodes, float)
     hexes = np.asarray(model.hexes, np.int64)
     labels = np.asarray(model.labels, np.int64)
     names = [str(n) for n in model.label_names]
     root = ET.Element("febio_spec", version="4.0")
     root.append(ET.Comment(f" {title}: written by faceplan; units mm, kPa (mN/mm^2), RAS frame. "
-                           "Tied passive problem: muscle activation, lip contact and sliding are not "
+                           "Tied passive problem (attachments, osteotomy bridges and held boundaries as "
+                           "faceplan solves them): muscle activation, lip contact and sliding are not "
                            "included. "))
     _sub(root, "Module", type="solid")
     control = _sub(root, "Control")
@@ -285,12 +293,15 @@ def write_feb(model, motions: Mapping[str, np.ndarray], materials: Mapping[str, 
             _sub(block, "elem", ",".join(str(int(v) + 1) for v in hexes[e]), id=eid)
     sets = {}
     # the nodes faceplan's own solve ties to each segment (the osteotomy bridges released)
-    tied = attachment_sets(model, motions)
-    for seg, m4 in motions.items():
-        ids = tied.get(seg, np.zeros(0, np.int64))
-        if len(ids):
-            sets[seg] = (ids, np.asarray(m4, float))
-            _sub(mesh, "NodeSet", ",".join(str(int(v) + 1) for v in ids), name="attach_" + seg)
+    tied = attachment_sets(model, motions, proximal=proximal)
+    named = {seg: "attach_" + seg for seg in tied}
+    for seg, ids in tied.items():
+        sets[seg] = (ids, segment_motion(motions, seg))
+    for owner, ids in held_boundaries(model, tied, neck=neck, floor=floor):
+        sets[owner] = (ids, np.eye(4))
+        named[owner] = "held_" + owner
+    for seg, (ids, _) in sets.items():
+        _sub(mesh, "NodeSet", ",".join(str(int(v) + 1) for v in ids), name=named[seg])
     domains = _sub(root, "MeshDomains")
     for i in used:
         _sub(domains, "SolidDomain", name=names[i], mat=names[i])
@@ -300,18 +311,18 @@ def write_feb(model, motions: Mapping[str, np.ndarray], materials: Mapping[str, 
         for seg, (ids, m4) in moving.items():
             u = x[ids] @ m4[:3, :3].T + m4[:3, 3] - x[ids]
             for axis, comp in zip("xyz", u.T):
-                nd = _sub(data, "NodeData", name=f"{seg}_u{axis}", node_set="attach_" + seg, data_type="scalar")
+                nd = _sub(data, "NodeData", name=f"{seg}_u{axis}", node_set=named[seg], data_type="scalar")
                 for lid, value in enumerate(comp):
                     _sub(nd, "node", _g(value), lid=lid + 1)
     boundary = _sub(root, "Boundary")
     for seg, (ids, m4) in sets.items():
         if seg not in moving:
-            bc = _sub(boundary, "bc", name=f"{seg}_fixed", node_set="attach_" + seg, type="zero displacement")
+            bc = _sub(boundary, "bc", name=f"{seg}_fixed", node_set=named[seg], type="zero displacement")
             for axis in "xyz":
                 _sub(bc, f"{axis}_dof", 1)
             continue
         for axis in "xyz":
-            bc = _sub(boundary, "bc", name=f"{seg}_u{axis}", node_set="attach_" + seg,
+            bc = _sub(boundary, "bc", name=f"{seg}_u{axis}", node_set=named[seg],
                       type="prescribed displacement")
             _sub(bc, "dof", axis)
             _sub(bc, "value", f"{seg}_u{axis}", lc=1, type="map")

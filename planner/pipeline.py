@@ -279,7 +279,7 @@ def model_inputs(setup: dict, effects: Effects) -> dict:
     return dict(motions=motions, activations=activations, contact=plan.model.contact,
                 sliding=sliding, sliding_nodes=degloved, materials=materials, growth=growth,
                 body_force=fe.gravity_density(effects.gravity, effects.gravity_pitch),
-                neck=plan.model.neck, floor=plan.model.floor)
+                neck=plan.model.neck, floor=plan.model.floor, proximal=plan.model.proximal)
 
 
 def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
@@ -325,7 +325,7 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
             progress.say(f"  teeth moved back to start contact clear of the lips (mm): {moved}")
     # a genioplasty degloves the anterior mandible and chin: that tissue slides on its bone
     # (segments that slide as a whole, `sliding`, keep their own treatment)
-    from facemodel.attachments import attachment_sets, genioplasty_sliding, osteotomy_bridges
+    from facemodel.attachments import PROXIMAL, attachment_sets, genioplasty_sliding, osteotomy_bridges
 
     setup = {"model": model, "plan": plan, "plan_actual": plan_actual,
              "follow_up_months": follow_up_months,
@@ -335,7 +335,12 @@ def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,
     motions, activations, sliding = inputs["motions"], inputs["activations"], inputs["sliding"]
     degloved = inputs["sliding_nodes"]
     # the degloved nodes that bridge a cut are tied to no bone, sliding or not
-    bridges = osteotomy_bridges(model, attachment_sets(model, motions, bridge_width=0.0), motions)
+    owned = attachment_sets(model, motions, bridge_width=0.0, proximal=inputs["proximal"])
+    bridges = osteotomy_bridges(model, owned, motions)
+    if PROXIMAL in owned:
+        progress.say(f"  sagittal split: the proximal segments (ramus, angle) stay with the skull "
+                     f"({len(owned[PROXIMAL])} attached nodes; model.proximal: moved for a mandible "
+                     "moved as one body)")
     if degloved:
         progress.say("  genioplasty: degloved tissue slides on the bone ("
                      + ", ".join(f"{s} {len(np.setdiff1d(ids, bridges))} nodes"
@@ -733,7 +738,8 @@ def write_exports(pred: Prediction, post_face, out: Path) -> dict[str, str]:
         materials[label] = p
     motions = {s: np.eye(4) for s in getattr(model, "segments", ())}
     motions.update(pred.plan.motions(include_identity=True))
-    export.write_feb(model, motions, materials, out / "model.feb")
+    export.write_feb(model, motions, materials, out / "model.feb", proximal=pred.plan.model.proximal,
+                     neck=pred.plan.model.neck, floor=pred.plan.model.floor)
     return {"face_glb": "face_predicted.glb", "face_obj": "face_predicted.obj",
             "landmarks": "landmarks_predicted.mrk.json", "febio": "model.feb"}
 

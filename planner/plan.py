@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from facemodel.model import FLOOR_CONDITIONS, MUSCLES, NECK_CONDITIONS
+from facemodel.model import FLOOR_CONDITIONS, MUSCLES, NECK_CONDITIONS, PROXIMAL_CONDITIONS
 from planner.errors import InputError
 from planner.itk_transform import LPS_FROM_RAS, read_itk_transform
 
@@ -53,7 +53,8 @@ _TOP_KEYS = ("faceplan", "frame", "segments", "muscles", "model", "limits", "des
 _SEGMENT_KEYS = ("translation", "rotation", "matrix", "itk_transform", "cut_planes", "from",
                  "description")
 _ROTATION_KEYS = ("axis", "angle_deg", "euler_deg", "order", "center")
-_MODEL_KEYS = ("resolution", "sliding", "contact", "materials", "effects", "neck", "floor")
+_MODEL_KEYS = ("resolution", "sliding", "contact", "materials", "effects", "neck", "floor",
+               "proximal")
 _LIMIT_KEYS = ("translation_mm", "rotation_deg")
 
 
@@ -97,6 +98,7 @@ class ModelOptions:
     effects: dict = field(default_factory=dict)   # flat {name: value} (facemodel.effects)
     neck: str = "free"                     # the neck cut: "free" or "held" (facemodel.simulation)
     floor: str = "free"                    # the floor of the mouth: "free" or "held" (likewise)
+    proximal: str = "seated"               # the BSSO's proximal segments: "seated" or "moved"
 
 
 @dataclass(frozen=True)
@@ -130,7 +132,7 @@ class Plan:
             "model": {"resolution": self.model.resolution, "sliding": list(self.model.sliding),
                       "contact": self.model.contact, "materials": self.model.materials,
                       "effects": dict(self.model.effects), "neck": self.model.neck,
-                      "floor": self.model.floor},
+                      "floor": self.model.floor, "proximal": self.model.proximal},
             "limits": {"translation_mm": self.max_translation_mm, "rotation_deg": self.max_rotation_deg},
         }
 
@@ -421,8 +423,9 @@ def parse_plan(data: Any, file: str = "plan.yaml", plan_dir: Path | None = None,
     except EffectError as exc:
         r.fail(f"model.effects.{exc.field}", str(exc))
     held = {}
-    for key, conditions in (("neck", NECK_CONDITIONS), ("floor", FLOOR_CONDITIONS)):
-        held[key] = mt.get(key, "free")
+    for key, conditions in (("neck", NECK_CONDITIONS), ("floor", FLOOR_CONDITIONS),
+                            ("proximal", PROXIMAL_CONDITIONS)):
+        held[key] = mt.get(key, conditions[0])
         if held[key] not in conditions:
             r.fail(f"model.{key}", f"must be one of {', '.join(conditions)}, got {held[key]!r}")
     model = ModelOptions(resolution, sliding_t, contact, materials, effects, **held)

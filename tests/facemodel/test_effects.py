@@ -332,7 +332,10 @@ def test_mandible_correction_carries_the_chin():
 def test_mandible_correction_moves_the_chin_nodes_rigidly(face):
     """On the coarse face with a genioplasty in the plan: a mandible correction moves the chin
     segment's tied attachment nodes by exactly C_mandible . plan_chin (prescribed displacements:
-    to the solver's constraint round-off, 1e-9 mm) and the mandible's by C_mandible . plan."""
+    to the solver's constraint round-off, 1e-9 mm) and the mandible's by C_mandible . plan
+    (the distal segment's: the split's proximal segments stay with the skull)."""
+    from facemodel.attachments import PROXIMAL, attachment_sets
+
     plan = _plan({"mandible": {"translation": [0, 4, 0]},
                   "chin": {"translation": [0, 6, 1]}})
     pm = [0.5, 1.0, -0.5, 1.5, 0.0, -1.0]
@@ -345,11 +348,9 @@ def test_mandible_correction_moves_the_chin_nodes_rigidly(face):
     slide = set()
     for ids in pred.setup["degloved"].values():
         slide |= set(np.asarray(ids).tolist())
-    for seg, M in (("chin", C @ T["chin"]), ("mandible", C @ T["mandible"])):
-        ids = np.array([i for i in np.asarray(face.node_sets["attach_" + seg]) if i not in slide])
-        # nodes owned by one segment only (a node in two sets follows the later segment)
-        if seg == "mandible":
-            ids = np.setdiff1d(ids, np.asarray(face.node_sets["attach_chin"]))
+    owned = attachment_sets(pred.model, T)
+    for seg, M in (("chin", C @ T["chin"]), ("mandible", C @ T["mandible"]), (PROXIMAL, np.eye(4))):
+        ids = np.array([i for i in owned[seg] if i not in slide])
         assert len(ids) > 5
         want = X[ids] @ M[:3, :3].T + M[:3, 3]
         assert np.abs(X[ids] + pred.displacement[ids] - want).max() < 1e-9

@@ -18,7 +18,7 @@ import pytest
 
 import generic_mesh
 import solver
-from facemodel.attachments import BRIDGE_WIDTH_MM, attachment_sets, osteotomy_bridges
+from facemodel.attachments import BRIDGE_WIDTH_MM, PROXIMAL, attachment_sets, osteotomy_bridges
 from solver.examples import block
 
 LENGTH, DEPTH, STEP = 32.0, 8.0, 1.0      # strip length and tissue depth, advance (mm)
@@ -112,9 +112,16 @@ def test_bridges_only_where_the_plan_moves_segments_apart():
     # no move, or a mandible moved with its chin: its attachments are far from the skull's
     T = np.eye(4)
     T[1, 3] = 4.0
-    for motions in ({}, {"mandible": T, "chin": T}):
-        tied = attachment_sets(face, motions)
-        assert all(np.array_equal(raw[s], tied[s]) for s in raw)
+    for motions, proximal in (({}, "seated"), ({"mandible": T, "chin": T}, "moved")):
+        tied = attachment_sets(face, motions, proximal=proximal)
+        assert set(tied) == set(raw) and all(np.array_equal(raw[s], tied[s]) for s in raw)
+    # a sagittal split (the default reading of a moved mandible): the proximal segments' nodes
+    # change owner; the released band around the buccal cut (about 15 mm wide) leaves no
+    # bridge between them and the distal segment's
+    tied = attachment_sets(face, {"mandible": T, "chin": T})
+    assert len(tied[PROXIMAL]) > 100 and len(tied["mandible"]) > 100
+    assert np.array_equal(np.union1d(tied[PROXIMAL], tied["mandible"]), raw["mandible"])
+    assert np.array_equal(tied[PROXIMAL], np.intersect1d(raw["mandible"], face.node_sets["mandible_proximal"]))
     # a genioplasty: the chin moved on the mandible opens the cut between them
     bridge = osteotomy_bridges(face, raw, {"mandible": T})
     assert np.isin(bridge, raw["chin"]).any() and np.isin(bridge, raw["mandible"]).any()

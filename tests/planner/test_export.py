@@ -221,3 +221,38 @@ def test_pictures_use_a_simplified_face_that_keeps_shape_and_displacement():
     assert q.weight.min() >= 0.0 and q.weight.max() <= 1.0
     small = export.face_for_pictures((v, f), post, max_triangles=len(f))
     assert small[1] is post and small[0][1] is f
+
+
+def test_febio_file_constrains_the_nodes_faceplan_constrains(tmp_path):
+    """On the coarse generic face with a mandibular advancement (a sagittal split), a held neck
+    and a held floor of the mouth: the FEBio file's constrained node sets are exactly the
+    constraints of faceplan's own solve (`facemodel.simulation.build_problem`), each set fixed
+    or given its segment's motion; the split's proximal segments are fixed with the skull."""
+    import generic_mesh
+    from facemodel import materials as fm
+    from facemodel.attachments import PROXIMAL
+    from facemodel.simulation import build_problem
+
+    face = generic_mesh.load("coarse")
+    T = np.eye(4)
+    T[1, 3] = 5.0
+    motions = {"skull": np.eye(4), "maxilla": np.eye(4), "mandible": T, "chin": T}
+    mats = {label: fm.parameters(label, 1.0) for label in face.label_names}
+    path = export.write_feb(face, motions, mats, tmp_path / "model.feb", neck="held", floor="held")
+    root = ET.parse(path).getroot()
+    sets = {s.get("name"): np.array(sorted(int(v) - 1 for v in s.text.split(",")))
+            for s in root.find("Mesh").findall("NodeSet")}
+    body, constraints, *_ = build_problem(face, motions, contact=False, neck="held", floor="held")
+    want = {}
+    for c, owner in zip(constraints, body.constraint_segments):
+        want.setdefault(owner, []).append(np.asarray(c.nodes))
+    want = {k: np.sort(np.concatenate(v)) for k, v in want.items()}
+    named = {k: ("held_" if k in ("neck", "floor") else "attach_") + k for k in want}
+    assert {named[k] for k in want} == set(sets)
+    for k, ids in want.items():
+        assert np.array_equal(sets[named[k]], ids)
+    bcs = {bc.get("name"): bc for bc in root.find("Boundary")}
+    for fixed in ("skull", "maxilla", PROXIMAL, "neck", "floor"):
+        assert bcs[f"{fixed}_fixed"].get("type") == "zero displacement"
+        assert bcs[f"{fixed}_fixed"].get("node_set") == named[fixed]
+    assert bcs["mandible_uy"].get("node_set") == "attach_mandible"

@@ -128,6 +128,8 @@ def test_options_muscles_model_and_cut_planes():
     assert plan_of({}, model={"neck": "held"}).model.neck == "held"
     assert plan.model.floor == "free"                     # the floor of the mouth likewise
     assert plan_of({}, model={"floor": "held"}).model.floor == "held"
+    assert plan.model.proximal == "seated"                # a moved mandible is a sagittal split
+    assert plan_of({}, model={"proximal": "moved"}).model.proximal == "moved"
     assert set(plan.motions()) == {"chin"}
     assert plan_of({}).motions() == {}
 
@@ -154,6 +156,7 @@ BAD = [
     ({"faceplan": 1, "model": {"resolution": "ultra"}}, "model.resolution"),
     ({"faceplan": 1, "model": {"neck": "fixed"}}, "model.neck"),
     ({"faceplan": 1, "model": {"floor": "tied"}}, "model.floor"),
+    ({"faceplan": 1, "model": {"proximal": "fixed"}}, "model.proximal"),
     ({"faceplan": 1, "segments": {"skull": {"translation": [0, 1, 0]}}}, "segments.skull"),
     ({"faceplan": 1, "segments": {"chin": {"matrix": [[1, 0, 0, 0]] * 4, "translation": [0, 1, 0]}}}, "segments.chin"),
     ({"faceplan": 1, "segments": {"chin": {"itk_transform": "missing.tfm"}}}, "segments.chin.itk_transform"),

@@ -146,7 +146,7 @@ def attachment_sets(model, motions: dict, bridge_width: float | None = None,
     the proximal segments keep the condyles, which the surgeon seats back in the fossae before
     fixation, and with them the masseter and medial pterygoid insertions, while the distal
     segment carries the teeth (Trauner R., Obwegeser H., Oral Surg Oral Med Oral Pathol
-    10:677-689, 1957; Dal Pont G., J Oral Surg 19:42-47, 1961; Reyneke 2010, ch. on BSSO).
+    10:677-689, 1957; Dal Pont G., J Oral Surg 19:42-47, 1961; Reyneke 2010).
     The cut itself then opens between the two owners, and `osteotomy_bridges` releases the
     tissue over it. "moved": the whole mandible moves as one body (a mandible that only
     autorotates about its condyles, no split)."""

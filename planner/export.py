@@ -29,9 +29,10 @@
   u = R X + t - X as a nodal map of a "prescribed displacement" per axis, ramped by a linear
   load curve; the attachments are the ones faceplan's solve ties (osteotomy bridges released,
   a sagittal split's proximal segments fixed with the skull) and a held neck or floor of the
-  mouth is a fixed node set ("held_neck", "held_floor"). Muscles are written with their passive Yeoh matrix only, and lip/teeth contact
-  and tissue sliding on bone are not written (FEBio needs surfaces and rigid bodies for them):
-  the file reproduces the tied, passive problem.
+  mouth is a fixed node set ("held_neck", "held_floor"). Muscles are written with their
+  passive Yeoh matrix only, and lip/teeth contact and tissue sliding on bone are not written
+  (FEBio needs surfaces and rigid bodies for them): the file reproduces the tied, passive
+  problem.
 """
 from __future__ import annotations
 

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from facemodel.attachments import attachment_sets, bone_frames, segment_motion
+from facemodel.attachments import PROXIMAL, attachment_sets, bone_frames, segment_motion
 from facemodel.errors import ModelInputError
 from facemodel.materials import default_materials
 from facemodel.model import FLOOR_CONDITIONS, MUSCLES, NECK_CONDITIONS, PROXIMAL_CONDITIONS
@@ -161,7 +161,8 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
                   uzawa_schedule="carried", floor="free", proximal="seated"):
     """The FE problem `simulate` solves: (SolidBody, constraints, contact terms {name: term},
     other terms [body force], lip facet size or None); arguments as `simulate`'s. The body's
-    `constraint_segments` names the segment each constraint follows, its `bridge_nodes` counts
+    `constraint_segments` names the segment each constraint follows, its `proximal_nodes` counts
+    the attached nodes a sagittal split leaves with the skull, its `bridge_nodes` counts
     the attached nodes released as osteotomy bridges. lip_penalty: factor on
     the lip-lip penalty (None: `FACE_SOLVER.lip_penalty`); uzawa_schedule: the contact terms'
     augmentation schedule (`solver.contact._uzawa.UzawaLoop`)."""
@@ -277,6 +278,7 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
     listed = np.unique(np.concatenate([np.asarray(model.node_sets.get("attach_" + s, ()), np.int64)
                                        for s in segments] or [np.zeros(0, np.int64)]))
     body.bridge_nodes = int(len(listed) - sum(len(v) for v in attach.values()))
+    body.proximal_nodes = int(len(attach.get(PROXIMAL, ())))
     return body, constraints, terms, extra, lip_size
 
 
@@ -422,7 +424,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             "continuation_iterations": res.continuation_iterations,
             "krylov_iterations": res.krylov_iterations, "timings": res.timings,
             "guess": res.guess, "contact_fallback": fallback,
-            "osteotomy_bridge_nodes": body.bridge_nodes}
+            "osteotomy_bridge_nodes": body.bridge_nodes, "proximal_segment_nodes": body.proximal_nodes}
     if contact:
         info["penetration_mm"] = {k: float(t.penetration(x)) for k, t in terms.items()}
         # the augmentations are bounded (`AugmentedLagrangian.max_augmentations`): a solve

@@ -264,6 +264,8 @@ def test_a_sagittal_split_leaves_the_proximal_segments_and_the_face_before_the_e
     assert split.converged and whole.converged
     owned = attachment_sets(face, motions)
     assert len(owned[PROXIMAL]) > 20
+    assert split.info["proximal_segment_nodes"] == len(owned[PROXIMAL])
+    assert whole.info["proximal_segment_nodes"] == 0
     assert np.all(split.displacement[owned[PROXIMAL]] == 0.0)
     assert np.abs(split.displacement[owned["mandible"]] - T[:3, 3]).max() < 1e-9
     pre = np.concatenate([face.regions["preauricular_left"], face.regions["preauricular_right"]])

@@ -34,8 +34,8 @@ largest held-out shrinkage (significant or not: two effects can act together whe
 does alone) are tried when it leaves a gap above the noise. A partner with discrete choices (a
 switch such as which segments' tissue slides) is paired once per choice, each anchored at a
 full solve of the lead's fitted values with that switch, and the pair that fits best after
-refinement is kept: with the lead's effect present another switch can fit than alone. The verdict is the best significant
-effect (or pair, when the pair is itself significant, shrinks the held-out gap further than
+refinement is kept: with the lead's effect present another switch can fit than alone. The
+verdict is the best significant effect (or pair, when the pair is itself significant, shrinks the held-out gap further than
 each of its members and, if a single effect is significant, is strongly better than it); else null when no region's gap stands
 out of noise + discrepancy, "unexplained" (with those regions) when some does. Its confidence
 is the total probability of the models that contain the named effect(s), the probabilities

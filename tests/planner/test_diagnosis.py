@@ -92,9 +92,10 @@ def test_fitted_values_extrapolated_with_the_truths_model_as_the_second_mesh(pat
     as the second mesh (`references`: the mesh-error direction is then exactly the models'
     difference at the baseline), the gap's coefficient on it comes out near 1 (kappa within
     0.5-1.5: the noise and the discrepancy share the gap) and the tone fitted on the response
-    extrapolated with the reference's tangent lies within 10 % of the truth: the fit's own
-    scatter on this scan (a few %, from the scan noise and the error model's estimates) and
-    not the 25 % the issue allows, as the reference here is the truth's own model."""
+    extrapolated with the reference's tangent lies within the 25 % the issue allows. Not
+    closer: kappa below 1 (0.6-0.9 on this scan) leaves part of the two models' baseline
+    difference in the gap, and the tone takes some of it; on this scan the fit lands 7-10 %
+    under the truth, the spread across BLAS kernels coming from kappa's estimate."""
     _diagnose(patient, forward, "tone", ["muscle_tone=0.15"], seed=1)      # makes and keeps the scan
     scan = _RESULTS["tone_scan"]
     ref = perturbed_case(patient, 1)
@@ -103,7 +104,7 @@ def test_fitted_values_extrapolated_with_the_truths_model_as_the_second_mesh(pat
     tone = next(e for e in rec["effects"] if e["name"] == "muscle_tone")
     kappa = tone["mesh_extrapolation_factor"][0]
     assert 0.5 <= kappa <= 1.5, kappa
-    assert tone["params"]["muscle_tone"] == pytest.approx(0.15, rel=0.10), tone["params"]
+    assert tone["params"]["muscle_tone"] == pytest.approx(0.15, rel=0.25), tone["params"]
 
 
 def test_uniform_stiffness_is_not_identifiable(patient, forward):

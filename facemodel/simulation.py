@@ -62,8 +62,8 @@ from solver.newton import newton_solve
 NECK_OWNER = "neck"          # the owner of the held cut's constraint: no segment moves it
 FLOOR_OWNER = "floor"        # the owner of the held floor of the mouth's: likewise
 
-__all__ = ["simulate", "build_problem", "held_boundaries", "moved_constraints", "SimulationResult", "MUSCLES", "NECK_CONDITIONS",
-           "FLOOR_CONDITIONS", "PROXIMAL_CONDITIONS",
+__all__ = ["simulate", "build_problem", "held_boundaries", "moved_constraints", "SimulationResult",
+           "MUSCLES", "NECK_CONDITIONS", "FLOOR_CONDITIONS", "PROXIMAL_CONDITIONS",
            "lip_penetrations", "rigid_motion_ok", "teeth_advance"]
 
 log = logging.getLogger("facemodel.simulation")

@@ -48,6 +48,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from facemodel.errors import ModelInputError
 from facemodel.model import PROXIMAL_CONDITIONS, PROXIMAL_SET
 
 __all__ = ["RELEASE_SET", "BRIDGE_WIDTH_MM", "PROXIMAL", "has_genioplasty", "release_for_plan",
@@ -151,7 +152,7 @@ def attachment_sets(model, motions: dict, bridge_width: float | None = None,
     tissue over it. "moved": the whole mandible moves as one body (a mandible that only
     autorotates about its condyles, no split)."""
     if proximal not in PROXIMAL_CONDITIONS:
-        raise ValueError(f"proximal must be one of {', '.join(PROXIMAL_CONDITIONS)}, got {proximal!r}")
+        raise ModelInputError(f"proximal must be one of {', '.join(PROXIMAL_CONDITIONS)}, got {proximal!r}")
     if bridge_width is None:
         bridge_width = BRIDGE_WIDTH_MM
     owner = {}

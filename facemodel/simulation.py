@@ -208,9 +208,7 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
                      growth=growth)
 
     # --- essential conditions: attachments tied to their bone (sliding ones excepted)
-    if proximal not in PROXIMAL_CONDITIONS:
-        raise ModelInputError(f"proximal must be one of {', '.join(PROXIMAL_CONDITIONS)}, got {proximal!r}")
-    attach = attachment_sets(model, motions, proximal=proximal)
+    attach = attachment_sets(model, motions, proximal=proximal)     # validates `proximal`
     constraints, terms = [], {}
     owners = []                                     # the segment each constraint follows
     sliding_nodes = dict(sliding_nodes or {})

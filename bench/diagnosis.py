@@ -123,10 +123,17 @@ class _StoredForward:
                 h = hashlib.sha1(repr((tag, r[1])).encode()).hexdigest()[:20]
                 return folder / f"{h}.pkl"
 
-            def solve(self, requests):
+            def _load(self, requests):
                 for r in requests:
                     if self._key(r) not in self._store and self._file(r).exists():
                         self._store[self._key(r)] = pickle.loads(self._file(r).read_bytes())
+
+            def prefetch(self, requests):
+                self._load(requests)
+                super().prefetch(requests)
+
+            def solve(self, requests):
+                self._load(requests)
                 out = super().solve(requests)
                 for r, skin in zip(requests, out):
                     if not self._file(r).exists():

@@ -223,8 +223,15 @@ class Runner:
                 if on_done:
                     on_done(k)
             return out
-        from distributed import as_completed
+        return self.gather(self.submit(cases, requests, guesses), on_done)
 
+    def submit(self, cases: list[CaseModel], requests: list[tuple[int, tuple[str, ...]]],
+               guesses: dict | None = None) -> list | None:
+        """The requests sent to the cluster without waiting: their futures (for `gather`), or
+        None when solves run in this process (they are then solved when asked for)."""
+        if self.client is None:
+            return None
+        guesses = guesses or {}
         futures = []
         for i, s in requests:
             if id(cases[i]) not in self._scattered:
@@ -237,6 +244,12 @@ class Runner:
                 g = self._scattered[key]
             futures.append(self.client.submit(_solve_task, self._scattered[id(cases[i])], s, g,
                                               pure=False))
+        return futures
+
+    def gather(self, futures: list, on_done: Callable[[int], None] | None = None) -> list:
+        """The results of `submit`'s futures, `on_done(k)` called as the k-th completes."""
+        from distributed import as_completed
+
         index = {f.key: k for k, f in enumerate(futures)}
         for f in as_completed(futures):
             if on_done:
@@ -260,12 +273,35 @@ class Forward:
         # tolerance (`facemodel.simulation`: a converged prediction, not the contact state
         # asked for), {name: mm}; absent when every contact was met
         self._unmet: dict = {}
+        # requests started by `prefetch` and not yet collected: key -> future
+        self._pending: dict = {}
         self.n_solves = 0
         self.solve_time_s = 0.0
 
     def _key(self, r):
         # by the case object: the same patient listed twice is solved once
         return (id(self.cases[r[0]]), r[1])
+
+    def prefetch(self, requests: list[tuple[int, tuple[str, ...]]]) -> None:
+        """Start the solves of `requests` on the cluster now, without waiting for them: a later
+        `solve` of the same requests collects them. Solves that do not depend on each other's
+        results (a baseline, the same case with another boundary condition, the case on
+        another mesh) then share the workers instead of running one batch after the other.
+        With solves run in this process (or a runner that cannot submit) nothing starts: they
+        are solved when asked for, with the same results."""
+        submit = getattr(self.runner, "submit", None)
+        todo = []
+        for r in requests:
+            k = self._key(r)
+            if k not in self._store and k not in self._pending and all(k != self._key(t) for t in todo):
+                todo.append(r)
+        if not todo or submit is None:
+            return
+        futures = submit(self.cases, todo, self._guess)
+        if futures is None:
+            return
+        for r, f in zip(todo, futures):
+            self._pending[self._key(r)] = f
 
     def solve(self, requests: list[tuple[int, tuple[str, ...]]]) -> list:
         """Skins (or error messages) for (case index, effect strings) requests."""
@@ -284,7 +320,15 @@ class Forward:
                         else ", ".join(s) or "baseline")
                 self.say(f"    solved {self.cases[i].name} [{what}]")
 
-            for r, out in zip(todo, self.runner.map(self.cases, todo, done, self._guess)):
+            if any(self._key(r) in self._pending for r in todo):
+                new = [r for r in todo if self._key(r) not in self._pending]
+                fresh = iter(self.runner.submit(self.cases, new, self._guess) if new else ())
+                futures = [self._pending.pop(self._key(r)) if self._key(r) in self._pending
+                           else next(fresh) for r in todo]
+                results = self.runner.gather(futures, done)
+            else:
+                results = self.runner.map(self.cases, todo, done, self._guess)
+            for r, out in zip(todo, results):
                 if r[1] and r[1][0] == SENSITIVITIES:
                     out, unmet = out[:3], out[3]
                     self._unmet_of((r[0], ()), unmet)
@@ -296,11 +340,15 @@ class Forward:
             self.solve_time_s += time.perf_counter() - t0
         return [self._store[self._key(r)] for r in requests]
 
+    @staticmethod
+    def sensitivity_requests(names_per_case: list[tuple[str, ...]]) -> list:
+        """The requests of `sensitivities` (for `prefetch`)."""
+        return [(i, (SENSITIVITIES, tuple(n))) for i, n in enumerate(names_per_case)]
+
     def sensitivities(self, names_per_case: list[tuple[str, ...]]) -> list:
         """Per case (baseline skin, {name: d skin/dp} or reason) in one parallel batch; the
         baseline skins are stored as the baseline solves."""
-        reqs = [(i, (SENSITIVITIES, tuple(n))) for i, n in enumerate(names_per_case)]
-        out = self.solve(reqs)
+        out = self.solve(self.sensitivity_requests(names_per_case))
         for i, (skin, _, u) in enumerate(out):
             self._store.setdefault(self._key((i, ())), skin)
             if u is not None and not isinstance(skin, str):

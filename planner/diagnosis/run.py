@@ -106,6 +106,19 @@ def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runn
     return out
 
 
+def new_reference_forward(references: list, runner: Runner | None) -> Forward:
+    """The `Forward` of the cases' reference meshes (`mesh_errors`), those given only."""
+    return Forward([r for r in references if r is not None], runner, lambda s: None)
+
+
+def reference_requests(references: list, params: tuple[str, ...] = ()) -> list:
+    """The requests `mesh_errors` makes of `new_reference_forward` (for `Forward.prefetch`)."""
+    n = sum(r is not None for r in references)
+    if params:
+        return Forward.sensitivity_requests([tuple(params)] * n)
+    return [(j, ()) for j in range(n)]
+
+
 def mesh_errors(data: list, references: list, runner: Runner | None, say, names: list,
                 forward: Forward | None = None, params: tuple[str, ...] = ()) -> None:
     """Per case the change of the gap when the baseline is solved on the reference mesh
@@ -119,7 +132,7 @@ def mesh_errors(data: list, references: list, runner: Runner | None, say, names:
         return
     say(f"baseline on the reference mesh ({', '.join(sorted({names[i] for i in idx}))}) of {len(idx)} "
         "case(s): the mesh's own error")
-    fwd = forward or Forward([references[i] for i in idx], runner, lambda s: None)
+    fwd = forward or new_reference_forward(references, runner)
     if params:
         out = fwd.sensitivities([tuple(params)] * len(idx))
         skins, sens = [o[0] for o in out], [o[1] for o in out]
@@ -193,8 +206,41 @@ def thicker_layer(case, group: str):
     return None
 
 
+class Alternatives(Forward):
+    """The case models of the model-uncertainty directions (`boundary_errors`): `jobs` lists
+    (case index, kind "boundary" | "layers", label, alternative case model), the k-th solved
+    as this `Forward`'s case k."""
+
+    def __init__(self, jobs: list, runner: Runner | None):
+        super().__init__([j[3] for j in jobs], runner, lambda s: None)
+        self.jobs = jobs
+
+    def from_rest(self) -> list:
+        """The requests solved from rest (every boundary alternative: its held nodes have
+        moved in the baseline), which need nothing of the baseline (for `prefetch`)."""
+        return [(k, ()) for k, j in enumerate(self.jobs) if j[1] == "boundary"]
+
+
+def model_alternatives(cases: list, runner: Runner | None, boundaries: tuple[str, ...] = DEFAULT_BOUNDARIES,
+                       layers: bool = False) -> Alternatives:
+    """The alternative models of `boundary_errors` for `cases`: each case with the other
+    condition of each boundary in `boundaries` and, with `layers`, each layer group thicker."""
+    jobs = []
+    for i, case in enumerate(cases):
+        for option in boundaries:
+            alt = other_boundary(case, option)
+            if alt is not None:
+                jobs.append((i, "boundary", f"{option} {getattr(alt.plan.model, option)}", alt))
+        for group in (LAYER_GROUPS if layers else ()):
+            alt = thicker_layer(case, group)
+            if alt is not None:
+                jobs.append((i, "layers", f"{group} x{1.0 + discrepancy.LAYER_STEP:g}", alt))
+    return Alternatives(jobs, runner)
+
+
 def boundary_errors(data: list, runner: Runner | None, say, boundaries: tuple[str, ...] = DEFAULT_BOUNDARIES,
-                    layers: bool = False, guesses: dict | None = None) -> None:
+                    layers: bool = False, guesses: dict | None = None,
+                    alternatives: Alternatives | None = None) -> None:
     """Per case the change of the gap when the baseline is solved with the other condition of
     each boundary in `boundaries` (`BOUNDARIES`; `CaseData.boundary`, one column each) and with
     each layer group thicker (`CaseData.layers`, with `layers`): model-uncertainty directions
@@ -204,24 +250,16 @@ def boundary_errors(data: list, runner: Runner | None, say, boundaries: tuple[st
     boundary's node set, or whose alternative cannot be solved, goes without that direction.
     guesses: {case index: the baseline's displacement}, from which the thicker-layer solves
     start (the same mesh, its interior nodes moved by a fraction of a layer); a boundary's is
-    solved from rest (the held nodes have moved in the baseline)."""
-    jobs = []                   # (case index, kind, label, alternative case model)
-    for i, d in enumerate(data):
-        for option in boundaries:
-            alt = other_boundary(d.case, option)
-            if alt is not None:
-                jobs.append((i, "boundary", f"{option} {getattr(alt.plan.model, option)}", alt))
-        for group in (LAYER_GROUPS if layers else ()):
-            alt = thicker_layer(d.case, group)
-            if alt is not None:
-                jobs.append((i, "layers", f"{group} x{1.0 + discrepancy.LAYER_STEP:g}", alt))
+    solved from rest (the held nodes have moved in the baseline). alternatives: the
+    `model_alternatives` of the cases, when their solves were started earlier."""
+    alternatives = alternatives or model_alternatives([d.case for d in data], runner, boundaries, layers)
+    jobs = alternatives.jobs
     if not jobs:
         return
     n = len({j[0] for j in jobs})
     what = [w for w, on in ((f"the other {' and '.join(boundaries)} condition", bool(boundaries)),
                             ("each layer group thicker", layers)) if on]
     say(f"baseline of {n} case(s) with {' and with '.join(what)}: model-uncertainty directions")
-    alternatives = Forward([j[3] for j in jobs], runner, lambda s: None)
     for k, (i, kind, _, _) in enumerate(jobs):
         if kind == "layers" and (guesses or {}).get(i) is not None:
             alternatives.start_from(k, guesses[i])
@@ -267,6 +305,18 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
         effects = available_effects(moved, effect_names,
                                     plan_actual=all(c.plan_actual is not None for c in cases))
     names = tuple(p.key for e in effects for p in e.parameters)
+    # the baseline, the boundary alternatives and the reference meshes' baselines need nothing
+    # of each other: on a cluster they start together, the baseline first
+    base_requests = (forward.sensitivity_requests([names] * len(cases)) if tangent and names
+                     else [(i, ()) for i in range(len(cases))])
+    forward.prefetch(base_requests)
+    alternatives = None
+    if boundary or layers:
+        alternatives = model_alternatives(cases, forward.runner, tuple(boundary), layers)
+        alternatives.prefetch(alternatives.from_rest())
+    if references is not None:
+        reference_forward = reference_forward or new_reference_forward(references, forward.runner)
+        reference_forward.prefetch(reference_requests(references, names if tangent else ()))
     if tangent and names:
         # the baseline and its tangent sensitivities in one solve per case (the analysis asks
         # for the same request again and gets it from the store)
@@ -293,7 +343,8 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
             say(f"  warning: {w}")
     if boundary or layers:
         boundary_errors(data, forward.runner, say, boundaries=tuple(boundary), layers=layers,
-                        guesses={i: forward.baseline_displacement(i) for i in range(len(data))})
+                        guesses={i: forward.baseline_displacement(i) for i in range(len(data))},
+                        alternatives=alternatives)
     if references is not None:
         mesh_errors(data, references, forward.runner, say, reference_names, reference_forward,
                     params=names if tangent else ())

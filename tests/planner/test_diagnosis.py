@@ -305,6 +305,53 @@ def test_a_baseline_with_a_contact_left_unmet_is_a_warning(patient, forward):
     assert fwd.contact_unmet(0, ("muscle_tone=0.5",)) == {}
 
 
+def test_prefetched_solves_are_collected_once_with_the_same_results():
+    """`Forward.prefetch` starts solves without waiting; the later `solve` collects them: each
+    request is submitted once, and the results are those of solving when asked. A runner
+    that cannot submit (solves in this process) makes prefetch a no-op."""
+    from types import SimpleNamespace
+
+    submitted = []
+
+    class Cluster:                              # futures that are already done
+        n_workers = 2
+
+        def submit(self, cases, requests, guesses=None):
+            submitted.extend(requests)
+            return [SimpleNamespace(key=len(submitted) + k, value=(np.full((2, 3), float(i) + len(s)), {}))
+                    for k, (i, s) in enumerate(requests)]
+
+        def gather(self, futures, on_done=None):
+            for k in range(len(futures)):
+                if on_done:
+                    on_done(k)
+            return [f.value for f in futures]
+
+        def map(self, cases, requests, on_done=None, guesses=None):
+            return self.gather(self.submit(cases, requests, guesses), on_done)
+
+    cases = [SimpleNamespace(name="a"), SimpleNamespace(name="b")]
+    fwd = Forward(cases, Cluster())
+    fwd.prefetch([(0, ()), (1, ("gravity=1",)), (0, ())])
+    assert submitted == [(0, ()), (1, ("gravity=1",))]          # a repeated request once
+    out = fwd.solve([(1, ("gravity=1",)), (0, ()), (1, ())])
+    assert submitted == [(0, ()), (1, ("gravity=1",)), (1, ())]  # only the new one submitted
+    assert [float(o[0, 0]) for o in out] == [2.0, 0.0, 1.0]
+    fwd.prefetch([(0, ())])                                     # already solved: nothing starts
+    assert len(submitted) == 3 and fwd.n_solves == 3
+
+    class InProcess:                            # no submit: prefetch does nothing
+        n_workers = 1
+
+        def map(self, cases, requests, on_done=None, guesses=None):
+            return [(np.zeros((2, 3)), {}) for _ in requests]
+
+    local = Forward(cases, InProcess())
+    local.prefetch([(0, ())])
+    assert not local._pending
+    assert np.all(local.solve([(0, ())])[0] == 0.0)
+
+
 # --------------------------------------------------------------------------- parts
 
 def test_effect_strings_parse_and_none_is_the_baseline(patient):

@@ -36,7 +36,8 @@ switch such as which segments' tissue slides) is paired once per choice, each an
 full solve of the lead's fitted values with that switch, and the pair that fits best after
 refinement is kept: with the lead's effect present another switch can fit than alone. The
 verdict is the best significant effect (or pair, when the pair is itself significant, shrinks the held-out gap further than
-each of its members and, if a single effect is significant, is strongly better than it); else null when no region's gap stands
+each of its members and is strongly better in BIC than each member and than the best
+significant single effect); else null when no region's gap stands
 out of noise + discrepancy, "unexplained" (with those regions) when some does. Its confidence
 is the total probability of the models that contain the named effect(s), the probabilities
 being held-out ones (pseudo-BMA+ weights of the held-out log predictive densities, among the
@@ -922,6 +923,21 @@ def _leading(ranked: list, best):
     return max(tied, key=lambda s: s.probability) if tied else best
 
 
+def _pair_earns(pair, members: list, best) -> bool:
+    """Whether a significant `pair` earns its second effect: on held-out data it removes
+    `MIN_PAIR_GAIN_PCT` more of the gap than each of its `members` (scored alone), significant
+    or not, so that a member that explains the gap without being named (its held-out density
+    no better than the discrepancy's) does not let a partner that fits the model-form rest
+    (bone execution's 18 parameters) be named with it; and in the evidence it is strongly
+    better in BIC than each member alone and than the `best` significant single effect (None:
+    none), so that each effect is needed beside the other: a partner whose only gain is to
+    even out a member's held-out regions is not evidence of a second effect."""
+    rivals = list(members) + ([best] if best is not None else [])
+    return bool(pair.significant
+                and all(pair.heldout_shrink_pct >= m.heldout_shrink_pct + MIN_PAIR_GAIN_PCT for m in members)
+                and all(r.gp_bic - pair.gp_bic >= fit.STRONG_EVIDENCE for r in rivals))
+
+
 def _verdict(data, best, pairs, prob, scored=()) -> dict:
     """The winning effect when one is significant; else `null` when no region's gap exceeds
     noise + discrepancy (the model-form error the baseline is expected to carry),
@@ -935,14 +951,7 @@ def _verdict(data, best, pairs, prob, scored=()) -> dict:
     winner = best
     single = {s.cand.name: s for s in scored}
     for p in sorted(pairs, key=lambda s: -s.heldout_shrink_pct):
-        # a pair must earn its second effect on held-out data against each member, significant
-        # or not: a member that explains the gap but is not named (its held-out density no
-        # better than the discrepancy's) does not let a partner that fits the model-form rest
-        # (bone execution's 18 parameters) be named with it
-        members = [single[m] for m in p.cand.name.split("+") if m in single]
-        if p.significant and all(p.heldout_shrink_pct >= m.heldout_shrink_pct + MIN_PAIR_GAIN_PCT
-                                 for m in members) \
-                and (best is None or best.gp_bic - p.gp_bic >= fit.STRONG_EVIDENCE):
+        if _pair_earns(p, [single[m] for m in p.cand.name.split("+") if m in single], best):
             winner = p
             break
     if winner is None:

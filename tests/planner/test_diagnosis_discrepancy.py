@@ -568,6 +568,30 @@ def test_the_verdict_names_the_likelier_of_effects_the_shrinkage_cannot_tell_apa
     assert analysis._leading([d], None) is None
 
 
+def test_a_pair_is_named_only_when_each_effect_earns_its_place():
+    """`analysis._pair_earns`: a significant pair needs, against each member alone, both
+    MIN_PAIR_GAIN_PCT more held-out shrinkage and a BIC strongly better (fit.STRONG_EVIDENCE),
+    whether or not a single effect is significant. The case it guards: a correction that is not
+    significant alone (its held-out shrinkage spread over the regions) and a partner that evens
+    the regions out with a BIC only 2 better: the pair shows no evidence of the partner."""
+    def s(name, shrink, bic, significant=False):
+        return SimpleNamespace(name=name, heldout_shrink_pct=shrink, gp_bic=bic, significant=significant)
+
+    strong = fit.STRONG_EVIDENCE
+    lead, partner = s("bone_execution", 23.8, -335.6), s("stiffness", 12.4, -210.7)
+    weak_pair = s("bone_execution+stiffness", 37.4, -337.6, significant=True)
+    assert not analysis._pair_earns(weak_pair, [lead, partner], None)
+    good_pair = s("bone_execution+stiffness", 37.4, lead.gp_bic - strong - 0.1, significant=True)
+    assert analysis._pair_earns(good_pair, [lead, partner], None)
+    # the held-out rule stays: 10 points more than each member
+    close = s("bone_execution+stiffness", lead.heldout_shrink_pct + 9.0, lead.gp_bic - 50.0, significant=True)
+    assert not analysis._pair_earns(close, [lead, partner], None)
+    # a significant single effect outside the pair must be beaten strongly as well
+    other = s("swelling", 30.0, good_pair.gp_bic + strong / 2, significant=True)
+    assert not analysis._pair_earns(good_pair, [lead, partner], other)
+    assert not analysis._pair_earns(s("a+b", 90.0, -1e3, significant=False), [lead, partner], None)
+
+
 # Under the mandible (`discrepancy`, "Under the mandible"): a model-form gap confined to the
 # regions below the mandible (here the sheet's lowest third of a band, y < 30 mm: 23 % of the
 # points) besides a small one over the whole face, and an effect on the face above it.

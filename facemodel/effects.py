@@ -37,7 +37,7 @@ from facemodel.model import MUSCLES, SEGMENTS
 __all__ = ["EFFECT_NAMES", "LAYERS", "Effects", "EffectError", "Parameter", "parse_effects",
            "parameters", "swelling_residual", "swelling_weights", "growth_field",
            "gravity_density", "gravity_direction", "correction_matrix", "correction_params",
-           "executed_motions", "CARRIED_BY", "RHO", "G", "SWELLING_RADIUS_MM", "MAX_PITCH_DEG"]
+           "executed_motions", "executed_segments", "CARRIED_BY", "RHO", "G", "SWELLING_RADIUS_MM", "MAX_PITCH_DEG"]
 
 EFFECT_NAMES = ("sliding", "muscle_tone", "swelling", "gravity", "stiffness", "bone_execution")
 # stiffness layers -> the tissue labels they scale
@@ -63,6 +63,11 @@ MAX_PITCH_DEG = 30.0
 # segments fixed to another after the operation: the chin segment is plated to the mandible
 # (genioplasty) or is part of it (no genioplasty), so it follows the mandible's correction
 CARRIED_BY = {"chin": "mandible"}
+# a carried segment planned to move as its carrier does, within these tolerances, was not cut:
+# far below any surgical movement (a genioplasty moves the chin by millimetres), above the
+# rounding of a transform file
+SAME_MOTION_MM = 0.01
+SAME_MOTION_ROT = 1e-4
 
 
 class EffectError(ValueError):
@@ -465,6 +470,24 @@ def correction_params(T, centre) -> tuple:
     c = np.asarray(centre, float)
     t = T[:3, 3] - (c - R @ c)
     return (float(t[0]), float(t[1]), float(t[2]), rx, ry, rz)
+
+
+def executed_segments(motions: dict) -> tuple[str, ...]:
+    """The segments with an execution of their own among those the plan moves (`motions`:
+    segment -> 4x4 planned movement): every moved segment but a carried one (`CARRIED_BY`)
+    planned to move exactly as its carrier. Such a segment was not cut (the chin without a
+    genioplasty is part of the mandible's distal segment), so the carrier's execution is its
+    own and a separate correction of it would describe no surgery."""
+    out = []
+    for seg, T in motions.items():
+        carrier = CARRIED_BY.get(seg)
+        if carrier in motions:
+            A, B = np.asarray(T, float), np.asarray(motions[carrier], float)
+            if (np.abs(A[:3, :3] - B[:3, :3]).max() <= SAME_MOTION_ROT
+                    and np.abs(A[:3, 3] - B[:3, 3]).max() <= SAME_MOTION_MM):
+                continue
+        out.append(seg)
+    return tuple(out)
 
 
 def executed_motions(motions: dict, corrections, centroids: dict) -> dict:

@@ -176,8 +176,12 @@ def _bone_execution(moved: tuple[str, ...], plan_actual: bool = False) -> Effect
 
 def available_effects(moved_segments: tuple[str, ...] = MOVED_SEGMENTS,
                       names: tuple[str, ...] | None = None, *, plan_actual: bool = False,
-                      stiffness_layers: bool = True) -> list[Effect]:
-    """The effects the pipeline can add to a prediction today (in the contract's order)."""
+                      stiffness_layers: bool = True,
+                      executed_segments: tuple[str, ...] | None = None) -> list[Effect]:
+    """The effects the pipeline can add to a prediction today (in the contract's order).
+    `executed_segments`: the moved segments with an execution of their own, whose corrections
+    `bone_execution` fits (default: every moved segment; the chin moving with the mandible,
+    uncut, has none, `facemodel.effects.executed_segments`)."""
     out = []
     for e in EFFECT_LIBRARY:
         if names is not None and e.name not in names:
@@ -187,7 +191,8 @@ def available_effects(moved_segments: tuple[str, ...] = MOVED_SEGMENTS,
         elif e.name == "stiffness":
             spec = _stiffness(stiffness_layers)
         elif e.name == "bone_execution":
-            spec = _bone_execution(moved_segments, plan_actual)
+            spec = _bone_execution(moved_segments if executed_segments is None else executed_segments,
+                                   plan_actual)
         else:
             p = e.parameters[0]
             spec = e if _accepted([f"{p.key}={_fmt(p.value(p.origin + p.step))}"]) else None

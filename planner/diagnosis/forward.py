@@ -17,6 +17,7 @@ from typing import Callable
 
 import numpy as np
 
+from facemodel.effects import executed_segments
 from planner.errors import InputError, SolveError
 
 __all__ = ["CaseModel", "PatientSurface", "Runner", "Forward", "solve_skin", "prepare_case", "patient_surface"]
@@ -51,6 +52,12 @@ class CaseModel:
     @property
     def moved_segments(self) -> tuple[str, ...]:
         return tuple(self.plan.motions())
+
+    @property
+    def executed_segments(self) -> tuple[str, ...]:
+        """The moved segments with an execution of their own (`facemodel.effects.
+        executed_segments`: not the chin when it moves with the mandible, uncut)."""
+        return executed_segments(self.plan.motions())
 
 
 @dataclass

@@ -302,7 +302,9 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
     forward = forward or Forward(cases, runner, say)
     moved = tuple(dict.fromkeys(s for c in cases for s in c.moved_segments))
     if effects is None:
-        effects = available_effects(moved, effect_names,
+        # a segment cut in any case keeps its correction in all (the parameters are one set)
+        executed = tuple(dict.fromkeys(s for c in cases for s in c.executed_segments))
+        effects = available_effects(moved, effect_names, executed_segments=executed,
                                     plan_actual=all(c.plan_actual is not None for c in cases))
     names = tuple(p.key for e in effects for p in e.parameters)
     # the baseline, the boundary alternatives and the reference meshes' baselines need nothing

@@ -328,6 +328,24 @@ def test_mandible_correction_carries_the_chin():
     assert np.allclose(only["mandible"], T["mandible"], atol=1e-12)
 
 
+def test_an_uncut_chin_has_no_execution_of_its_own():
+    """executed_segments: the chin planned to move as the mandible does (no genioplasty) is
+    part of the mandible's distal segment, so only a genioplasty gives it a correction of its
+    own; the equality allows a transform file's rounding (1e-4 mm) but not a 0.05 mm move."""
+    rot = {"axis": [1, 0, 0], "angle_deg": -2.0, "center": [0, 70, -40]}
+    mand = {"translation": [0, 4.0, 0], "rotation": rot}
+    cases = [({"chin": mand}, ("maxilla", "mandible")),
+             ({"chin": {"translation": [0, 4.0001, 0], "rotation": rot}}, ("maxilla", "mandible")),
+             ({"chin": {"translation": [0, 4.05, 0], "rotation": rot}}, ("maxilla", "mandible", "chin")),
+             ({"chin": {"translation": [0, 4.0, 0]}}, ("maxilla", "mandible", "chin")),
+             ({}, ("maxilla", "mandible"))]
+    for chin, expect in cases:
+        plan = _plan({"maxilla": {"translation": [0, 3, 1]}, "mandible": mand, **chin})
+        assert fe.executed_segments(plan.motions()) == expect, chin
+    # a chin moved alone (the mandible stays) is a genioplasty
+    assert fe.executed_segments(_plan({"chin": {"translation": [0, 5, 0]}}).motions()) == ("chin",)
+
+
 
 def test_mandible_correction_moves_the_chin_nodes_rigidly(face):
     """On the coarse face with a genioplasty in the plan: a mandible correction moves the chin

@@ -149,6 +149,10 @@ def test_each_withheld_effect_is_named(patient, forward, name, strings, seed):
     assert rec["verdict"]["confidence"] > 0.5
     entry = next(e for e in rec["effects"] if e["name"] == name)
     assert entry["significant"]
+    if name == "bone_execution":
+        # the plan's chin moves with the mandible (no genioplasty): uncut, no correction of its own
+        assert patient.executed_segments == ("maxilla", "mandible")
+        assert set(entry["params"]) == {"bone_execution.maxilla", "bone_execution.mandible"}
     # held-out: the effect predicts regions it was not fitted on; a quarter of the gap at least
     # (the scan noise, 0.2 mm, stays in the held-out gap whatever the effect)
     assert entry["heldout_shrink_pct"] >= 25.0

@@ -297,10 +297,11 @@ class Forward:
         With solves run in this process (or a runner that cannot submit) nothing starts: they
         are solved when asked for, with the same results."""
         submit = getattr(self.runner, "submit", None)
-        todo = []
+        todo, seen = [], set()
         for r in requests:
             k = self._key(r)
-            if k not in self._store and k not in self._pending and all(k != self._key(t) for t in todo):
+            if k not in self._store and k not in self._pending and k not in seen:
+                seen.add(k)
                 todo.append(r)
         if not todo or submit is None:
             return

@@ -308,10 +308,12 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
                                     plan_actual=all(c.plan_actual is not None for c in cases))
     names = tuple(p.key for e in effects for p in e.parameters)
     # the baseline, the boundary alternatives and the reference meshes' baselines need nothing
-    # of each other: on a cluster they start together, the baseline first
-    base_requests = (forward.sensitivity_requests([names] * len(cases)) if tangent and names
+    # of each other: on a cluster they start together, the baseline first; with the tangent,
+    # the baseline and its sensitivities are one solve per case (the analysis asks for the
+    # same request again and gets it from the store)
+    with_tangent = bool(tangent and names)
+    forward.prefetch(forward.sensitivity_requests([names] * len(cases)) if with_tangent
                      else [(i, ()) for i in range(len(cases))])
-    forward.prefetch(base_requests)
     alternatives = None
     if boundary or layers:
         alternatives = model_alternatives(cases, forward.runner, tuple(boundary), layers)
@@ -319,9 +321,7 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
     if references is not None:
         reference_forward = reference_forward or new_reference_forward(references, forward.runner)
         reference_forward.prefetch(reference_requests(references, names if tangent else ()))
-    if tangent and names:
-        # the baseline and its tangent sensitivities in one solve per case (the analysis asks
-        # for the same request again and gets it from the store)
+    if with_tangent:
         say(f"baseline prediction of {len(cases)} case(s) with the tangent sensitivities of {len(names)} parameter(s)")
         forward.sensitivities([names] * len(cases))
     else:

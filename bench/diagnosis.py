@@ -303,10 +303,17 @@ def main_bench(argv=None) -> int:
             ref_name = mesh_reference(res, args.mesh_reference)
             ref_fwd = None if ref is None else _StoredForward(
                 [ref], Runner(client), say, root / "solves", f"{Path(rec['case']).resolve()}|{ref_name}")
-            out = diagnose_data([patient], [scan], forward=fwd, say=say,
-                                references=None if ref is None else [ref], reference_names=[ref_name],
-                                reference_forward=ref_fwd, boundary=boundaries,
-                                layers=args.layer_uncertainty == "thicker")
+            try:
+                out = diagnose_data([patient], [scan], forward=fwd, say=say,
+                                    references=None if ref is None else [ref], reference_names=[ref_name],
+                                    reference_forward=ref_fwd, boundary=boundaries,
+                                    layers=args.layer_uncertainty == "thicker")
+            except (SolveError, InputError) as exc:
+                # refused (the scan judged another patient's) or not solved: as above, a
+                # failure on that case, counted and named
+                not_diagnosed.append((Path(rec["case"]).name, rec["effect"], str(exc)))
+                print(f"{Path(rec['case']).name}: not diagnosed: {exc}", flush=True)
+                continue
             d = out["record"]
             if args.keep:
                 (Path(rec["case"]) / "diagnosis.json").write_text(json.dumps(d, indent=1, default=str))
@@ -386,7 +393,7 @@ def main_bench(argv=None) -> int:
     print(f"withheld effects changing the seen skin by less than the noise floor (RMS): {len(faint)}/"
           f"{len(effect_rows)} ({listed}), named {sum(r['verdict'] == r['truth'] for r in faint)} of them")
     if not_diagnosed:
-        print(f"not diagnosed (faceplan could not register or load the case): {len(not_diagnosed)}: "
+        print(f"not diagnosed (faceplan could not register, load, accept or solve the case): {len(not_diagnosed)}: "
               + "; ".join(f"{c} ({t}): {why}" for c, t, why in not_diagnosed))
     times = [r["time_s"] for r in rows]
     print(f"cohort made in {t_cohort:.0f} s; diagnosis per case median {np.median(times) if times else 0:.0f} s, "

@@ -351,13 +351,15 @@ def unoperated_width_scale_pct(aligned: np.ndarray, reference: TriangleSurface, 
     vertex areas) make the fit independent of how densely the scan samples each part. The
     standard error is that of weighted linear least squares, sigma^2 (A^T W A)^-1; it is
     optimistic for dense, correlated scan points but large when the regions are barely covered.
-    The scan is wider by -s. NaN (and converged) when fewer than 50 scan points lie over the
-    regions at the start; not converged when they leave the regions during the fit.
+    The scan is wider by -s. Converged when the scale settles (`_settled`: a step below
+    0.02 %, or a cycle of two or three selections at the regions' edge, whose mean is
+    returned). NaN (and converged) when fewer than 50 scan points lie over the regions at the
+    start; not converged when they leave the regions during the fit.
     """
     x = np.asarray(aligned, float).copy()
     allowed = np.asarray(allowed_faces, bool)
     w_all = np.ones(len(x)) if weights is None else np.asarray(weights, float)
-    total, stderr, centre = 0.0, float("nan"), None
+    total, stderr, centre, history = 0.0, float("nan"), None, [0.0]
     for _ in range(iterations):
         cp = reference.closest(x)
         sel = allowed[cp.face] & ~cp.beyond_boundary & (cp.distance <= gate)
@@ -381,6 +383,26 @@ def unoperated_width_scale_pct(aligned: np.ndarray, reference: TriangleSurface, 
         x = x + np.cross(step[:3], x) + step[3:6]
         x[:, 0] += step[6] * (x[:, 0] - centre[0])
         total += step[6]
-        if abs(step[6]) < 2e-4:   # 0.02 %: settled, far below the 2.5 % that is judged
-            return -100.0 * total, stderr, True
+        history.append(total)
+        settled = _settled(history)
+        if settled is not None:
+            return -100.0 * settled, stderr, True
     return -100.0 * total, stderr, False
+
+
+# a width scale that moves by less than this (0.02 %) has settled: far below the 2.5 % judged
+SETTLED_SCALE = 2e-4
+
+
+def _settled(history: list[float], longest_cycle: int = 3) -> float | None:
+    """The settled width scale of a fit whose iterates are `history`, or None while it drifts.
+    Settled when the last step is below `SETTLED_SCALE`, or when the fit has come back within
+    it to where it stood p = 2..`longest_cycle` iterations before: a few points at the edge of
+    the regions (or of the distance gate) leave and re-enter the selection in turn, and the
+    fit cycles through those selections, each step undone by the next. The mean over the
+    cycle is returned. A fit that keeps drifting (a face of another shape) never comes back.
+    `history` starts with the scale before the first step (0)."""
+    for p in range(1, min(longest_cycle, len(history) - 1) + 1):
+        if abs(history[-1] - history[-1 - p]) < SETTLED_SCALE:
+            return float(np.mean(history[-p:]))
+    return None

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from planner.compare.alignment import unoperated_width_scale_pct
+from planner.compare.alignment import SETTLED_SCALE, _settled, unoperated_width_scale_pct
 from planner.compare.distances import TriangleSurface
 from planner.compare.phantom import face_phantom, write_prediction_folder
 
@@ -91,3 +91,23 @@ def test_compare_keeps_the_patients_own_noisy_scan(phantoms, tmp_path):
     assert main(["compare", str(case), "--no-images"]) == 0
     alignment = json.loads((case / "compare" / "report.json").read_text())["alignment"]
     assert abs(alignment["unoperated_width_scale_pct"]) < 1.0
+
+
+def test_a_fit_cycling_between_selections_has_settled_and_a_drifting_one_has_not():
+    """The width fit's convergence rule (`_settled`): a few points at the regions' edge leave
+    and re-enter the selection in turn, and the scale cycles (steps of +-0.03 % undoing each
+    other about -0.70 %, as seen on a standard synthetic case) instead of stepping below
+    0.02 %: settled, at the cycle's mean. A fit drifting by 0.1 % a step (a face of another
+    shape) or one converging slower than 0.02 % a step has not settled; one step below 0.02 %
+    has, at once."""
+    cycle = [0.0, -0.0066, -0.00697, -0.00721, -0.00692]
+    assert _settled(cycle[:4]) is None
+    assert _settled(cycle) == pytest.approx(np.mean(cycle[-2:]), abs=1e-12)
+    three = [0.0, -0.0070, -0.0075, -0.0080, -0.00701]
+    assert _settled(three[:4]) is None
+    assert _settled(three) == pytest.approx(np.mean(three[-3:]), abs=1e-12)
+    drift = list(np.arange(0, 12) * -0.001)
+    assert all(_settled(drift[:k]) is None for k in range(2, 13))
+    slow = [0.0] + list(np.cumsum(-0.004 * 0.9 ** np.arange(10)))
+    assert all(_settled(slow[:k]) is None for k in range(2, 12) if abs(slow[k - 1] - slow[k - 2]) > SETTLED_SCALE)
+    assert _settled([0.0, -0.5 * SETTLED_SCALE]) == pytest.approx(-0.5 * SETTLED_SCALE)

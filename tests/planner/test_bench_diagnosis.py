@@ -30,5 +30,5 @@ def test_a_case_that_cannot_be_loaded_is_counted_not_diagnosed(tmp_path, capsys)
     assert rc == 0
     assert "case_0: not diagnosed:" in out
     # the summary names it, with its withheld effect, and counts no verdict for it
-    assert "not diagnosed (faceplan could not register or load the case): 1: case_0 (sliding)" in out
+    assert "not diagnosed (faceplan could not register, load, accept or solve the case): 1: case_0 (sliding)" in out
     assert "named 0/0" in out

@@ -51,6 +51,8 @@ OTHER_PATIENT_SCALE_PCT = 2.5
 SCALE_IGNORED_REGIONS = ("preauricular_left", "preauricular_right")
 # The width is judged only when the points determine it to this standard error (percent).
 SCALE_MAX_STDERR_PCT = 0.5
+# A width fit that moves by less than this (0.02 %) has settled: far below the 2.5 % judged.
+SETTLED_SCALE = 2e-4
 
 
 def rotation_matrix(omega: np.ndarray) -> np.ndarray:
@@ -388,10 +390,6 @@ def unoperated_width_scale_pct(aligned: np.ndarray, reference: TriangleSurface, 
         if settled is not None:
             return -100.0 * settled, stderr, True
     return -100.0 * total, stderr, False
-
-
-# a width scale that moves by less than this (0.02 %) has settled: far below the 2.5 % judged
-SETTLED_SCALE = 2e-4
 
 
 def _settled(history: list[float], longest_cycle: int = 3) -> float | None:

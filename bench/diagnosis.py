@@ -167,6 +167,30 @@ def _relative_errors(fitted: dict, value: dict) -> list[float]:
     return out
 
 
+_COMPONENTS = ("tx", "ty", "tz", "rx", "ry", "rz")
+
+
+def _interval_hits(r: dict) -> list[bool]:
+    """Per identifiable parameter of the named effect: does its 95 % interval under noise +
+    discrepancy (`parameters.<key>.interval_95`) hold the key's value? A parameter the key
+    does not set has its "none" value as truth (a segment the key did not move: no correction;
+    factors 1); with the achieved movements of `postop/plan_actual.yaml` in the fit
+    (`bone_execution: 1`), which hold the key's correction, the truth of what remains is 0."""
+    value = r.get("value") or {}
+    achieved = (r.get("fitted") or {}).get("bone_execution") == 1
+    hits = []
+    for k, (lo, hi) in (r.get("intervals") or {}).items():
+        head, _, comp = k.rpartition(".")
+        if comp in _COMPONENTS and head.startswith("bone_execution."):
+            vec = value.get(head)
+            truth = 0.0 if achieved or vec is None else float(vec[_COMPONENTS.index(comp)])
+        else:
+            none = 1.0 if k.startswith(("stiffness", "swelling")) else 0.0
+            truth = float(value[k]) if isinstance(value.get(k), (int, float)) else none
+        hits.append(bool(lo - 1e-9 <= truth <= hi + 1e-9))
+    return hits
+
+
 def _ceiling(r: dict):
     """The largest whole-gap shrinkage the scan noise allows: 1 - noise / RMS0 (percent)."""
     if not isinstance(r.get("noise"), (int, float)) or not r.get("rms0"):
@@ -341,6 +365,8 @@ def main_bench(argv=None) -> int:
                                       e["significant"], e.get("heldout_lpd_gain_probability"))
                                      for e in d["effects"]],
                          "fitted": fitted, "kappa": kappa, "time_s": time.perf_counter() - t,
+                         "intervals": {k: p["interval_95"] for k, p in (entry.get("parameters") or {}).items()
+                                       if p.get("identifiable") and p.get("interval_95") is not None},
                          "solves": d["solves"]["count"], "sensitivity": d["method"]["sensitivity"]})
             if args.keep:
                 stored.write_text(json.dumps(rows[-1], default=str))
@@ -387,6 +413,10 @@ def main_bench(argv=None) -> int:
           f"{sum(r['verdict'] not in (None, 'unexplained') and r['confidence'] > 0.5 for r in none_rows)}/{len(none_rows)}; "
           "fitted values within 25% of the key: "
           f"{sum(e <= 0.25 for e in errs)}/{len(errs)}")
+    hits = [h for r in effect_rows if r["verdict"] == r["truth"] for h in _interval_hits(r)]
+    with_iv = sum(1 for r in effect_rows if r["verdict"] == r["truth"] and r.get("intervals"))
+    print(f"key values inside the fitted 95 % intervals (noise + discrepancy), named cases: {sum(hits)}/{len(hits)} "
+          f"parameters over {with_iv} case(s) with intervals")
     faint = [r for r in effect_rows if isinstance(r.get("change_rms"), (int, float))
              and isinstance(r.get("noise"), (int, float)) and r["change_rms"] < r["noise"]]
     listed = ", ".join(f"{r['case']} {r['truth']}" for r in faint) or "none"

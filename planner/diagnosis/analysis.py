@@ -547,6 +547,7 @@ class Scored:
     noise_shrink_pct: float = np.nan             # held-out shrinkage of the gap beyond the noise
     noise_spread_pct: float = np.inf             # its bootstrap spread
     mesh_kappa: list | None = None               # per case kappa of the Jacobian's extrapolation
+    se_model: list = field(default_factory=list)  # per case standard errors under noise + discrepancy
 
     def values(self, c: int) -> dict:
         return self.cand.values(c, self.theta[c] if self.theta else None)
@@ -596,7 +597,33 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
                  fit.bic(rss, W, n_eff, k), identifiable, heldout, fitted)
     out.noise_shrink_pct, out.noise_spread_pct = beyond_noise_shrink(data, r0s, heldout), noise_spread
     out.gp, out.gp_bic, out.theta = gp, gp_bic, theta
+    out.se_model = model_form_errors(cand, data, gp)
     out.lpd = heldout_lpd(cand, data, gp, heldout)
+    return out
+
+
+def model_form_errors(cand: Candidate, data: list[CaseData], fits: list) -> list[np.ndarray]:
+    """Per case the standard errors of the reported estimates (fit coordinates; NaN for the
+    parameters held at "none") under the error model each was fitted with: sqrt(diag(F^-1)),
+    F = J^T Sigma^-1 J with Sigma = noise + discrepancy (`discrepancy.ErrorModel`), summed over
+    the cases for parameters shared by every patient. The identifiability test
+    (`_identify`) asks whether the scan noise alone could pin a parameter; these ask how well
+    the data pin it once the model's own form error is counted too, the spread a user should
+    read on a fitted value: a correlated discrepancy leaves far fewer independent samples than
+    scan points, so they are wider, often many times."""
+    k = len(cand.params)
+    out = [np.full(k, np.nan) for _ in data]
+    free = cand.free
+    if not k or free is None or not free.any() or len(fits) != len(data) or len(cand.J) != len(data):
+        return out
+    infos = [d.error.information(cand.J[c][:, free], fits[c]) for c, d in enumerate(data)]
+    if cand.shared and len(data) > 1:
+        se = discrepancy.standard_errors_from_information(sum(infos))
+        for o in out:
+            o[free] = se
+    else:
+        for o, F in zip(out, infos):
+            o[free] = discrepancy.standard_errors_from_information(F)
     return out
 
 

@@ -150,6 +150,16 @@ _AMPLITUDES = np.geomspace(0.02, 3.0, 32)
 _LONG_AMPLITUDES = np.concatenate([[0.0], np.geomspace(0.01, 1.0, 9)])
 
 
+def standard_errors_from_information(F: np.ndarray) -> np.ndarray:
+    """sqrt(diag(F^-1)) of a Fisher information F; inf when F is singular."""
+    F = np.asarray(F, float)
+    try:
+        cov = np.linalg.inv(F)
+    except np.linalg.LinAlgError:
+        return np.full(F.shape[0], np.inf)
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+
 def matern32(d: np.ndarray, ell: float) -> np.ndarray:
     a = np.sqrt(3.0) * np.asarray(d, float) / ell
     return (1.0 + a) * np.exp(-a)
@@ -395,17 +405,17 @@ class ErrorModel:
                    rms(0, q), nu[:q], rms(q, b), nu[q:b], rms(b, self.N.shape[1]), nu[b:],
                    float(rho), self.border_share if rho else 0.0)
 
+    def information(self, J: np.ndarray, fit: Fit) -> np.ndarray:
+        """Fisher information J^T Sigma^-1 J of the parameters (columns of J, on all scan
+        points; the subsample is taken here) under the error model `fit`."""
+        Jw = np.asarray(J, float)[self.idx]
+        return Jw.T @ np.linalg.solve(self.covariance(fit), Jw)
+
     def standard_errors(self, J: np.ndarray, fit: Fit) -> np.ndarray:
         """Standard errors of the parameters (columns of J) under the error model `fit`:
         sqrt(diag((J^T Sigma^-1 J)^-1)), inf along directions the data do not see."""
-        S = self.covariance(fit)
-        Jw = np.asarray(J, float)[self.idx]
-        F = Jw.T @ np.linalg.solve(S, Jw)
-        try:
-            cov = np.linalg.inv(F)
-        except np.linalg.LinAlgError:
-            return np.full(F.shape[0], np.inf)
-        return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return standard_errors_from_information(self.information(J, fit))
+
 
     def region_pvalue(self, r: np.ndarray, mask: np.ndarray, fit: Fit) -> float:
         """P-value of a region's gap under the error model `fit`: the quadratic form

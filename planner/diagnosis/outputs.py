@@ -69,6 +69,13 @@ def _images(result: dict, img: Path) -> list[tuple[Path, str]]:
     return out
 
 
+def _shown(x):
+    """A per-parameter report value for a table cell: one value, or the cases' values."""
+    if isinstance(x, dict) and "per_case" in x:
+        return "; ".join(json.dumps(v) for v in x["per_case"])
+    return json.dumps(x) if isinstance(x, list) else x
+
+
 def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say=lambda s: None) -> dict:
     """Write diagnosis.json, images/*.png and report.html into `out_dir` (whole or not at all)."""
     from planner.atomic import atomic_output_dir
@@ -93,6 +100,14 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
             ["region", "RMS (mm)", "beyond noise + discrepancy", "above noise", "covered"],
             [[r["region"], r["rms_mm"], r["significant"], r.get("above_noise"), r.get("covered", True)]
              for r in record["localization"]])}
+        named = next((e for e in record["effects"] if e["name"] == record["verdict"]["effect"]), None)
+        rows = [[key, _shown(q.get("value")), _shown(q.get("interval_95")), q.get("unit"),
+                 q.get("standard_error"), _shown(q.get("standard_error_with_discrepancy")), q.get("coordinate")]
+                for key, q in ((named or {}).get("parameters") or {}).items() if q.get("identifiable")]
+        if rows:
+            tables[f"Fitted values of {named['name']}, with their 95 % intervals under noise + discrepancy"] = (
+                ["parameter", "value", "95 % interval", "unit", "standard error, noise alone",
+                 "standard error, noise + discrepancy", "coordinate of the standard errors"], rows)
         shrink = record.get("shrinkage")
         em = record.get("error_model") or {}
         if "level_mm" in em:

@@ -414,12 +414,43 @@ def _effect_entry(s: analysis.Scored) -> dict:
         "solves": c.solves,
     }
     if c.params:
-        # the standard error is in the fit's coordinate: the value, or its logarithm for factors
-        entry["parameters"] = {p.key: {"identifiable": bool(f), "standard_error": _r(se, 4),
-                                       "coordinate": "log" if p.log else "value", "unit": p.unit,
-                                       "bounds": [p.lower, p.upper], "none": p.none}
-                               for p, f, se in zip(c.params, c.free, c.se)}
+        # the standard errors are in the fit's coordinate: the value, or its logarithm for
+        # factors. `standard_error`: under the scan noise alone (the identifiability test);
+        # `standard_error_with_discrepancy`: under noise + model-form discrepancy, the error
+        # model the reported value was estimated under, and `interval_95` from it
+        entry["parameters"] = {}
+        for i, (p, f, se) in enumerate(zip(c.params, c.free, c.se)):
+            se_m = [float(x[i]) for x in s.se_model] if s.se_model else []
+            coords = [(s.theta[k] if s.theta else c.theta[k])[i] for k in range(c.n_cases)]
+            entry["parameters"][p.key] = {
+                "identifiable": bool(f),
+                "value": _per_case(c, [round(p.value(float(x)), 6) for x in coords]),
+                "standard_error": _r(se, 4),
+                "standard_error_with_discrepancy": _per_case(c, [_r(x, 4) for x in se_m]),
+                "interval_95": _per_case(c, [_interval(p, coords[k], x) for k, x in enumerate(se_m)]),
+                "coordinate": "log" if p.log else "value", "unit": p.unit,
+                "bounds": [p.lower, p.upper], "none": p.none}
     return entry
+
+
+def _per_case(cand, values: list):
+    """One value for a single case or a shared parameter, else {"per_case": [...]}."""
+    if not values:
+        return None
+    if cand.shared or cand.n_cases == 1:
+        return values[0]
+    return {"per_case": values}
+
+
+def _interval(p, coordinate: float, se: float, z: float = 1.96) -> list | None:
+    """The 95 % interval of a parameter's value, estimate +- z se in its fit coordinate
+    (normal: the linearised estimate under a Gaussian error model), clipped to its bounds;
+    None for a parameter held at "none"."""
+    if not (np.isfinite(se) and np.isfinite(coordinate)):
+        return None
+    lo, hi = p.bounds
+    return [round(p.value(float(np.clip(coordinate - z * se, lo, hi))), 6),
+            round(p.value(float(np.clip(coordinate + z * se, lo, hi))), 6)]
 
 
 def build_record(data: list, result: dict, effects) -> dict:

@@ -32,3 +32,23 @@ def test_a_case_that_cannot_be_loaded_is_counted_not_diagnosed(tmp_path, capsys)
     # the summary names it, with its withheld effect, and counts no verdict for it
     assert "not diagnosed (faceplan could not register, load, accept or solve the case): 1: case_0 (sliding)" in out
     assert "named 0/0" in out
+
+
+def test_interval_hits_read_each_parameter_against_its_truth():
+    """The bench's interval check: a bone correction's components against the key's vector, a
+    segment the key did not move against no correction, factors against their value (1 when
+    the key does not set them), and with the achieved movements in the fit the remainder
+    against 0."""
+    hits = _bench()._interval_hits
+    row = {"value": {"bone_execution.maxilla": [0.5, 1.0, 0.0, 1.3, 0.0, 0.0]},
+           "fitted": {"bone_execution.maxilla": [0.4, 0.9, 0.0, 0.3, 0.0, 0.0]},
+           "intervals": {"bone_execution.maxilla.tx": [0.2, 0.6], "bone_execution.maxilla.rx": [0.0, 0.6],
+                         "bone_execution.mandible.ty": [-0.1, 0.1], "bone_execution.mandible.rz": [0.2, 0.4]}}
+    assert hits(row) == [True, False, True, False]
+    row = {"value": {"stiffness.dermis": 0.6}, "fitted": {},
+           "intervals": {"stiffness.dermis": [0.5, 0.7], "stiffness.muscle": [1.1, 1.4]}}
+    assert hits(row) == [True, False]
+    row = {"value": {"bone_execution.maxilla": [2.0, 0.0, 0.0, 0.0, 0.0, 0.0]}, "fitted": {"bone_execution": 1},
+           "intervals": {"bone_execution.maxilla.tx": [-0.1, 0.1]}}
+    assert hits(row) == [True]
+    assert hits({"value": {"sliding": "maxilla"}, "fitted": {"sliding": "maxilla"}}) == []

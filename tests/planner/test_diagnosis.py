@@ -156,6 +156,22 @@ def test_each_withheld_effect_is_named(patient, forward, name, strings, seed):
     # held-out: the effect predicts regions it was not fitted on; a quarter of the gap at least
     # (the scan noise, 0.2 mm, stays in the held-out gap whatever the effect)
     assert entry["heldout_shrink_pct"] >= 25.0
+    _check_intervals(entry)
+
+
+def _check_intervals(entry: dict) -> None:
+    """Each identifiable fitted value comes with its standard error under noise + discrepancy
+    and the 95 % interval from it, which holds the value (the interval's calibration is
+    checked where the error model is known: tests/planner/test_diagnosis_discrepancy.py). The
+    interval is conditional on the generic model's moduli and thicknesses: the truth here is
+    another model, so it is not asked to hold the withheld value (a softer face sags more
+    under the same posture)."""
+    fitted = [q for q in entry["parameters"].values() if q["identifiable"]]
+    assert fitted
+    for q in fitted:
+        lo, hi = q["interval_95"]
+        assert lo <= q["value"] <= hi and lo < hi
+        assert q["standard_error_with_discrepancy"] > 0
 
 
 def test_two_withheld_effects_are_named_as_a_pair(patient, forward):

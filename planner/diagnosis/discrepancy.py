@@ -416,7 +416,6 @@ class ErrorModel:
         sqrt(diag((J^T Sigma^-1 J)^-1)), inf along directions the data do not see."""
         return standard_errors_from_information(self.information(J, fit))
 
-
     def region_pvalue(self, r: np.ndarray, mask: np.ndarray, fit: Fit) -> float:
         """P-value of a region's gap under the error model `fit`: the quadratic form
         r_m^T Sigma_m^-1 r_m of the region's subsampled points is chi-square with as many

@@ -618,12 +618,12 @@ def model_form_errors(cand: Candidate, data: list[CaseData], fits: list) -> list
         return out
     infos = [d.error.information(cand.J[c][:, free], fits[c]) for c, d in enumerate(data)]
     if cand.shared and len(data) > 1:
-        se = discrepancy.standard_errors_from_information(sum(infos))
+        se = fit.information_errors(sum(infos))
         for o in out:
             o[free] = se
     else:
         for o, F in zip(out, infos):
-            o[free] = discrepancy.standard_errors_from_information(F)
+            o[free] = fit.information_errors(F)
     return out
 
 

@@ -112,6 +112,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from planner.diagnosis.fit import information_errors
+
 __all__ = ["ErrorModel", "Fit", "subsample", "matern32", "smooth_basis", "LENGTHS_MM", "MAX_POINTS",
            "REGION_P", "MESH_ERROR_SD", "BOUNDARY_SD", "LAYER_STEP", "LAYER_SD", "BORDER_REGIONS",
            "BORDER_RATIOS", "MIN_BORDER_SHARE"]
@@ -148,16 +150,6 @@ LENGTHS_MM = (4.0, 6.0, 9.0, 13.0, 19.0, 28.0, 40.0)
 _AMPLITUDES = np.geomspace(0.02, 3.0, 32)
 # long-scale amplitudes (per unit-RMS basis function) relative to the gap's RMS; 0: no long scale
 _LONG_AMPLITUDES = np.concatenate([[0.0], np.geomspace(0.01, 1.0, 9)])
-
-
-def standard_errors_from_information(F: np.ndarray) -> np.ndarray:
-    """sqrt(diag(F^-1)) of a Fisher information F; inf when F is singular."""
-    F = np.asarray(F, float)
-    try:
-        cov = np.linalg.inv(F)
-    except np.linalg.LinAlgError:
-        return np.full(F.shape[0], np.inf)
-    return np.sqrt(np.clip(np.diag(cov), 0.0, None))
 
 
 def matern32(d: np.ndarray, ell: float) -> np.ndarray:
@@ -414,7 +406,7 @@ class ErrorModel:
     def standard_errors(self, J: np.ndarray, fit: Fit) -> np.ndarray:
         """Standard errors of the parameters (columns of J) under the error model `fit`:
         sqrt(diag((J^T Sigma^-1 J)^-1)), inf along directions the data do not see."""
-        return standard_errors_from_information(self.information(J, fit))
+        return information_errors(self.information(J, fit))
 
     def region_pvalue(self, r: np.ndarray, mask: np.ndarray, fit: Fit) -> float:
         """P-value of a region's gap under the error model `fit`: the quadratic form

@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["linear_fit", "broyden", "standard_errors", "bic", "model_probabilities", "predictive_weights",
-           "gain_probability", "finite_difference_points", "finite_difference_jacobian", "STRONG_EVIDENCE",
+__all__ = ["linear_fit", "broyden", "standard_errors", "information_errors", "bic", "model_probabilities",
+           "predictive_weights", "gain_probability", "finite_difference_points", "finite_difference_jacobian", "STRONG_EVIDENCE",
            "IDENTIFIABLE_FRACTION"]
 
 STRONG_EVIDENCE = 6.0          # BIC difference for strong evidence (Kass & Raftery 1995)
@@ -68,9 +68,16 @@ def broyden(J: np.ndarray, dtheta: np.ndarray, dr: np.ndarray) -> np.ndarray:
 
 
 def standard_errors(J: np.ndarray, w: np.ndarray, sigma: float, n_eff: float) -> np.ndarray:
-    """Cramer-Rao standard errors of the parameters (inf where not determined)."""
+    """Cramer-Rao standard errors of the parameters under white noise `sigma` over `n_eff`
+    independent samples (inf where not determined)."""
     W = float(np.sum(w))
-    F = (n_eff / W) * (J.T * w) @ J / max(sigma, 1e-9) ** 2
+    return information_errors((n_eff / W) * (J.T * w) @ J / max(sigma, 1e-9) ** 2)
+
+
+def information_errors(F: np.ndarray) -> np.ndarray:
+    """sqrt(diag(F^-1)) of a Fisher information F, inf for the parameters along a direction
+    the data do not see (F's null space)."""
+    F = np.asarray(F, float)
     k = F.shape[0]
     se = np.full(k, np.inf)
     evals, evecs = np.linalg.eigh(F)

@@ -378,11 +378,8 @@ def _params(s, thetas: list | None = None) -> dict | None:
     from planner.diagnosis.effects import collect_effects
 
     cand = s.cand
-    per_case = [collect_effects(s.values(c) if thetas is None else cand.values(c, thetas[c]))
-                for c in range(cand.n_cases)]
-    if cand.shared or cand.n_cases == 1:
-        return per_case[0]
-    return {"per_case": per_case}
+    return _per_case(cand, [collect_effects(s.values(c) if thetas is None else cand.values(c, thetas[c]))
+                            for c in range(cand.n_cases)])
 
 
 def _effect_entry(s: analysis.Scored) -> dict:

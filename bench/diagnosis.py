@@ -144,6 +144,12 @@ class _StoredForward:
         return Stored(cases, runner, say)
 
 
+def _none(key: str) -> float:
+    """The value of a scalar effect parameter that means "none": 1 for the factors (stiffness,
+    swelling's growth ratio), 0 for the others."""
+    return 1.0 if key.startswith(("stiffness", "swelling")) else 0.0
+
+
 def _relative_errors(fitted: dict, value: dict) -> list[float]:
     """|fitted - key| / |key - none| per identifiable value (factors: none = 1); a bone
     correction's translation and rotation each as a vector norm. When the diagnosis used the
@@ -162,8 +168,7 @@ def _relative_errors(fitted: dict, value: dict) -> list[float]:
             for sl in (slice(0, 3), slice(3, 6)):
                 out.append(float(np.linalg.norm(f[sl] - t[sl]) / max(np.linalg.norm(t[sl]), 1e-9)))
         elif isinstance(v, (int, float)) and not isinstance(v, bool):
-            none = 1.0 if k.startswith(("stiffness", "swelling")) else 0.0
-            out.append(abs(float(fitted[k]) - float(v)) / max(abs(float(v) - none), 1e-9))
+            out.append(abs(float(fitted[k]) - float(v)) / max(abs(float(v) - _none(k)), 1e-9))
     return out
 
 
@@ -185,8 +190,7 @@ def _interval_hits(r: dict) -> list[bool]:
             vec = value.get(head)
             truth = 0.0 if achieved or vec is None else float(vec[_COMPONENTS.index(comp)])
         else:
-            none = 1.0 if k.startswith(("stiffness", "swelling")) else 0.0
-            truth = float(value[k]) if isinstance(value.get(k), (int, float)) else none
+            truth = float(value[k]) if isinstance(value.get(k), (int, float)) else _none(k)
         hits.append(bool(lo - 1e-9 <= truth <= hi + 1e-9))
     return hits
 

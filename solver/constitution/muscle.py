@@ -6,11 +6,20 @@ Blemker, Pinsky & Delp 2005) with four isochoric parts:
 * matrix (Yeoh 1993): sum_k C_k0 (I1b - 3)^k;
 * passive fibres, stiffening in isochoric fibre stretch lam = sqrt(I4b) > 1 only
   (exponential form of Holzapfel, Gasser & Ogden 2000): k1/(2 k2) (exp(k2 (I4b - 1)^2) - 1);
-* active fibre stress, defined through lam dW_a/dlam = a T_max f(lam) so that the Cauchy
-  stress gains a T_max f(lam) m (x) m (m the current fibre direction, up to the pressure that
-  the uncoupled split adds). The force-length relation is the log-Gaussian
-  f(lam) = exp(-(ln(lam/lam_opt)/w)^2) (Otten 1987 form; width w), whose energy is closed form:
-  W_a = a T_max w sqrt(pi)/2 [erf(ln(lam/lam_opt)/w) - erf(ln(1/lam_opt)/w)];
+* active fibre stress, defined through dW_a/dlam = a T_max f(lam) / lam_opt: the force-length
+  relation is one of force, so it is the nominal (first Piola-Kirchhoff) fibre stress that
+  follows it, and the Cauchy stress gains a T_max f(lam) lam/lam_opt m (x) m (m the current fibre
+  direction, up to the pressure that the uncoupled split adds; Blemker, Pinsky & Delp 2005,
+  eqs. 13-14; FEBio's muscle material). The force-length relation is the log-Gaussian
+  f(lam) = exp(-(ln(lam/lam_opt)/w)^2) (Otten 1987 form; width w), whose energy is closed form
+  (u = ln(lam/lam_opt), substituting lam = lam_opt e^u):
+  W_a = a T_max e^(w^2/4) w sqrt(pi)/2 [erf(u/w - w/2) - erf(u(1)/w - w/2)].
+  With a stress proportional to the Cauchy one instead, the nominal fibre stress a T f/lam
+  falls with stretch at lam_opt (slope -a T / lam_opt^2): once a T_max exceeds the matrix's
+  along-fibre stiffness (3 mu at small strain) the along-fibre tangent turns negative and a muscle at rest length collapses onto itself
+  (a material instability, not a property of muscle). Here the active part adds no stiffness
+  at lam_opt, stiffness on the ascending limb (lam < lam_opt) and softening only on the
+  descending one;
 * lateral (cross-fibre) stiffness that grows with activation, the role of the extra isochoric
   term of the seed's "Usermat" muscle law (Nazari et al. 2010, Payan & Perrier 2016:
   activated muscle is stiffer across its fibres): mu_T(a)/2 (I1b - I4b - 2/sqrt(I4b)) with
@@ -125,9 +134,12 @@ class Muscle:
             u = 0.5 * np.log(I4b) - math.log(self.lam_opt)
             f = np.exp(-(u / w) ** 2)
             u1 = -math.log(self.lam_opt)
-            W = W + aT * w * math.sqrt(math.pi) / 2.0 * (erf(u / w) - math.erf(u1 / w))
-            W4 = W4 + aT * f / (2.0 * I4b)
-            W44 = W44 - aT * f * (1.0 + u / (w * w)) / (2.0 * I4b * I4b)
+            c = aT * math.exp(0.25 * w * w) * w * math.sqrt(math.pi) / 2.0
+            W = W + c * (erf(u / w - 0.5 * w) - math.erf(u1 / w - 0.5 * w))
+            # dW/dI4b = (dW/dlam) / (2 lam), lam = sqrt(I4b); d f / dI4b = -f u / (w^2 I4b)
+            r = I4b ** -0.5
+            W4 = W4 + aT * f * r / (2.0 * self.lam_opt)
+            W44 = W44 - aT * f * (1.0 + 2.0 * u / (w * w)) * r ** 3 / (4.0 * self.lam_opt)
         # lateral stiffness, growing with activation
         muT = self.G_T + a * self.G_T_active
         if muT > 0.0:
@@ -179,7 +191,7 @@ class Muscle:
 
         F = diag(lam, lam^-1/2, lam^-1/2), fibre e1, lateral faces traction free:
         sigma_11 = 2 W1 (lam^2 - 1/lam) + 2 lam^2 W4 (the lateral term vanishes here), i.e.
-        matrix + passive fibre + a T_max f(lam).
+        matrix + passive fibre + a T_max f(lam) lam / lam_opt.
         """
         lam = np.asarray(lam, dtype=float)
         I1b = lam ** 2 + 2.0 / lam

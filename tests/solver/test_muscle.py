@@ -72,7 +72,7 @@ def _uniaxial_cauchy(mat, lam, load=1.0):
 
 @pytest.mark.parametrize("lam", [0.8, 0.95, 1.0, 1.1, 1.3])
 def test_uniaxial_fibre_stress_is_matrix_plus_passive_plus_active(lam):
-    """Along-fibre uniaxial stress equals 2 W1 (l^2 - 1/l) + sigma_passive + a T_max f(l)."""
+    """Along-fibre uniaxial stress equals 2 W1 (l^2 - 1/l) + sigma_passive + a T_max f(l) l/l_opt."""
     mat = _muscle(activation=0.7)
     s_fe, sigma = _uniaxial_cauchy(mat, lam)
     C10, C20, C30 = 2.5, 1.175, 0.5
@@ -80,7 +80,7 @@ def test_uniaxial_fibre_stress_is_matrix_plus_passive_plus_active(lam):
     matrix = 2 * (C10 + 2 * C20 * t + 3 * C30 * t * t) * (lam ** 2 - 1 / lam)
     s = max(lam ** 2 - 1.0, 0.0)
     passive = 2 * lam ** 2 * 5.0 * s * np.exp(4.0 * s * s)
-    active = 0.7 * 100.0 * np.exp(-(np.log(lam / 1.05) / 0.5) ** 2)
+    active = 0.7 * 100.0 * np.exp(-(np.log(lam / 1.05) / 0.5) ** 2) * lam / 1.05
     # closed-form evaluation of the same expression: agreement to round-off (1e-9 relative)
     assert s_fe == pytest.approx(matrix + passive + active, rel=1e-9, abs=1e-9)
     assert mat.uniaxial_fibre_stress(lam) == pytest.approx(s_fe, rel=1e-9, abs=1e-9)
@@ -96,7 +96,35 @@ def test_active_stress_scales_with_activation_and_load():
     for a, load in [(1.0, 1.0), (0.5, 1.0), (1.0, 0.25)]:
         s, _ = _uniaxial_cauchy(_muscle(activation=a), lam, load)
         f = force_length(lam, 1.05, 0.5)
-        assert s - s0 == pytest.approx(a * load * 100.0 * f, rel=1e-12)
+        assert s - s0 == pytest.approx(a * load * 100.0 * f * lam / 1.05, rel=1e-12)
+
+
+@pytest.mark.parametrize("a", [0.2, 0.5, 1.0])
+def test_activation_never_softens_the_fibres_below_their_optimal_length(a):
+    """The nominal (force per reference area) fibre stress follows the force-length relation,
+    so on the ascending limb lam <= lam_opt activation adds along-fibre stiffness and at lam_opt
+    none. A Cauchy-proportional active stress would subtract a T_max / lam_opt^2 there: with
+    the face's matrix (3 mu = 15 kPa) and T_max = 100 kPa, a tone above ~0.17 would make the
+    along-fibre tangent negative at rest length and a muscle collapse onto itself."""
+    face = dict(C10=2.5, C20=1.175, C30=0.0, K=5000.0, k1=2.0, k2=5.0, T_max=100.0,
+                lam_opt=1.0, width=0.5, G_T=0.0, G_T_active=20.0)
+    lam = np.linspace(0.6, 1.0, 401)
+    h = 1e-6
+
+    def slope(mat):
+        # central difference of P = sigma / lam; h = 1e-6 on O(10-100) kPa: error < 1e-6 kPa
+        P = lambda s: mat.uniaxial_fibre_stress(s) / s
+        return (P(lam + h) - P(lam - h)) / (2 * h)
+
+    active, passive = slope(Muscle(**face, activation=a)), slope(Muscle(**face, activation=0.0))
+    assert passive.min() > 0.0
+    assert np.all(active >= passive - 1e-5)            # 1e-5 kPa: the differences' round-off
+    # at lam_opt the active part's slope is zero: the same tangent as the passive muscle
+    assert active[-1] == pytest.approx(passive[-1], abs=1e-4)
+    # below it the active part stiffens: a T_max f'(lam) / lam_opt, f' > 0 on the ascending limb
+    k = np.searchsorted(lam, 0.9)
+    f1 = force_length(lam[k], 1.0, 0.5) * (-2.0 * np.log(lam[k]) / 0.25) / lam[k]
+    assert active[k] - passive[k] == pytest.approx(a * 100.0 * f1, rel=1e-4)
 
 
 def test_lateral_term_stiffens_cross_fibre_shear_with_activation_but_not_fibre_stretch():

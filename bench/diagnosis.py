@@ -107,10 +107,30 @@ def make_cohort(root: Path, n_random: int, n_none: int, seed: int, resolution: s
     return key
 
 
+# the code a stored solve depends on: the mesh, the registration, the model and its effects,
+# the solver, and the steps from a plan to a solve; a change there makes every solve afresh
+SOLVE_CODE = ("solver", "facemodel", "generic_mesh", "registration", "planner/pipeline.py",
+              "planner/segments.py", "planner/plan.py", "planner/diagnosis/forward.py")
+
+
+def _solve_code_digest(root: Path = Path(__file__).resolve().parents[1]) -> str:
+    """SHA-1 over the Python sources of `SOLVE_CODE` (paths and contents, in sorted order)."""
+    import hashlib
+
+    h = hashlib.sha1()
+    for part in SOLVE_CODE:
+        p = root / part
+        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+            h.update(str(f.relative_to(root)).encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 class _StoredForward:
-    """A `Forward` whose solves are also kept on disk by (case folder, resolution, request), so
-    that a second run over the same cohort (--keep) repeats no solve; the record's solve count
-    and times are then those of the solves actually run."""
+    """A `Forward` whose solves are also kept on disk by (case folder, resolution, request, the
+    digest of the code a solve depends on), so that a second run over the same cohort (--keep)
+    repeats no solve while the model and solver are the same; the record's solve count and
+    times are then those of the solves actually run."""
 
     def __new__(cls, cases, runner, say, folder: Path, tag: str):
         import hashlib
@@ -118,9 +138,11 @@ class _StoredForward:
 
         from planner.diagnosis.forward import Forward
 
+        code = _solve_code_digest()
+
         class Stored(Forward):
             def _file(self, r):
-                h = hashlib.sha1(repr((tag, r[1])).encode()).hexdigest()[:20]
+                h = hashlib.sha1(repr((tag, code, r[1])).encode()).hexdigest()[:20]
                 return folder / f"{h}.pkl"
 
             def _load(self, requests):
@@ -236,7 +258,8 @@ def main_bench(argv=None) -> int:
                     help="mesh of the synthetic truths (default: one finer than --resolution)")
     ap.add_argument("--workers", type=int, default=2, help="LocalCluster workers (0: in process)")
     ap.add_argument("--keep", metavar="DIR", help="keep the cohort, its solves and the diagnoses in DIR "
-                    "(a second run over DIR reuses the cohort and every solve)")
+                    "(a second run over DIR reuses the cohort, and every solve while the code of "
+                    "the model and solver, SOLVE_CODE, is unchanged)")
     ap.add_argument("--verbose", action="store_true", help="the diagnosis's progress on stderr")
     ap.add_argument("--make-only", action="store_true", help="only make the cohort (with --keep: diagnose "
                     "it later)")

@@ -52,3 +52,26 @@ def test_interval_hits_read_each_parameter_against_its_truth():
            "intervals": {"bone_execution.maxilla.tx": [-0.1, 0.1]}}
     assert hits(row) == [True]
     assert hits({"value": {"sliding": "maxilla"}, "fitted": {"sliding": "maxilla"}}) == []
+
+
+def test_stored_solves_are_keyed_by_the_code_they_depend_on(tmp_path):
+    """A kept cohort's solves are reused only while the model and solver code is the same: a
+    change to a solver source (e.g. a material law) changes the digest, a change to the
+    analysis (which reads solves, makes none) does not."""
+    bench = _bench()
+    for part in bench.SOLVE_CODE:
+        p = tmp_path / part
+        if p.suffix == ".py":
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_text("# " + part + "\n")
+        else:
+            (p / "sub").mkdir(parents=True)
+            (p / "sub" / "law.py").write_text("x = 1\n")
+    (tmp_path / "planner" / "diagnosis" / "analysis.py").write_text("y = 1\n")
+    d0 = bench._solve_code_digest(tmp_path)
+    (tmp_path / "planner" / "diagnosis" / "analysis.py").write_text("y = 2\n")
+    assert bench._solve_code_digest(tmp_path) == d0
+    (tmp_path / "solver" / "sub" / "law.py").write_text("x = 2\n")
+    assert bench._solve_code_digest(tmp_path) != d0
+    # and the real tree's digest is stable between two reads
+    assert bench._solve_code_digest() == bench._solve_code_digest()

@@ -14,12 +14,12 @@ Blemker, Pinsky & Delp 2005) with four isochoric parts:
   f(lam) = exp(-(ln(lam/lam_opt)/w)^2) (Otten 1987 form; width w), whose energy is closed form
   (u = ln(lam/lam_opt), substituting lam = lam_opt e^u):
   W_a = a T_max e^(w^2/4) w sqrt(pi)/2 [erf(u/w - w/2) - erf(u(1)/w - w/2)].
-  With a stress proportional to the Cauchy one instead, the nominal fibre stress a T f/lam
-  falls with stretch at lam_opt (slope -a T / lam_opt^2): once a T_max exceeds the matrix's
-  along-fibre stiffness (3 mu at small strain) the along-fibre tangent turns negative and a muscle at rest length collapses onto itself
-  (a material instability, not a property of muscle). Here the active part adds no stiffness
-  at lam_opt, stiffness on the ascending limb (lam < lam_opt) and softening only on the
-  descending one;
+  With an active Cauchy stress a T f(lam) instead, the nominal fibre stress a T f/lam falls
+  with stretch at lam_opt (slope -a T / lam_opt^2): once a T_max exceeds the matrix's
+  along-fibre stiffness (3 mu at small strain) the along-fibre tangent turns negative and a
+  muscle at rest length collapses onto itself (a material instability, not a property of
+  muscle). Here the active part adds no stiffness at lam_opt, stiffness on the ascending limb
+  (lam < lam_opt) and softening only on the descending one;
 * lateral (cross-fibre) stiffness that grows with activation, the role of the extra isochoric
   term of the seed's "Usermat" muscle law (Nazari et al. 2010, Payan & Perrier 2016:
   activated muscle is stiffer across its fibres): mu_T(a)/2 (I1b - I4b - 2/sqrt(I4b)) with

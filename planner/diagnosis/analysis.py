@@ -106,6 +106,7 @@ class CaseData:
     mesh_error: np.ndarray | None = None   # change of the gap on a second mesh (`discrepancy`)
     mesh_reference: str | None = None      # that mesh's resolution
     mesh_coef: float | None = None         # the gap's estimated coefficient on that direction
+    mesh_coef_sd: float | None = None      # its posterior standard deviation
     # the second mesh's case model, baseline skin and tangent sensitivities {key: d skin/dp}
     # (`mesh_corrections`); None without them
     reference: object = None
@@ -164,6 +165,7 @@ def remove_mesh_error(d: CaseData):
     d.gap.mesh_offset = off if d.gap.mesh_offset is None else d.gap.mesh_offset + off
     d.gap.mesh_error_mm = f.mesh_mm
     d.mesh_coef = float(np.ravel(f.mesh_coef)[0])
+    d.mesh_coef_sd = float(d.error.mesh_coefficient_sd(f)[0])
     d.r0 = d.r0 - off
     d.gap.correlation_mm = correlation_length(d.gap.points, d.r0, d.gap.weights)
     return f
@@ -547,6 +549,7 @@ class Scored:
     noise_shrink_pct: float = np.nan             # held-out shrinkage of the gap beyond the noise
     noise_spread_pct: float = np.inf             # its bootstrap spread
     mesh_kappa: list | None = None               # per case kappa of the Jacobian's extrapolation
+    mesh_kappa_sd: list | None = None            # ... and its posterior standard deviation
     se_model: list = field(default_factory=list)  # per case standard errors under noise + discrepancy
 
     def values(self, c: int) -> dict:
@@ -840,7 +843,7 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
         d.mesh_jac = mesh_corrections(d, forward.baseline(c), sens[c])
         if d.mesh_jac:
             say(f"  {d.case.name}: {len(d.mesh_jac)} parameter(s) fitted on the response extrapolated to the "
-                f"converged mesh (kappa {-d.mesh_coef:.2f})")
+                f"converged mesh (kappa {-d.mesh_coef:.2f} ± {d.mesh_coef_sd:.2f})")
     reqs = _sensitivity_requests(data, effects, sens)
     say(f"{len(set(reqs))} solve(s) for finite differences and discrete choices")
     forward.solve(reqs)                                             # one parallel batch
@@ -878,6 +881,7 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
                         for c, C in enumerate(s.cand.C)]
         if s.cand.C and all(extrapolated):
             s.mesh_kappa = [-float(d.mesh_coef) for d in data]
+            s.mesh_kappa_sd = [float(d.mesh_coef_sd) for d in data]
     best = _leading(ranked, best)
     verdict = _verdict(data, best, pairs, prob, scored)
     return {"rms0": rms0, "bic0": bic0, "gp_bic0": gp0, "baseline_error": base_fits, "n_eff": n_eff, "scored": scored, "pairs": pairs, "notes": notes,

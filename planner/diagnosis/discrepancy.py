@@ -397,6 +397,19 @@ class ErrorModel:
                    rms(0, q), nu[:q], rms(q, b), nu[q:b], rms(b, self.N.shape[1]), nu[b:],
                    float(rho), self.border_share if rho else 0.0)
 
+    def mesh_coefficient_sd(self, fit: Fit) -> np.ndarray:
+        """Posterior standard deviations of the mesh-error coefficients under the error model
+        `fit`: the coefficients c ~ N(0, s^2) enter the gap as N c, so that with Sigma the
+        whole covariance (which holds s^2 N N^T) Var(c | gap) = s^2 - s^4 diag(N^T Sigma^-1 N).
+        Near the prior's s where the direction is far below the noise: the gap then barely
+        informs its coefficient."""
+        if self.n_mesh == 0:
+            return np.zeros(0)
+        N = self.N[:, :self.n_mesh]
+        s2 = self._nsd2[:self.n_mesh]
+        q = np.einsum("ij,ij->j", N, np.linalg.solve(self.covariance(fit), N))
+        return np.sqrt(np.clip(s2 - s2 * s2 * q, 0.0, None))
+
     def information(self, J: np.ndarray, fit: Fit) -> np.ndarray:
         """Fisher information J^T Sigma^-1 J of the parameters (columns of J, on all scan
         points; the subsample is taken here) under the error model `fit`."""

@@ -389,6 +389,7 @@ def _effect_entry(s: analysis.Scored) -> dict:
         "params": _params(s),
         "params_least_squares": _params(s, c.theta),
         "mesh_extrapolation_factor": ([_r(k, 3) for k in s.mesh_kappa] if s.mesh_kappa else None),
+        "mesh_extrapolation_factor_sd": ([_r(k, 3) for k in s.mesh_kappa_sd] if s.mesh_kappa_sd else None),
         "identifiable": s.identifiable,
         "rms_after_mm": _r(s.rms_after),
         "shrink_pct": _r(s.shrink_pct, 2),

@@ -311,6 +311,12 @@ def test_mesh_error_likelihood_matches_dense_gaussian(mesh_sheet):
     se = 1.0 / np.sqrt(1.0 / discrepancy.MESH_ERROR_SD ** 2 + de @ np.linalg.solve(S0, de))
     assert se < 0.25
     assert abs(f.mesh_coef[0] - 1.2) <= 3.0 * se
+    # the reported posterior standard deviation (covariance form, s^2 - s^4 d^T Sigma^-1 d)
+    # is the same number by Woodbury's identity (to round-off of the two solves)
+    assert em.mesh_coefficient_sd(f)[0] == pytest.approx(se, rel=1e-8)
+    # a direction far below the noise leaves its coefficient at about the prior's spread
+    tiny = discrepancy.ErrorModel(P, w, NOISE, mesh_error=1e-4 * d)
+    assert tiny.mesh_coefficient_sd(f)[0] == pytest.approx(discrepancy.MESH_ERROR_SD, rel=1e-3)
     # the reported RMS is that of the estimated field
     assert f.mesh_mm == pytest.approx(abs(f.mesh_coef[0]) * np.sqrt(np.mean(de ** 2)), rel=1e-9)
 

@@ -197,16 +197,17 @@ def _relative_errors(fitted: dict, value: dict) -> list[float]:
 _COMPONENTS = ("tx", "ty", "tz", "rx", "ry", "rz")
 
 
-def _interval_hits(r: dict) -> list[bool]:
+def _interval_hits(r: dict, field: str = "intervals") -> list[bool]:
     """Per identifiable parameter of the named effect: does its 95 % interval under noise +
-    discrepancy (`parameters.<key>.interval_95`) hold the key's value? A parameter the key
+    discrepancy (`parameters.<key>.interval_95`; `field` "intervals_marginal": with the layer
+    moduli integrated out, `interval_95_marginal`) hold the key's value? A parameter the key
     does not set has its "none" value as truth (a segment the key did not move: no correction;
     factors 1); with the achieved movements of `postop/plan_actual.yaml` in the fit
     (`bone_execution: 1`), which hold the key's correction, the truth of what remains is 0."""
     value = r.get("value") or {}
     achieved = (r.get("fitted") or {}).get("bone_execution") == 1
     hits = []
-    for k, (lo, hi) in (r.get("intervals") or {}).items():
+    for k, (lo, hi) in (r.get(field) or {}).items():
         head, _, comp = k.rpartition(".")
         if comp in _COMPONENTS and head.startswith("bone_execution."):
             vec = value.get(head)
@@ -394,6 +395,9 @@ def main_bench(argv=None) -> int:
                          "fitted": fitted, "kappa": kappa, "time_s": time.perf_counter() - t,
                          "intervals": {k: p["interval_95"] for k, p in (entry.get("parameters") or {}).items()
                                        if p.get("identifiable") and p.get("interval_95") is not None},
+                         "intervals_marginal": {k: p["interval_95_marginal"]
+                                                for k, p in (entry.get("parameters") or {}).items()
+                                                if p.get("identifiable") and p.get("interval_95_marginal") is not None},
                          "solves": d["solves"]["count"], "sensitivity": d["method"]["sensitivity"]})
             if args.keep:
                 stored.write_text(json.dumps(rows[-1], default=str))
@@ -444,6 +448,19 @@ def main_bench(argv=None) -> int:
     with_iv = sum(1 for r in effect_rows if r["verdict"] == r["truth"] and r.get("intervals"))
     print(f"key values inside the fitted 95 % intervals (noise + discrepancy), named cases: {sum(hits)}/{len(hits)} "
           f"parameters over {with_iv} case(s) with intervals")
+    for label, pick in (("bone corrections", lambda k: k.startswith("bone_execution.")),
+                        ("the other values", lambda k: not k.startswith("bone_execution."))):
+        both = []
+        for r in effect_rows:
+            if r["verdict"] != r["truth"]:
+                continue
+            for f in ("intervals", "intervals_marginal"):
+                sub = dict(r, **{f: {k: v for k, v in (r.get(f) or {}).items() if pick(k)}})
+                both.append((f, _interval_hits(sub, f)))
+        at = [h for f, hs in both if f == "intervals" for h in hs]
+        marg = [h for f, hs in both if f == "intervals_marginal" for h in hs]
+        print(f"  {label}: {sum(at)}/{len(at)} at the model's moduli, {sum(marg)}/{len(marg)} with the layer "
+              "moduli unknown (interval_95_marginal)")
     faint = [r for r in effect_rows if isinstance(r.get("change_rms"), (int, float))
              and isinstance(r.get("noise"), (int, float)) and r["change_rms"] < r["noise"]]
     listed = ", ".join(f"{r['case']} {r['truth']}" for r in faint) or "none"

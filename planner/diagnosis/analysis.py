@@ -65,6 +65,21 @@ change of the gap extrapolated the same way, kappa (dr_ref - dr_d), added to eve
 with it (`choice_corrections`). Parameters without a tangent on both meshes (finite
 differences) keep the diagnosis mesh's response, and so do all effects when the second mesh is
 the coarser one (`mesh_corrections`).
+
+Values marginal over the patient's moduli (`moduli_marginal`). The reported values and their
+standard errors are conditional on the model's layer moduli, which the patient does not
+share, and a load's response (a posture, a muscle's tone) depends on them as much as on the
+load: the scan fixes roughly load / stiffness. The named effect's standard errors are therefore
+also given with the moduli integrated out: at the fitted effect (one more solve per case, with
+the tangent sensitivities of every layer's stiffness factor there, `Forward.sensitivities_at`)
+each layer's response E_j = dr/dlog f_j enters the error model as one more Gaussian column,
+log f_j ~ N(0, s_j^2), so that F = J^T (Sigma + sum_j s_j^2 E_j E_j^T)^-1 J: the
+linearised marginal of Kennedy & O'Hagan's calibration inputs (2001, sect. 4.3), as for the
+layer proportions (`planner.diagnosis.discrepancy`). The prior is the library's own plausible
+range of a layer's stiffness (`effects`: a factor three either way) taken as its 95 % interval,
+s_j = ln 3 / 1.96. It widens the reported intervals only: the values, the ranking and the
+verdict stay those under the model's moduli, for the `stiffness` effect is itself one of the
+effects compared.
 """
 from __future__ import annotations
 
@@ -74,7 +89,7 @@ import numpy as np
 
 from planner.diagnosis import discrepancy, fit
 from planner.diagnosis.gap import correlation_length
-from planner.diagnosis.effects import Effect, Parameter, effect_strings
+from planner.diagnosis.effects import Effect, Parameter, effect_strings, stiffness_effect
 
 __all__ = ["CaseData", "Candidate", "analyse", "MIN_HELDOUT_SHRINK_PCT", "MAX_REFINEMENTS"]
 
@@ -551,6 +566,10 @@ class Scored:
     mesh_kappa: list | None = None               # per case kappa of the Jacobian's extrapolation
     mesh_kappa_sd: list | None = None            # ... and its posterior standard deviation
     se_model: list = field(default_factory=list)  # per case standard errors under noise + discrepancy
+    # per case standard errors with the layer moduli integrated out too (`moduli_marginal`),
+    # and what they were integrated over; empty / None when not computed
+    se_marginal: list = field(default_factory=list)
+    marginal: dict | None = None
 
     def values(self, c: int) -> dict:
         return self.cand.values(c, self.theta[c] if self.theta else None)
@@ -628,6 +647,50 @@ def model_form_errors(cand: Candidate, data: list[CaseData], fits: list) -> list
         for o, F in zip(out, infos):
             o[free] = fit.information_errors(F)
     return out
+
+
+def moduli_marginal(s: Scored | None, data: list[CaseData], forward, stiffness: Effect | None,
+                    say=lambda m: None) -> None:
+    """The standard errors of the named effect's values with the patient's layer moduli
+    integrated out (module text, "Values marginal over the moduli"): sets `s.se_marginal`
+    (per case, fit coordinates, NaN where not free) and `s.marginal` (the prior, or why there
+    is none). Nothing for an effect that fits the moduli itself, one without free parameters,
+    or a model without stiffness factors (`stiffness` None)."""
+    if s is None or s.cand.free is None or not s.cand.free.any() or not s.gp:
+        return
+    cand = s.cand
+    if stiffness is None or not stiffness.parameters or any(e.name == "stiffness" for e in cand.effects):
+        return
+    names = tuple(p.key for p in stiffness.parameters)
+    sd = np.array([(p.bounds[1] - p.bounds[0]) / (2.0 * 1.96) for p in stiffness.parameters])
+    strings = [cand.strings(c, s.theta[c] if s.theta else None) for c in range(len(data))]
+    say(f"layer moduli's sensitivities at the fitted {cand.name}, to integrate them out of its intervals")
+    results = forward.sensitivities_at([(c, st) for c, st in enumerate(strings)], [names] * len(data))
+    free = cand.free
+    infos = []
+    for c, (d, (skin, sens)) in enumerate(zip(data, results)):
+        if not _ok(skin) or not isinstance(sens, dict):
+            why = skin if not _ok(skin) else sens
+            s.marginal = {"over": None, "reason": f"case {d.case.name}: {why}"}
+            say(f"  not integrated: {s.marginal['reason']}")
+            return
+        # d r / d log f = d r / d f at f = 1 (the fitted effect holds the generic moduli)
+        E = np.stack([d.gap.linearised(skin, sens[k]) for k in names], axis=1) * sd
+        infos.append(d.error.information(cand.J[c][:, free], s.gp[c], nuisance=E))
+    k = len(cand.params)
+    out = [np.full(k, np.nan) for _ in data]
+    if cand.shared and len(data) > 1:
+        se = fit.information_errors(sum(infos))
+        for o in out:
+            o[free] = se
+    else:
+        for o, F in zip(out, infos):
+            o[free] = fit.information_errors(F)
+    s.se_marginal = out
+    s.marginal = {"over": {k: {"log_sd": round(float(x), 4)} for k, x in zip(names, sd)},
+                  "prior": "log-normal per layer, the stiffness effect's plausible range (a factor "
+                           f"{stiffness.parameters[0].upper:g} either way) as its 95 % interval",
+                  "at": [list(st) for st in strings]}
 
 
 def mesh_corrections(d: CaseData, skin0, sens) -> dict:
@@ -884,6 +947,7 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
             s.mesh_kappa_sd = [float(d.mesh_coef_sd) for d in data]
     best = _leading(ranked, best)
     verdict = _verdict(data, best, pairs, prob, scored)
+    moduli_marginal(verdict.get("_scored"), data, forward, stiffness_effect(), say)
     return {"rms0": rms0, "bic0": bic0, "gp_bic0": gp0, "baseline_error": base_fits, "n_eff": n_eff, "scored": scored, "pairs": pairs, "notes": notes,
             "failed": failed, "verdict": verdict, "probabilities": prob, "best": best,
             "winner": verdict.get("_scored")}

@@ -410,16 +410,23 @@ class ErrorModel:
         q = np.einsum("ij,ij->j", N, np.linalg.solve(self.covariance(fit), N))
         return np.sqrt(np.clip(s2 - s2 * s2 * q, 0.0, None))
 
-    def information(self, J: np.ndarray, fit: Fit) -> np.ndarray:
+    def information(self, J: np.ndarray, fit: Fit, nuisance: np.ndarray | None = None) -> np.ndarray:
         """Fisher information J^T Sigma^-1 J of the parameters (columns of J, on all scan
-        points; the subsample is taken here) under the error model `fit`."""
+        points; the subsample is taken here) under the error model `fit`. `nuisance`: columns
+        on all scan points, each the response to a nuisance parameter times its prior
+        standard deviation; the parameters are then integrated out, Sigma + E E^T."""
         Jw = np.asarray(J, float)[self.idx]
-        return Jw.T @ np.linalg.solve(self.covariance(fit), Jw)
+        S = self.covariance(fit)
+        if nuisance is not None:
+            E = np.asarray(nuisance, float).reshape(len(np.asarray(J)), -1)[self.idx]
+            S = S + E @ E.T
+        return Jw.T @ np.linalg.solve(S, Jw)
 
-    def standard_errors(self, J: np.ndarray, fit: Fit) -> np.ndarray:
+    def standard_errors(self, J: np.ndarray, fit: Fit, nuisance: np.ndarray | None = None) -> np.ndarray:
         """Standard errors of the parameters (columns of J) under the error model `fit`:
-        sqrt(diag((J^T Sigma^-1 J)^-1)), inf along directions the data do not see."""
-        return information_errors(self.information(J, fit))
+        sqrt(diag((J^T Sigma^-1 J)^-1)), inf along directions the data do not see;
+        `nuisance` as in `information`."""
+        return information_errors(self.information(J, fit, nuisance))
 
     def region_pvalue(self, r: np.ndarray, mask: np.ndarray, fit: Fit) -> float:
         """P-value of a region's gap under the error model `fit`: the quadratic form

@@ -19,7 +19,7 @@ import numpy as np
 from facemodel.effects import SWELLING_MAX
 from planner.errors import InputError
 
-__all__ = ["Parameter", "Effect", "EFFECT_LIBRARY", "available_effects", "effect_strings"]
+__all__ = ["Parameter", "Effect", "EFFECT_LIBRARY", "available_effects", "effect_strings", "stiffness_effect"]
 
 
 @dataclass(frozen=True)
@@ -143,6 +143,12 @@ def _stiffness(layers: bool = True) -> Effect | None:
         return Effect("stiffness", (Parameter("stiffness", 1.0, 1 / 3, 3.0, 0.2, log=True, unit="factor"),),
                       shared=True, description=base.description)
     return None
+
+
+def stiffness_effect() -> Effect | None:
+    """The stiffness effect as the pipeline takes it (per-layer factors where it can), None
+    when it takes none."""
+    return _stiffness()
 
 
 def _sliding(moved: tuple[str, ...]) -> Effect | None:

@@ -165,13 +165,15 @@ def solve_skin(case: CaseModel, strings: tuple[str, ...], guess=None):
     return np.asarray(pred.predicted_nodes, float)[case.skin_ids], pred.contact_unmet
 
 
-def solve_with_sensitivities(case: CaseModel, names: tuple[str, ...]):
-    """(baseline skin, {parameter: d(skin vertex positions)/dp (n_skin, 3)} or the reason
-    they are not available, the baseline's displacement (n_nodes, 3) or None, the contacts
-    the baseline left unmet {name: mm}): the direct differentiation at the converged baseline
-    (`planner.pipeline.skin_sensitivities`, one factorisation for every parameter)."""
+def solve_with_sensitivities(case: CaseModel, names: tuple[str, ...], strings: tuple[str, ...] = (),
+                             guess=None):
+    """(skin, {parameter: d(skin vertex positions)/dp (n_skin, 3)} or the reason they are not
+    available, the displacement (n_nodes, 3) or None, the contacts the solve left unmet
+    {name: mm}) of the prediction with the effects `strings` (default: the baseline): the
+    direct differentiation at the converged solution (`planner.pipeline.skin_sensitivities`,
+    one factorisation for every parameter); guess as in `_solve`."""
     try:
-        pred = _solve(case, ())
+        pred = _solve(case, tuple(strings), guess)
     except SolveError as exc:
         return f"{exc}", None, None, {}
     skin = np.asarray(pred.predicted_nodes, float)[case.skin_ids]
@@ -192,12 +194,15 @@ def solve_with_sensitivities(case: CaseModel, names: tuple[str, ...]):
 
 def _solve_task(case: CaseModel, request, guess=None):
     """A request is effect strings (a solve, from the baseline's displacement `guess` when
-    given) or ("sensitivities", names)."""
+    given), ("sensitivities", names) at the baseline or ("sensitivities", names, strings)
+    with the effects `strings` (from `guess`)."""
     import os
 
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     if request and request[0] == SENSITIVITIES:
+        if len(request) > 2 and request[2]:
+            return solve_with_sensitivities(case, tuple(request[1]), tuple(request[2]), guess)
         return solve_with_sensitivities(case, tuple(request[1]))
     return solve_skin(case, request, guess)
 
@@ -324,8 +329,10 @@ class Forward:
 
             def done(k):
                 i, s = todo[k]
-                what = ("baseline and sensitivities" if s and s[0] == SENSITIVITIES
-                        else ", ".join(s) or "baseline")
+                if s and s[0] == SENSITIVITIES:
+                    what = (", ".join(s[2]) if len(s) > 2 and s[2] else "baseline") + " and sensitivities"
+                else:
+                    what = ", ".join(s) or "baseline"
                 self.say(f"    solved {self.cases[i].name} [{what}]")
 
             if any(self._key(r) in self._pending for r in todo):
@@ -339,7 +346,7 @@ class Forward:
             for r, out in zip(todo, results):
                 if r[1] and r[1][0] == SENSITIVITIES:
                     out, unmet = out[:3], out[3]
-                    self._unmet_of((r[0], ()), unmet)
+                    self._unmet_of((r[0], tuple(r[1][2]) if len(r[1]) > 2 else ()), unmet)
                 else:
                     out, unmet = out
                 self._unmet_of(r, unmet)
@@ -361,6 +368,16 @@ class Forward:
             self._store.setdefault(self._key((i, ())), skin)
             if u is not None and not isinstance(skin, str):
                 self._guess[i] = u
+        return [(skin, sens) for skin, sens, _ in out]
+
+    def sensitivities_at(self, requests: list[tuple[int, tuple[str, ...]]], names_per_request: list) -> list:
+        """Per (case index, effect strings) request the (skin, {name: d skin/dp} or reason) of
+        the prediction with those effects, in one parallel batch from the baselines'
+        displacements; the skins are stored as the plain solves of the same effects."""
+        reqs = [(i, (SENSITIVITIES, tuple(n), tuple(s))) for (i, s), n in zip(requests, names_per_request)]
+        out = self.solve(reqs)
+        for (i, s), (skin, _, _) in zip(requests, out):
+            self._store.setdefault(self._key((i, tuple(s))), skin)
         return [(skin, sens) for skin, sens, _ in out]
 
     def _unmet_of(self, r, unmet: dict) -> None:

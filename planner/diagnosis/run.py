@@ -410,15 +410,19 @@ def _effect_entry(s: analysis.Scored) -> dict:
         "shared": c.shared,
         "sensitivity": c.sensitivity,
         "solves": c.solves,
+        "marginal_over_moduli": s.marginal,
     }
     if c.params:
         # the standard errors are in the fit's coordinate: the value, or its logarithm for
         # factors. `standard_error`: under the scan noise alone (the identifiability test);
         # `standard_error_with_discrepancy`: under noise + model-form discrepancy, the error
-        # model the reported value was estimated under, and `interval_95` from it
+        # model the reported value was estimated under, and `interval_95` from it;
+        # `standard_error_marginal` and `interval_95_marginal` (the named effect): with the
+        # patient's layer moduli integrated out too (`analysis.moduli_marginal`)
         entry["parameters"] = {}
         for i, (p, f, se) in enumerate(zip(c.params, c.free, c.se)):
             se_m = [float(x[i]) for x in s.se_model] if s.se_model else []
+            se_g = [float(x[i]) for x in s.se_marginal] if s.se_marginal else []
             coords = [(s.theta[k] if s.theta else c.theta[k])[i] for k in range(c.n_cases)]
             entry["parameters"][p.key] = {
                 "identifiable": bool(f),
@@ -426,6 +430,8 @@ def _effect_entry(s: analysis.Scored) -> dict:
                 "standard_error": _r(se, 4),
                 "standard_error_with_discrepancy": _per_case(c, [_r(x, 4) for x in se_m]),
                 "interval_95": _per_case(c, [_interval(p, coords[k], x) for k, x in enumerate(se_m)]),
+                "standard_error_marginal": _per_case(c, [_r(x, 4) for x in se_g]),
+                "interval_95_marginal": _per_case(c, [_interval(p, coords[k], x) for k, x in enumerate(se_g)]),
                 "coordinate": "log" if p.log else "value", "unit": p.unit,
                 "bounds": [p.lower, p.upper], "none": p.none}
     return entry

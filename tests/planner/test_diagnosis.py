@@ -86,6 +86,32 @@ def test_withheld_muscle_tone_is_named(patient, forward):
         assert r["after_mm"] < r["before_mm"]
 
 
+def test_the_named_tone_is_also_given_with_the_moduli_unknown(patient, forward):
+    """The tone truth was made on a model with other moduli (+-15 %). The named effect's
+    values also come with intervals marginal over the patient's layer moduli
+    (`analysis.moduli_marginal`): one solve at the fitted tone with the stiffness factors'
+    tangent sensitivities there, integrated under the library's range. They are wider than
+    the intervals at the model's moduli and hold the withheld tone. The solve's skin is the
+    prediction with that tone (checked against an independent solve, 1e-6 mm: the same
+    problem to Newton's tolerance)."""
+    rec = _diagnose(patient, forward, "tone", ["muscle_tone=0.15"], seed=1)["record"]
+    named = next(e for e in rec["effects"] if e["name"] == rec["verdict"]["effect"])
+    assert named["name"] == "muscle_tone"
+    marginal = named["marginal_over_moduli"]
+    assert set(marginal["over"]) == {f"stiffness.{k}" for k in ("dermis", "hypodermis", "muscle", "mucosa", "nose")}
+    q = named["parameters"]["muscle_tone"]
+    assert q["standard_error_marginal"] > q["standard_error_with_discrepancy"]
+    lo, hi = q["interval_95_marginal"]
+    assert lo <= 0.15 <= hi and lo <= q["interval_95"][0] and hi >= q["interval_95"][1]
+    strings = tuple(marginal["at"][0])
+    assert strings == effect_strings({"muscle_tone": q["value"]})
+    skin = forward.solve([(0, strings)])[0]
+    again, _ = solve_skin(patient, strings)
+    assert np.abs(np.asarray(skin) - again).max() < 1e-6
+    # the other effects' values are not integrated: only the named effect's
+    assert all(e["marginal_over_moduli"] is None for e in rec["effects"] if e is not named)
+
+
 def test_fitted_values_extrapolated_with_the_truths_model_as_the_second_mesh(patient, forward):
     """The muscle-tone scan of the test above was made on the perturbed model (moduli +-15 %,
     layers +-20 %), which responds to tone otherwise than the diagnosed one. Given that model

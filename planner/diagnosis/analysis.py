@@ -624,7 +624,8 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
     return out
 
 
-def model_form_errors(cand: Candidate, data: list[CaseData], fits: list) -> list[np.ndarray]:
+def model_form_errors(cand: Candidate, data: list[CaseData], fits: list,
+                      nuisance: list | None = None) -> list[np.ndarray]:
     """Per case the standard errors of the reported estimates (fit coordinates; NaN for the
     parameters held at "none") under the error model each was fitted with: sqrt(diag(F^-1)),
     F = J^T Sigma^-1 J with Sigma = noise + discrepancy (`discrepancy.ErrorModel`), summed over
@@ -632,13 +633,15 @@ def model_form_errors(cand: Candidate, data: list[CaseData], fits: list) -> list
     (`_identify`) asks whether the scan noise alone could pin a parameter; these ask how well
     the data pin it once the model's own form error is counted too, the spread a user should
     read on a fitted value: a correlated discrepancy leaves far fewer independent samples than
-    scan points, so they are wider, often many times."""
+    scan points, so they are wider, often many times. `nuisance`: per case columns integrated
+    out besides (`discrepancy.ErrorModel.information`)."""
     k = len(cand.params)
     out = [np.full(k, np.nan) for _ in data]
     free = cand.free
     if not k or free is None or not free.any() or len(fits) != len(data) or len(cand.J) != len(data):
         return out
-    infos = [d.error.information(cand.J[c][:, free], fits[c]) for c, d in enumerate(data)]
+    nuisance = nuisance or [None] * len(data)
+    infos = [d.error.information(cand.J[c][:, free], fits[c], nuisance[c]) for c, d in enumerate(data)]
     if cand.shared and len(data) > 1:
         se = fit.information_errors(sum(infos))
         for o in out:
@@ -666,27 +669,16 @@ def moduli_marginal(s: Scored | None, data: list[CaseData], forward, stiffness: 
     strings = [cand.strings(c, s.theta[c] if s.theta else None) for c in range(len(data))]
     say(f"layer moduli's sensitivities at the fitted {cand.name}, to integrate them out of its intervals")
     results = forward.sensitivities_at([(c, st) for c, st in enumerate(strings)], [names] * len(data))
-    free = cand.free
-    infos = []
-    for c, (d, (skin, sens)) in enumerate(zip(data, results)):
+    columns = []
+    for d, (skin, sens) in zip(data, results):
         if not _ok(skin) or not isinstance(sens, dict):
             why = skin if not _ok(skin) else sens
             s.marginal = {"over": None, "reason": f"case {d.case.name}: {why}"}
             say(f"  not integrated: {s.marginal['reason']}")
             return
         # d r / d log f = d r / d f at f = 1 (the fitted effect holds the generic moduli)
-        E = np.stack([d.gap.linearised(skin, sens[k]) for k in names], axis=1) * sd
-        infos.append(d.error.information(cand.J[c][:, free], s.gp[c], nuisance=E))
-    k = len(cand.params)
-    out = [np.full(k, np.nan) for _ in data]
-    if cand.shared and len(data) > 1:
-        se = fit.information_errors(sum(infos))
-        for o in out:
-            o[free] = se
-    else:
-        for o, F in zip(out, infos):
-            o[free] = fit.information_errors(F)
-    s.se_marginal = out
+        columns.append(np.stack([d.gap.linearised(skin, sens[k]) for k in names], axis=1) * sd)
+    s.se_marginal = model_form_errors(cand, data, s.gp, nuisance=columns)
     s.marginal = {"over": {k: {"log_sd": round(float(x), 4)} for k, x in zip(names, sd)},
                   "prior": "log-normal per layer, the stiffness effect's plausible range (a factor "
                            f"{stiffness.parameters[0].upper:g} either way) as its 95 % interval",

@@ -41,6 +41,10 @@ def add_arguments(p) -> None:
                         "discrepancy directions (thicker: the baseline is also solved with the "
                         "dermis, and with the deep layers, a fifth thicker, two more solves per "
                         "case; default none: not)")
+    p.add_argument("--materials", metavar="CALIBRATION_JSON",
+                   help="patient-specific materials from `faceplan calibrate` (its calibration.json): "
+                        "merged into the plan's model.materials, and their measured spread used for "
+                        "the named effect's intervals with the moduli unknown")
     p.add_argument("--finite-differences", action="store_true",
                    help="sensitivities by finite differences of full solves instead of the model's "
                         "tangent (slower; a check of the tangent)")
@@ -76,6 +80,11 @@ def _check(args) -> tuple[list[Path], tuple[str, ...] | None]:
         args.boundaries = parse_boundaries(args.boundary_uncertainty)
     except ValueError as exc:
         raise InputError(str(exc), field="--boundary-uncertainty") from None
+    if getattr(args, "materials", None):
+        from planner.calibration.materials import read_materials, read_moduli_spread
+
+        read_materials(args.materials)          # bad input before any work
+        read_moduli_spread(args.materials)
     return cases, names
 
 
@@ -115,7 +124,8 @@ def run(args) -> int:
                                 effect_names=names, tangent=not args.finite_differences,
                                 reference=args.mesh_reference,
                                 boundary=args.boundaries,
-                                layers=args.layer_uncertainty == "thicker")
+                                layers=args.layer_uncertainty == "thicker",
+                                materials=Path(args.materials) if getattr(args, "materials", None) else None)
     finally:
         for obj in closing:
             obj.close()

@@ -653,19 +653,24 @@ def model_form_errors(cand: Candidate, data: list[CaseData], fits: list,
 
 
 def moduli_marginal(s: Scored | None, data: list[CaseData], forward, stiffness: Effect | None,
-                    say=lambda m: None) -> None:
+                    say=lambda m: None, spread: dict[str, float] | None = None) -> None:
     """The standard errors of the named effect's values with the patient's layer moduli
     integrated out (module text, "Values marginal over the moduli"): sets `s.se_marginal`
     (per case, fit coordinates, NaN where not free) and `s.marginal` (the prior, or why there
     is none). Nothing for an effect that fits the moduli itself, one without free parameters,
-    or a model without stiffness factors (`stiffness` None)."""
+    or a model without stiffness factors (`stiffness` None). `spread`: {layer: standard
+    deviation of log modulus} measured for the patient (`faceplan diagnose --materials`, from
+    a calibration), in place of the library's range for those layers."""
     if s is None or s.cand.free is None or not s.cand.free.any() or not s.gp:
         return
     cand = s.cand
     if stiffness is None or not stiffness.parameters or any(e.name == "stiffness" for e in cand.effects):
         return
     names = tuple(p.key for p in stiffness.parameters)
-    sd = np.array([(p.bounds[1] - p.bounds[0]) / (2.0 * 1.96) for p in stiffness.parameters])
+    spread = spread or {}
+    layer = [p.key.partition(".")[2] for p in stiffness.parameters]
+    sd = np.array([spread[l] if l in spread else (p.bounds[1] - p.bounds[0]) / (2.0 * 1.96)
+                   for l, p in zip(layer, stiffness.parameters)])
     strings = [cand.strings(c, s.theta[c] if s.theta else None) for c in range(len(data))]
     say(f"layer moduli's sensitivities at the fitted {cand.name}, to integrate them out of its intervals")
     results = forward.sensitivities_at([(c, st) for c, st in enumerate(strings)], [names] * len(data))
@@ -679,8 +684,11 @@ def moduli_marginal(s: Scored | None, data: list[CaseData], forward, stiffness: 
         # d r / d log f = d r / d f at f = 1 (the fitted effect holds the generic moduli)
         columns.append(np.stack([d.gap.linearised(skin, sens[k]) for k in names], axis=1) * sd)
     s.se_marginal = model_form_errors(cand, data, s.gp, nuisance=columns)
-    s.marginal = {"over": {k: {"log_sd": round(float(x), 4)} for k, x in zip(names, sd)},
-                  "prior": "log-normal per layer, the stiffness effect's plausible range (a factor "
+    s.marginal = {"over": {k: {"log_sd": round(float(x), 4),
+                               "source": "calibration" if l in spread else "library range"}
+                           for k, l, x in zip(names, layer, sd)},
+                  "prior": "log-normal per layer: the calibration's spread where given (--materials), "
+                           "else the stiffness effect's plausible range (a factor "
                            f"{stiffness.parameters[0].upper:g} either way) as its 95 % interval",
                   "at": [list(st) for st in strings]}
 
@@ -864,9 +872,10 @@ def _best_fit(cands: list[Candidate], data: list[CaseData]) -> Candidate:
 
 
 def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: None,
-            tangent: bool = True) -> dict:
+            tangent: bool = True, moduli_spread: dict[str, float] | None = None) -> dict:
     """Fit, rank and judge every effect; returns the pieces of diagnosis.json. `tangent`:
-    use the model's tangent sensitivities where it gives them (else finite differences)."""
+    use the model's tangent sensitivities where it gives them (else finite differences).
+    `moduli_spread`: the patient's measured layer moduli spread (`moduli_marginal`)."""
     n_eff = sum(d.gap.n_eff() for d in data)
     W = sum(float(d.gap.weights.sum()) for d in data)
     rms0 = _pooled_rms(data, [d.r0 for d in data])
@@ -939,7 +948,7 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
             s.mesh_kappa_sd = [float(d.mesh_coef_sd) for d in data]
     best = _leading(ranked, best)
     verdict = _verdict(data, best, pairs, prob, scored)
-    moduli_marginal(verdict.get("_scored"), data, forward, stiffness_effect(), say)
+    moduli_marginal(verdict.get("_scored"), data, forward, stiffness_effect(), say, moduli_spread)
     return {"rms0": rms0, "bic0": bic0, "gp_bic0": gp0, "baseline_error": base_fits, "n_eff": n_eff, "scored": scored, "pairs": pairs, "notes": notes,
             "failed": failed, "verdict": verdict, "probabilities": prob, "best": best,
             "winner": verdict.get("_scored")}

@@ -55,10 +55,13 @@ def mesh_reference(resolution: str, choice: str | None = "auto") -> str | None:
     return choice
 
 
-def load_diagnosis_case(case_dir: Path, resolution: str | None, say, reference: str | None = "none"):
+def load_diagnosis_case(case_dir: Path, resolution: str | None, say, reference: str | None = "none",
+                        materials: dict | None = None):
     """(CaseModel, post-op Surface, resolution, reference CaseModel or None) of one case
     folder; InputError when unusable. `reference` (`mesh_reference`): the same case registered
-    on a second mesh as well."""
+    on a second mesh as well. `materials`: merged into the plan's model.materials
+    (`planner.calibration.materials.with_materials`)."""
+    from planner.calibration.materials import with_materials
     from planner.case import load_case
     from planner.compare.inputs import find_postop, load_surface
     from planner.pipeline import Progress, register_case
@@ -67,7 +70,7 @@ def load_diagnosis_case(case_dir: Path, resolution: str | None, say, reference: 
     case_dir = Path(case_dir)
     case = load_case(case_dir)
     scan = load_surface(find_postop(case_dir), "post-op scan")
-    plan = load_plan(case.require_plan())
+    plan = with_materials(load_plan(case.require_plan()), materials)
     check_against_bones(plan, {k: np.asarray(v.vertices, float) for k, v in case.bones.items()})
     res = resolution or plan.model.resolution
     ref = mesh_reference(res, reference)
@@ -92,16 +95,25 @@ def load_diagnosis_case(case_dir: Path, resolution: str | None, say, reference: 
 def diagnose_cases(case_dirs: list[Path], *, resolution: str | None = None, runner: Runner | None = None,
                    say=lambda s: None, effect_names: tuple[str, ...] | None = None,
                    tangent: bool = True, reference: str | None = "auto",
-                   boundary: tuple[str, ...] = DEFAULT_BOUNDARIES, layers: bool = False) -> dict:
+                   boundary: tuple[str, ...] = DEFAULT_BOUNDARIES, layers: bool = False,
+                   materials: Path | None = None) -> dict:
+    """The diagnosis of case folders; `materials`: a calibration.json whose moduli the models
+    take and whose spread the named effect's marginal intervals use."""
     t0 = time.perf_counter()
-    loaded = [load_diagnosis_case(Path(c), resolution, say, reference) for c in case_dirs]
+    mats = spread = None
+    if materials is not None:
+        from planner.calibration.materials import read_materials, read_moduli_spread
+
+        mats, spread = read_materials(materials), read_moduli_spread(materials)
+    loaded = [load_diagnosis_case(Path(c), resolution, say, reference, mats) for c in case_dirs]
     refs = [x[3] for x in loaded]
     out = diagnose_data([x[0] for x in loaded], [x[1] for x in loaded], runner=runner, say=say,
                         effect_names=effect_names, tangent=tangent,
                         references=refs if any(r is not None for r in refs) else None,
                         reference_names=[mesh_reference(x[2], reference) for x in loaded],
-                        boundary=boundary, layers=layers)
+                        boundary=boundary, layers=layers, moduli_spread=spread)
     out["record"]["resolution"] = sorted({x[2] for x in loaded})
+    out["record"]["materials"] = None if materials is None else str(materials)
     out["record"]["timings_s"]["total"] = round(time.perf_counter() - t0, 2)
     return out
 
@@ -293,9 +305,11 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
                   effect_names: tuple[str, ...] | None = None, forward: Forward | None = None,
                   effects: list | None = None, tangent: bool = True, references: list | None = None,
                   reference_names: list | None = None, reference_forward: Forward | None = None,
-                  boundary: tuple[str, ...] = DEFAULT_BOUNDARIES, layers: bool = False) -> dict:
+                  boundary: tuple[str, ...] = DEFAULT_BOUNDARIES, layers: bool = False,
+                  moduli_spread: dict[str, float] | None = None) -> dict:
     """The diagnosis of prepared cases (`forward.CaseModel`) against their scans; returns
-    {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}."""
+    {"record": the diagnosis.json content, "data": per-case gap data, "analysis": ...}.
+    `moduli_spread`: the patient's measured layer moduli spread (`analysis.moduli_marginal`)."""
     from planner.pipeline import unmet_text
 
     t0 = time.perf_counter()
@@ -355,7 +369,7 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
                 say(f"  {d.case.name}: estimated mesh error {d.gap.mesh_error_mm:.2f} mm RMS taken out of "
                     f"the gap: {d.gap.rms(d.r0):.2f} mm left")
     t_fit = time.perf_counter()
-    result = analysis.analyse(data, effects, forward, say, tangent=tangent)
+    result = analysis.analyse(data, effects, forward, say, tangent=tangent, moduli_spread=moduli_spread)
     record = build_record(data, result, effects)
     record["timings_s"] = {"baseline_and_gap": round(t_fit - t0, 2),
                            "effects": round(time.perf_counter() - t_fit, 2)}

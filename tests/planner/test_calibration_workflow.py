@@ -163,3 +163,35 @@ def test_cli_on_the_shipped_example(cluster, tmp_path, capsys):
     assert merged.model.materials["dermis"]["C30"] == 0.1
     assert merged.model.materials["dermis"]["C10"] == mats["dermis"]["C10"]
     assert merged.model.materials["mucosa"] == {"C10": 3.0}
+
+    # and their spread into a diagnosis (`faceplan diagnose --materials`): the log-normal
+    # standard deviation of the pooled 90 % interval; the dermis only with its ratio identified
+    from planner.calibration.materials import Z90, read_moduli_spread
+
+    spread = read_moduli_spread(out / "calibration.json")
+    lo, hi = rep["pooled"]["C10_kpa"]["interval_90"]
+    assert spread["hypodermis"] == pytest.approx(np.log(hi / lo) / (2 * Z90), rel=1e-12)
+    assert ("dermis" in spread) == bool(rep["pooled"]["dermis_ratio"]["identifiable"])
+    assert set(spread) <= {"dermis", "hypodermis"}
+
+
+def test_a_calibration_without_an_interval_is_refused_by_name(tmp_path):
+    from planner.calibration.materials import read_moduli_spread
+    from planner.errors import InputError
+
+    doc = {"materials": {"hypodermis": {"C10": 2.5}},
+           "pooled": {"C10_kpa": {"estimate": 2.5, "interval_90": [3.0, 2.0]},
+                      "dermis_ratio": {"estimate": 4.0, "interval_90": None, "identifiable": False}}}
+    path = tmp_path / "calibration.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError) as exc:
+        read_moduli_spread(path)
+    assert exc.value.field == "pooled.C10_kpa.interval_90" and str(path) in str(exc.value.file)
+    doc["pooled"]["C10_kpa"]["interval_90"] = [2.0, 3.0]
+    path.write_text(json.dumps(doc))
+    assert read_moduli_spread(path) == {"hypodermis": pytest.approx(np.log(1.5) / (2 * 1.6448536269514722))}
+    del doc["pooled"]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError) as exc:
+        read_moduli_spread(path)
+    assert exc.value.field == "pooled"

@@ -136,6 +136,38 @@ def test_scheduler_and_workers_exclude_each_other(case, capsys):
     assert "--workers" in capsys.readouterr().err
 
 
+def test_calibrated_materials_are_taken_and_a_bad_file_exits_2(case, tmp_path, capsys):
+    """`--materials calibration.json`: the models take its moduli (the baseline then differs
+    from the generic one) and the record names the file; a missing file or one without the
+    pooled interval exits 2 naming it, before any work, nothing written."""
+    out = tmp_path / "diag"
+    assert main(["diagnose", str(case), "--out", str(out), "--workers", "0", "--materials",
+                 str(tmp_path / "missing.json"), "--quiet"]) == 2
+    assert "--materials" in capsys.readouterr().err and not out.exists()
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"materials": {"hypodermis": {"C10": 5.0}}}))
+    assert main(["diagnose", str(case), "--out", str(out), "--workers", "0", "--materials", str(bad),
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "bad.json" in err and "pooled" in err and not out.exists()
+    cal = tmp_path / "calibration.json"
+    cal.write_text(json.dumps({"materials": {"hypodermis": {"C10": 5.0, "C20": 2.35, "K": 10000.0}},
+                               "pooled": {"C10_kpa": {"estimate": 5.0, "interval_90": [4.0, 6.0]},
+                                          "dermis_ratio": {"estimate": 4.0, "interval_90": None,
+                                                           "identifiable": False}}}))
+    assert main(["diagnose", str(case), "--out", str(out), "--workers", "0", "--effects", "sliding",
+                 "--mesh-reference", "none", "--boundary-uncertainty", "none", "--no-images", "--quiet",
+                 "--materials", str(cal)]) == 0
+    rec = json.loads((out / "diagnosis.json").read_text())
+    assert rec["materials"] == str(cal)
+    generic = tmp_path / "generic"
+    assert main(["diagnose", str(case), "--out", str(generic), "--workers", "0", "--effects", "sliding",
+                 "--mesh-reference", "none", "--boundary-uncertainty", "none", "--no-images", "--quiet"]) == 0
+    base = json.loads((generic / "diagnosis.json").read_text())
+    # a hypodermis twice as stiff changes what the face does under the same movement
+    assert abs(rec["baseline"]["overall"]["rms_mm"] - base["baseline"]["overall"]["rms_mm"]) > 1e-3
+
+
 def test_mesh_reference_equal_to_the_resolution_exits_2(case, tmp_path, capsys):
     # the second mesh must be another mesh: refused before any registration, nothing written
     out = tmp_path / "diag"

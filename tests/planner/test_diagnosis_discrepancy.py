@@ -762,6 +762,12 @@ def test_a_loads_error_with_the_moduli_unknown_adds_the_priors_spread_in_quadrat
     assert s.marginal["over"]["stiffness"]["log_sd"] == pytest.approx(s_m, rel=1e-4)
     expect = np.sqrt(s.se_model[0][0] ** 2 + (theta * s_m) ** 2)
     assert s.se_marginal[0][0] == pytest.approx(expect, rel=1e-6)
+    # a calibrated spread (`faceplan diagnose --materials`) replaces the library's for its layer
+    layered = Effect("stiffness", (Parameter("stiffness.hypodermis", 1.0, 1 / 3, 3.0, 0.2, log=True),), shared=True)
+    u, _ = _load_scored(P, w, em, 1.2 * pat + delta + eps, pat)
+    analysis.moduli_marginal(u, [d], _LoadForward(pat), layered, spread={"hypodermis": 0.1})
+    assert u.se_marginal[0][0] == pytest.approx(np.sqrt(u.se_model[0][0] ** 2 + (theta * 0.1) ** 2), rel=1e-6)
+    assert u.marginal["over"]["stiffness.hypodermis"] == {"log_sd": 0.1, "source": "calibration"}
     # an effect that fits the moduli itself, or a model without stiffness factors: nothing
     t, _ = _load_scored(P, w, em, 1.2 * pat + delta + eps, pat)
     analysis.moduli_marginal(t, [d], fwd, None)

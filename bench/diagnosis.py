@@ -448,17 +448,13 @@ def main_bench(argv=None) -> int:
     with_iv = sum(1 for r in effect_rows if r["verdict"] == r["truth"] and r.get("intervals"))
     print(f"key values inside the fitted 95 % intervals (noise + discrepancy), named cases: {sum(hits)}/{len(hits)} "
           f"parameters over {with_iv} case(s) with intervals")
-    for label, pick in (("bone corrections", lambda k: k.startswith("bone_execution.")),
-                        ("the other values", lambda k: not k.startswith("bone_execution."))):
-        both = []
-        for r in effect_rows:
-            if r["verdict"] != r["truth"]:
-                continue
-            for f in ("intervals", "intervals_marginal"):
-                sub = dict(r, **{f: {k: v for k, v in (r.get(f) or {}).items() if pick(k)}})
-                both.append((f, _interval_hits(sub, f)))
-        at = [h for f, hs in both if f == "intervals" for h in hs]
-        marg = [h for f, hs in both if f == "intervals_marginal" for h in hs]
+    named_rows = [r for r in effect_rows if r["verdict"] == r["truth"]]
+    for label, bone in (("bone corrections", True), ("the other values", False)):
+        def hits_of(field):
+            return [h for r in named_rows for h in _interval_hits(
+                dict(r, **{field: {k: v for k, v in (r.get(field) or {}).items()
+                                   if k.startswith("bone_execution.") == bone}}), field)]
+        at, marg = hits_of("intervals"), hits_of("intervals_marginal")
         print(f"  {label}: {sum(at)}/{len(at)} at the model's moduli, {sum(marg)}/{len(marg)} with the layer "
               "moduli unknown (interval_95_marginal)")
     faint = [r for r in effect_rows if isinstance(r.get("change_rms"), (int, float))

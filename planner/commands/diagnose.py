@@ -81,10 +81,9 @@ def _check(args) -> tuple[list[Path], tuple[str, ...] | None]:
     except ValueError as exc:
         raise InputError(str(exc), field="--boundary-uncertainty") from None
     if getattr(args, "materials", None):
-        from planner.calibration.materials import read_materials, read_moduli_spread
+        from planner.calibration.materials import read_moduli_spread
 
-        read_materials(args.materials)          # bad input before any work
-        read_moduli_spread(args.materials)
+        read_moduli_spread(args.materials)      # the whole file checked: bad input before any work
     return cases, names
 
 

@@ -129,8 +129,9 @@ def _accepted(strings: list[str]) -> bool:
     return True
 
 
-def _stiffness(layers: bool = True) -> Effect | None:
-    """Per-layer factors where the pipeline takes them (`layers`), else the uniform factor.
+def stiffness_effect(layers: bool = True) -> Effect | None:
+    """The stiffness effect as the pipeline takes it: per-layer factors where it can
+    (`layers`), else the uniform factor, None when it takes neither.
     The uniform factor is the direction along which every layer changes together: under
     displacement-only loading the data cannot see it, so one layer is left at "none" by the
     identifiability selection and the others are fitted relative to it."""
@@ -143,12 +144,6 @@ def _stiffness(layers: bool = True) -> Effect | None:
         return Effect("stiffness", (Parameter("stiffness", 1.0, 1 / 3, 3.0, 0.2, log=True, unit="factor"),),
                       shared=True, description=base.description)
     return None
-
-
-def stiffness_effect() -> Effect | None:
-    """The stiffness effect as the pipeline takes it (per-layer factors where it can), None
-    when it takes none."""
-    return _stiffness()
 
 
 def _sliding(moved: tuple[str, ...]) -> Effect | None:
@@ -195,7 +190,7 @@ def available_effects(moved_segments: tuple[str, ...] = MOVED_SEGMENTS,
         if e.name == "sliding":
             spec = _sliding(moved_segments)
         elif e.name == "stiffness":
-            spec = _stiffness(stiffness_layers)
+            spec = stiffness_effect(stiffness_layers)
         elif e.name == "bone_execution":
             spec = _bone_execution(moved_segments if executed_segments is None else executed_segments,
                                    plan_actual)

@@ -37,7 +37,8 @@ from facemodel.model import MUSCLES, SEGMENTS
 __all__ = ["EFFECT_NAMES", "LAYERS", "Effects", "EffectError", "Parameter", "parse_effects",
            "parameters", "swelling_residual", "swelling_weights", "growth_field",
            "gravity_density", "gravity_direction", "correction_matrix", "correction_params",
-           "executed_motions", "executed_segments", "CARRIED_BY", "RHO", "G", "SWELLING_RADIUS_MM", "MAX_PITCH_DEG"]
+           "executed_motions", "executed_segments", "CARRIED_BY", "RHO", "G", "SWELLING_MAX", "GRAVITY_MAX",
+           "SWELLING_RADIUS_MM", "MAX_PITCH_DEG"]
 
 EFFECT_NAMES = ("sliding", "muscle_tone", "swelling", "gravity", "stiffness", "bone_execution")
 # stiffness layers -> the tissue labels they scale
@@ -50,6 +51,10 @@ SWELLING_RADIUS_MM = 15.0
 # (peak - 1) x residual acts (at 3 months 20 %, at 12 months 7 %), so the residual swelling
 # of 0.5-2 mm of skin at 3-12 months asks for peaks up to ~3 (skin swollen by ~1 cm)
 SWELLING_MAX = 4.0
+# the posture factor m scales the supine-to-upright body-force difference; above 1 it stands for
+# a face softer than the model under the same posture change (the published 0.8-1.4 mm of skin
+# change asks for up to about 1.6 on faceplan's own heads), up to twice the full effect
+GRAVITY_MAX = 2.0
 # (months after surgery, residual fraction of the peak swelling): van der Vlis et al. 2014
 SWELLING_CURVE = ((0.0, 1.0), (0.7, 0.5), (3.0, 0.2), (12.0, 0.07))
 BONE_DOF = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -223,7 +228,7 @@ def parameters(effect: str, segments=()) -> list:
     if effect == "swelling":
         return [Parameter("swelling", effect, "-", 1.0, SWELLING_MAX, 1.0, "peak volumetric growth ratio")]
     if effect == "gravity":
-        return [Parameter("gravity", effect, "-", 0.0, 2.0, 0.0, "posture factor m")]
+        return [Parameter("gravity", effect, "-", 0.0, GRAVITY_MAX, 0.0, "posture factor m")]
     if effect == "stiffness":
         return [Parameter("stiffness", effect, "-", 0.1, 10.0, 1.0, "uniform factor")] + [
             Parameter(f"stiffness.{layer}", effect, "-", 0.1, 10.0, 1.0, f"{layer} factor")
@@ -345,7 +350,7 @@ def parse_effects(items=None, *, segments=SEGMENTS) -> Effects:
             elif rest:
                 raise EffectError("effect gravity takes one sub-name: gravity.pitch=DEGREES", name)
             else:
-                kw["gravity"] = _in(_number(raw, name), 0.0, 2.0, name, "posture factor")
+                kw["gravity"] = _in(_number(raw, name), 0.0, GRAVITY_MAX, name, "posture factor")
         elif head == "stiffness":
             v = _in(_number(raw, name), 0.1, 10.0, name, "factor")
             if not rest:

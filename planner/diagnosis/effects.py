@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facemodel.effects import SWELLING_MAX
+from facemodel.effects import GRAVITY_MAX, SWELLING_MAX
 from planner.errors import InputError
 
 __all__ = ["Parameter", "Effect", "EFFECT_LIBRARY", "available_effects", "effect_strings", "stiffness_effect"]
@@ -101,7 +101,9 @@ MOVED_SEGMENTS = ("maxilla", "mandible", "chin")
 # own bound (`facemodel.effects.SWELLING_MAX`: the residual 0.5-2 mm of skin at 3-12 months asks
 # for peaks up to about 3, a synthetic truth may hold up to that bound, and a fit stopped below
 # the value it needs leaves the rest of the gap to other effects);
-# the posture change from supine to upright up to 1.5 times gravity's full effect. A face
+# the posture change from supine to upright up to the model's own bound
+# (`facemodel.effects.GRAVITY_MAX`), for the same reason as swelling: a truth drawn from the
+# published skin change may need more than gravity's full effect on a softer face. A face
 # fuller than the generic model over a whole region is the discrepancy's long scale, not
 # swelling (`planner.diagnosis.discrepancy`).
 EFFECT_LIBRARY: tuple[Effect, ...] = (
@@ -111,7 +113,7 @@ EFFECT_LIBRARY: tuple[Effect, ...] = (
            shared=False, description="resting activation of the perioral muscles"),
     Effect("swelling", (Parameter("swelling", 1.0, 1.0, SWELLING_MAX, 0.1, unit="volume ratio"),),
            shared=False, description="residual post-operative oedema (volumetric growth)"),
-    Effect("gravity", (Parameter("gravity", 0.0, 0.0, 1.5, 0.25, unit="posture factor"),),
+    Effect("gravity", (Parameter("gravity", 0.0, 0.0, GRAVITY_MAX, 0.25, unit="posture factor"),),
            shared=True, description="supine CT versus upright scan"),
     Effect("stiffness", (), shared=True,
            description="tissue stiffer or softer than the generic values"),

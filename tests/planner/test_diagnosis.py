@@ -418,6 +418,22 @@ def test_effect_strings_parse_and_none_is_the_baseline(patient):
             parse_effects(list(effect_strings(dict(choice))))
 
 
+def test_fitted_ranges_lie_in_the_models_and_reach_what_synth_can_draw():
+    # A fit bounded below a value the model takes stops short and leaves the rest of the gap to
+    # other effects; `faceplan synth` sets posture and swelling from a published skin change,
+    # clipped only to the model's own bounds, so the diagnosis must reach those bounds.
+    from facemodel import effects as fe
+
+    moved = ("maxilla", "mandible", "chin")
+    lib = {p.key: p for e in available_effects(moved) for p in e.parameters}
+    model = {q.name: q for name in fe.EFFECT_NAMES for q in fe.parameters(name, moved)}
+    for key, p in lib.items():
+        q = model[key]
+        assert q.lower <= p.lower <= p.none < p.upper <= q.upper and p.none == q.none, key
+    assert lib["gravity"].upper == fe.GRAVITY_MAX
+    assert lib["swelling"].upper == fe.SWELLING_MAX
+
+
 def test_linearised_gap_matches_finite_differences(patient, forward):
     """ScanGap.linearised against central differences of the exact distances for a smooth
     skin motion (0.01 mm steps: where the closest point stays on its triangle the quotient

@@ -229,6 +229,7 @@ def _print_row(r: dict) -> None:
     print(f"{r['case']}: withheld {r['truth']} {json.dumps(r['value'])} -> {r['verdict']} "
           f"(confidence {r['confidence']:.2f}"
           + (f"; supported, not named: {', '.join(r['supported'])}" if r.get("supported") else "")
+          + (f"; a surface cannot tell it from: {', '.join(r['confounded'])}" if r.get("confounded") else "")
           + f"); RMS gap {r['rms0']:.2f} mm, held-out shrink "
           f"{r['heldout_shrink']}% (attributable {r['attributable']}%); discrepancy "
           f"{r['discrepancy0']} mm; fitted {json.dumps(r['fitted'])}"
@@ -338,6 +339,11 @@ def main_bench(argv=None) -> int:
                 rows.append(json.loads(stored.read_text()))
                 # rows stored before the effect's skin change was recorded: from the key
                 rows[-1].setdefault("change_rms", _effect_change(rec))
+                # rows stored before the verdict's surface confounds were recorded: from its diagnosis
+                stored_d = Path(rec["case"]) / "diagnosis.json"
+                if "confounded" not in rows[-1] and stored_d.exists():
+                    rows[-1]["confounded"] = json.loads(stored_d.read_text())["verdict"].get(
+                        "confounded_on_surface") or []
                 _print_row(rows[-1])
                 continue
             say = (lambda m: print(m, file=sys.stderr, flush=True)) if args.verbose else (lambda m: None)
@@ -380,6 +386,7 @@ def main_bench(argv=None) -> int:
                          "change_rms": _effect_change(rec),
                          "verdict": v["effect"], "confidence": v["confidence"],
                          "supported": v.get("supported_not_named") or [],
+                         "confounded": v.get("confounded_on_surface") or [],
                          "rms0": d["method"]["baseline_rms_mm"],
                          "heldout_after": (shrink.get("overall") or {}).get("heldout_after_mm"),
                          "heldout_shrink": (shrink.get("overall") or {}).get("heldout_shrink_pct"),
@@ -444,6 +451,12 @@ def main_bench(argv=None) -> int:
           f"{sum(r['verdict'] not in (None, 'unexplained') and r['confidence'] > 0.5 for r in none_rows)}/{len(none_rows)}; "
           "fitted values within 25% of the key: "
           f"{sum(e <= 0.25 for e in errs)}/{len(errs)}")
+    wrong = [r for r in effect_rows if r["verdict"] not in (r["truth"], None, "unexplained")]
+    flagged = [r for r in effect_rows if r.get("confounded")]
+    print(f"verdicts flagged as confounded on the surface (confounded_on_surface): {len(flagged)}, "
+          f"{sum(r['verdict'] == r['truth'] for r in flagged)} of them right; wrong verdicts whose "
+          f"withheld effect the flag names: {sum(r['truth'] in (r.get('confounded') or ()) for r in wrong)}"
+          f"/{len(wrong)}")
     hits = [h for r in effect_rows if r["verdict"] == r["truth"] for h in _interval_hits(r)]
     with_iv = sum(1 for r in effect_rows if r["verdict"] == r["truth"] and r.get("intervals"))
     print(f"key values inside the fitted 95 % intervals (noise + discrepancy), named cases: {sum(hits)}/{len(hits)} "

@@ -91,7 +91,8 @@ from planner.diagnosis import discrepancy, fit
 from planner.diagnosis.gap import correlation_length
 from planner.diagnosis.effects import Effect, Parameter, effect_strings, stiffness_effect
 
-__all__ = ["CaseData", "Candidate", "analyse", "MIN_HELDOUT_SHRINK_PCT", "MAX_REFINEMENTS"]
+__all__ = ["CaseData", "Candidate", "analyse", "alternatives", "surface_confounds", "confound_warning",
+           "MIN_HELDOUT_SHRINK_PCT", "MAX_REFINEMENTS"]
 
 # An effect must remove at least this share of the held-out RMS gap beyond the scan noise to be
 # named, and twice its bootstrap spread over the cross-validation units. The share is of the gap
@@ -947,7 +948,7 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
             s.mesh_kappa = [-float(d.mesh_coef) for d in data]
             s.mesh_kappa_sd = [float(d.mesh_coef_sd) for d in data]
     best = _leading(ranked, best)
-    verdict = _verdict(data, best, pairs, prob, scored)
+    verdict = _verdict(data, best, pairs, prob, scored, gp0=gp0)
     moduli_marginal(verdict.get("_scored"), data, forward, stiffness_effect(), say, moduli_spread)
     return {"rms0": rms0, "bic0": bic0, "gp_bic0": gp0, "baseline_error": base_fits, "n_eff": n_eff, "scored": scored, "pairs": pairs, "notes": notes,
             "failed": failed, "verdict": verdict, "probabilities": prob, "best": best,
@@ -1034,7 +1035,63 @@ def _pair_earns(pair, members: list, best) -> bool:
                 and all(r.gp_bic - pair.gp_bic >= fit.STRONG_EVIDENCE for r in rivals))
 
 
-def _verdict(data, best, pairs, prob, scored=()) -> dict:
+# Effects whose signatures coincide where a surface scan measures: the gap is a distance along
+# the skin's normal, and a lip that lags its moved bone (sliding) moves the skin there as a
+# bone moved less than planned does; only the bones' achieved movements
+# (postop/plan_actual.yaml, from a post-op CBCT) tell the two apart.
+CONFOUNDED_ON_SURFACE = (frozenset({"sliding", "bone_execution"}),)
+
+
+def alternatives(winner, scored, gp0: float) -> list[dict]:
+    """The single effects outside the named one(s) that also explain the gap in-sample with
+    strong evidence (BIC gain over the baseline >= `fit.STRONG_EVIDENCE` under noise +
+    discrepancy), best evidence first: what the data do not rule out beside the verdict.
+    Each with its held-out figures, which decided that it was not named."""
+    named = set(winner.cand.name.split("+"))
+    gains = [(float(gp0 - s.gp_bic), s) for s in scored if s.cand.name not in named and s.identifiable]
+    out = []
+    for gain, s in sorted([g for g in gains if np.isfinite(g[0]) and g[0] >= fit.STRONG_EVIDENCE],
+                          key=lambda g: -g[0]):
+        out.append({"effect": s.cand.name, "bic_gain": round(gain, 1),
+                    "heldout_shrink_pct": round(float(s.heldout_shrink_pct), 2),
+                    "heldout_lpd_gain": None if not np.isfinite(s.lpd_gain) else round(float(s.lpd_gain), 2),
+                    "heldout_lpd_gain_probability": None if not np.isfinite(s.lpd_gain_prob)
+                    else round(float(s.lpd_gain_prob), 4),
+                    "significant": bool(s.significant)})
+    return out
+
+
+def surface_confounds(named: str, alts: list[dict], achieved_known: bool) -> list[str]:
+    """Alternatives a surface scan cannot separate from the named effect
+    (`CONFOUNDED_ON_SURFACE`): those that predict unseen regions better than the baseline
+    more likely than not. None when the bones' achieved movements were given, which settle
+    bone execution."""
+    if achieved_known:
+        return []
+    members = set(named.split("+"))
+    out = []
+    for a in alts:
+        if (a["heldout_lpd_gain_probability"] or 0.0) < 0.5:
+            continue
+        if any(a["effect"] in pair and members & (pair - {a["effect"]}) for pair in CONFOUNDED_ON_SURFACE):
+            out.append(a["effect"])
+    return out
+
+
+def confound_warning(verdict: dict) -> list[str]:
+    """The warning a verdict carries for each alternative in `confounded_on_surface`."""
+    out = []
+    for name in verdict.get("confounded_on_surface") or ():
+        a = next(x for x in verdict["alternatives"] if x["effect"] == name)
+        out.append(f"{name} also explains the gap (BIC gain {a['bic_gain']:g} over the baseline, a held-out "
+                   f"gain with probability {a['heldout_lpd_gain_probability']:.2f}) beside the named "
+                   f"{verdict['effect']}: the gap is measured along the skin's normal, where tissue that lags "
+                   "its moved bone and a bone moved less than planned look alike; the bones' achieved "
+                   "movements (postop/plan_actual.yaml, from a post-op CBCT) tell them apart")
+    return out
+
+
+def _verdict(data, best, pairs, prob, scored=(), gp0: float = np.nan) -> dict:
     """The winning effect when one is significant; else `null` when no region's gap exceeds
     noise + discrepancy (the model-form error the baseline is expected to carry),
     `unexplained` (with those regions) when some does. A significant effect beats the noise by
@@ -1063,7 +1120,11 @@ def _verdict(data, best, pairs, prob, scored=()) -> dict:
     # Ann. Stat. 32:870, 2004), not only of the one model named
     named = set(winner.cand.name.split("+"))
     conf = sum(p for m, p in prob.items() if m != "baseline" and named <= set(m.split("+")))
+    alts = alternatives(winner, scored, gp0)
+    achieved = all(getattr(d.case, "plan_actual", None) is not None for d in data)
     return {"effect": winner.cand.name, "confidence": round(conf, 4),
+            "alternatives": alts,
+            "confounded_on_surface": surface_confounds(winner.cand.name, alts, achieved),
             "regions": _explained_regions(data, r0s, winner.heldout) or above_noise,
             "remaining_significant_regions": _significant_regions(data, winner.heldout),
             "remaining_above_noise_regions": _significant_regions(data, winner.heldout, noise_only=True),

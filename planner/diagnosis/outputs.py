@@ -111,6 +111,14 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
                 ["parameter", "value", "95 % interval", "95 % interval, moduli unknown", "unit",
                  "standard error, noise alone", "standard error, noise + discrepancy",
                  "standard error, moduli unknown", "coordinate of the standard errors"], rows)
+        alts = record["verdict"].get("alternatives") or []
+        if alts:
+            tables["Other effects that explain the gap with strong evidence in-sample, not named"] = (
+                ["effect", "BIC gain over the baseline", "held-out shrink %", "held-out log density gain",
+                 "P(held-out gain > 0)", "significant", "a surface scan cannot tell it from the verdict"],
+                [[a["effect"], a["bic_gain"], a["heldout_shrink_pct"], a["heldout_lpd_gain"],
+                  a["heldout_lpd_gain_probability"], a["significant"],
+                  a["effect"] in (record["verdict"].get("confounded_on_surface") or ())] for a in alts])
         shrink = record.get("shrinkage")
         em = record.get("error_model") or {}
         if "level_mm" in em:
@@ -141,6 +149,8 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
         intro = (f"Verdict: {v['effect'] if v['effect'] is not None else 'no effect (the gap is within noise + model-form discrepancy)'}"
                  f" (confidence {v['confidence']:.2f})"
                  + (f", regions: {', '.join(v['regions'])}" if v["regions"] else "")
+                 + (f". A surface scan cannot tell it from {', '.join(v['confounded_on_surface'])}: the bones' "
+                    "achieved movements (postop/plan_actual.yaml) would" if v.get("confounded_on_surface") else "")
                  + f". Noise floor {record['noise_floor_mm']:.2f} mm. Gap = post-op minus prediction "
                    "along the predicted outward normal (> 0: the real face is fuller).")
         write_html_report(tmp / "report.html", "faceplan diagnose", record, images, tables=tables, intro=intro)

@@ -377,7 +377,9 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
                         "workers": forward.runner.n_workers}
     v = record["verdict"]
     say(f"verdict: {v['effect']} (confidence {v['confidence']:.2f})"
-        + (f" in {', '.join(v['regions'])}" if v["regions"] else ""))
+        + (f" in {', '.join(v['regions'])}" if v["regions"] else "")
+        + (f"; a surface scan cannot tell it from {', '.join(v['confounded_on_surface'])}"
+           if v.get("confounded_on_surface") else ""))
     return {"record": record, "data": data, "analysis": result}
 
 
@@ -545,7 +547,8 @@ def build_record(data: list, result: dict, effects) -> dict:
             "baseline_bic_noise_only": _r(result["bic0"], 3),
             "baseline_probability": _r(result["probabilities"]["baseline"], 4),
         },
-        "warnings": [f"{d.case.name}: {w}" for d in data for w in d.gap.warnings],
+        "warnings": [f"{d.case.name}: {w}" for d in data for w in d.gap.warnings]
+        + analysis.confound_warning(verdict),
     }
     record["cases"] = case_records if not single else [{"case": case_records[0]["case"],
                                                         "fitted": case_records[0]["fitted"]}]

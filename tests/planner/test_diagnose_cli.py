@@ -202,3 +202,25 @@ def test_the_report_lists_the_named_effects_values_with_their_intervals(tmp_path
     assert "[1.021, 1.155]" in html and "0.0341" in html and "1.087978" in html
     assert "95 % interval, moduli unknown" in html and "[0.477, 1.5]" in html and "0.3117" in html
     assert "<td>gravity</td>" in html and "<td>gravity.other</td>" not in html
+
+
+def test_the_report_shows_the_alternatives_and_the_surface_confound(tmp_path):
+    """A named verdict's alternatives are tabled in report.html, and one a surface scan cannot
+    separate from the verdict is said so in the verdict's sentence with what would settle it."""
+    from planner.diagnosis.outputs import write_diagnosis
+
+    effect = {"name": "bone_execution", "params": {}, "identifiable": True, "rms_after_mm": 0.47,
+              "shrink_pct": 3.0, "heldout_shrink_pct": 30.4, "heldout_shrink_spread_pct": 5.0,
+              "probability": 1.0, "significant": True}
+    alts = [{"effect": "sliding", "bic_gain": 61.1, "heldout_shrink_pct": 14.02, "heldout_lpd_gain": 14.28,
+             "heldout_lpd_gain_probability": 0.7175, "significant": False},
+            {"effect": "stiffness", "bic_gain": 16.6, "heldout_shrink_pct": 4.66, "heldout_lpd_gain": 6.49,
+             "heldout_lpd_gain_probability": 0.8548, "significant": False}]
+    record = {"effects": [effect], "localization": [], "noise_floor_mm": 0.27,
+              "verdict": {"effect": "bone_execution", "confidence": 1.0, "regions": ["upper_lip"],
+                          "alternatives": alts, "confounded_on_surface": ["sliding"]}}
+    write_diagnosis({"record": record}, tmp_path / "d", render_images=False)
+    html = (tmp_path / "d" / "report.html").read_text()
+    assert "Other effects that explain the gap with strong evidence in-sample, not named" in html
+    assert "<td>61.1</td>" in html and "<td>16.6</td>" in html
+    assert "cannot tell it from sliding" in html and "plan_actual.yaml" in html

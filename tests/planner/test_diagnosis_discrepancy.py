@@ -91,13 +91,13 @@ def test_effect_is_found_and_its_amplitude_recovered_under_discrepancy(sheet):
     assert f0.sigma_d > f1.sigma_d
 
 
-def _case(P, w, r, em=None):
+def _case(P, w, r, em=None, plan_actual=None):
     """CaseData for a synthetic gap: the sheet in 3 x 3 regions (the cross-validation folds)."""
     names = tuple(f"r{i}" for i in range(9))
     reg = (np.minimum(P[:, 0] // 45, 2) * 3 + np.minimum(P[:, 1] // 45, 2)).astype(int)
     gap = ScanGap(P, w, reg, names, np.zeros((0, 3), int), {}, NOISE, NOISE,
                   discrepancy.LENGTHS_MM[2], 1.0, {n: 1.0 for n in names}, {}, P, np.zeros((0, 3), int))
-    return analysis.CaseData(SimpleNamespace(name="synthetic"), gap, r, em)
+    return analysis.CaseData(SimpleNamespace(name="synthetic", plan_actual=plan_actual), gap, r, em)
 
 
 def _candidate(name, pat, r):
@@ -107,11 +107,11 @@ def _candidate(name, pat, r):
     return c
 
 
-def _diagnose(P, w, r, patterns, em, mesh=None):
+def _diagnose(P, w, r, patterns, em, mesh=None, plan_actual=None):
     """The analysis's judging steps on linear candidates: fit, score, judge, verdict (with a
     mesh-error direction `mesh`: estimated and taken out of the gap first, as diagnose does; a
     boundary direction is in `em` only, integrated out, as diagnose does)."""
-    d = _case(P, w, r, em)
+    d = _case(P, w, r, em, plan_actual)
     if mesh is not None:
         d.mesh_error = mesh
         analysis.remove_mesh_error(d)
@@ -135,12 +135,39 @@ def _diagnose(P, w, r, patterns, em, mesh=None):
     prob = analysis.probabilities(gp0, lpd0, scored)
     for s in scored:
         s.probability = prob[s.cand.name]
-    return analysis._verdict([d], best, [], prob), scored
+    return analysis._verdict([d], best, [], prob, scored, gp0=gp0), scored
 
 
 def _patterns(P):
     return {"bump": _pattern(P, 70.0, 45.0, 25.0), "ridge": np.exp(-((P[:, 1] - 100.0) / 15.0) ** 2),
             "tilt": (P[:, 0] - 67.5) / 67.5}
+
+
+@pytest.mark.parametrize("seed", [31, 32])
+def test_an_alternative_a_surface_cannot_separate_is_reported(sheet, seed):
+    P, w, em = sheet
+    delta, eps = _gp_sample(P, seed)
+    # a lip lagging its moved bone and a bone moved less than planned: on the skin's normal
+    # nearly one pattern (correlation 0.99 here), so the data cannot rule out the other
+    lag = _pattern(P, 70.0, 45.0, 25.0)
+    short = 0.8 * lag + 0.2 * _pattern(P, 60.0, 55.0, 30.0)
+    pats = {"sliding": lag, "bone_execution": short, "tilt": (P[:, 0] - 67.5) / 67.5}
+    assert np.corrcoef(lag, short)[0, 1] > 0.95
+    verdict, scored = _diagnose(P, w, 2.5 * lag + delta + eps, pats, em)
+    assert verdict["effect"] in ("sliding", "bone_execution")
+    other = ({"sliding", "bone_execution"} - {verdict["effect"]}).pop()
+    alts = {a["effect"]: a for a in verdict["alternatives"]}
+    # the other explains the gap with strong evidence too and is reported, with the warning
+    assert verdict["effect"] not in alts
+    assert alts[other]["bic_gain"] >= fit.STRONG_EVIDENCE
+    assert verdict["confounded_on_surface"] == [other]
+    assert other in analysis.confound_warning(verdict)[0]
+    # an effect not in the gap is not listed: the tilt
+    assert "tilt" not in alts
+    # the bones' achieved movements settle bone execution: no confound is left to report
+    verdict_known, _ = _diagnose(P, w, 2.5 * lag + delta + eps, pats, em, plan_actual=object())
+    assert verdict_known["effect"] == verdict["effect"]
+    assert verdict_known["confounded_on_surface"] == [] and not analysis.confound_warning(verdict_known)
 
 
 @pytest.mark.parametrize("seed", [21, 22, 23])

@@ -52,8 +52,8 @@ SWELLING_RADIUS_MM = 15.0
 # of 0.5-2 mm of skin at 3-12 months asks for peaks up to ~3 (skin swollen by ~1 cm)
 SWELLING_MAX = 4.0
 # the posture factor m scales the supine-to-upright body-force difference; above 1 it stands for
-# a face softer than the model under the same posture change (the published 0.8-1.4 mm of skin
-# change asks for up to about 1.6 on faceplan's own heads), up to twice the full effect
+# a face softer than the generic model under the same posture change, which the published skin
+# changes between supine and upright can ask of it; up to twice the full effect
 GRAVITY_MAX = 2.0
 # (months after surgery, residual fraction of the peak swelling): van der Vlis et al. 2014
 SWELLING_CURVE = ((0.0, 1.0), (0.7, 0.5), (3.0, 0.2), (12.0, 0.07))

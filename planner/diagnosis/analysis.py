@@ -91,7 +91,8 @@ from planner.diagnosis import discrepancy, fit
 from planner.diagnosis.gap import correlation_length
 from planner.diagnosis.effects import Effect, Parameter, effect_strings, stiffness_effect
 
-__all__ = ["CaseData", "Candidate", "analyse", "alternatives", "surface_confounds", "confound_warning",
+__all__ = ["CaseData", "Candidate", "analyse", "alternatives", "surface_confounds", "confound_warning", "confound_between",
+           "SurfaceConfound", "CONFOUNDED_ON_SURFACE",
            "MIN_HELDOUT_SHRINK_PCT", "MAX_REFINEMENTS"]
 
 # An effect must remove at least this share of the held-out RMS gap beyond the scan noise to be
@@ -1035,11 +1036,34 @@ def _pair_earns(pair, members: list, best) -> bool:
                 and all(r.gp_bic - pair.gp_bic >= fit.STRONG_EVIDENCE for r in rivals))
 
 
-# Effects whose signatures coincide where a surface scan measures: the gap is a distance along
-# the skin's normal, and a lip that lags its moved bone (sliding) moves the skin there as a
-# bone moved less than planned does; only the bones' achieved movements
-# (postop/plan_actual.yaml, from a post-op CBCT) tell the two apart.
-CONFOUNDED_ON_SURFACE = (frozenset({"sliding", "bone_execution"}),)
+@dataclass(frozen=True)
+class SurfaceConfound:
+    """Two effects whose signatures coincide where a surface scan measures, so that the scan
+    alone cannot rule out one beside the other: `why` (a clause) says where they coincide,
+    `settled_by` (a noun phrase) names the data that separate them, and `settling_field` is
+    the case attribute that holds those data (every case having it settles the pair)."""
+    effects: frozenset
+    why: str
+    settled_by: str
+    settling_field: str
+
+
+CONFOUNDED_ON_SURFACE = (
+    SurfaceConfound(
+        frozenset({"sliding", "bone_execution"}),
+        why="the gap is measured along the skin's normal, where tissue that lags its moved bone and a "
+            "bone moved less than planned look alike",
+        settled_by="the bones' achieved movements (postop/plan_actual.yaml, from a post-op CBCT)",
+        settling_field="plan_actual"),
+)
+
+
+def confound_between(named: str, other: str) -> SurfaceConfound | None:
+    """The entry of `CONFOUNDED_ON_SURFACE` pairing `other` with an effect of `named` (a single
+    effect or a pair "a+b"), None when there is none."""
+    members = set(named.split("+"))
+    return next((c for c in CONFOUNDED_ON_SURFACE
+                 if other in c.effects and members & (c.effects - {other})), None)
 
 
 def alternatives(winner, scored, gp0: float) -> list[dict]:
@@ -1061,19 +1085,16 @@ def alternatives(winner, scored, gp0: float) -> list[dict]:
     return out
 
 
-def surface_confounds(named: str, alts: list[dict], achieved_known: bool) -> list[str]:
+def surface_confounds(named: str, alts: list[dict], cases) -> list[str]:
     """Alternatives a surface scan cannot separate from the named effect
     (`CONFOUNDED_ON_SURFACE`): those that predict unseen regions better than the baseline
-    more likely than not. None when the bones' achieved movements were given, which settle
-    bone execution."""
-    if achieved_known:
-        return []
-    members = set(named.split("+"))
+    more likely than not, unless every one of `cases` holds the data that settle the pair."""
     out = []
     for a in alts:
         if (a["heldout_lpd_gain_probability"] or 0.0) < 0.5:
             continue
-        if any(a["effect"] in pair and members & (pair - {a["effect"]}) for pair in CONFOUNDED_ON_SURFACE):
+        c = confound_between(named, a["effect"])
+        if c is not None and not all(getattr(case, c.settling_field, None) is not None for case in cases):
             out.append(a["effect"])
     return out
 
@@ -1083,11 +1104,10 @@ def confound_warning(verdict: dict) -> list[str]:
     out = []
     for name in verdict.get("confounded_on_surface") or ():
         a = next(x for x in verdict["alternatives"] if x["effect"] == name)
+        c = confound_between(verdict["effect"], name)
         out.append(f"{name} also explains the gap (BIC gain {a['bic_gain']:g} over the baseline, a held-out "
                    f"gain with probability {a['heldout_lpd_gain_probability']:.2f}) beside the named "
-                   f"{verdict['effect']}: the gap is measured along the skin's normal, where tissue that lags "
-                   "its moved bone and a bone moved less than planned look alike; the bones' achieved "
-                   "movements (postop/plan_actual.yaml, from a post-op CBCT) tell them apart")
+                   f"{verdict['effect']}: {c.why}; {c.settled_by} tell them apart")
     return out
 
 
@@ -1121,10 +1141,9 @@ def _verdict(data, best, pairs, prob, scored=(), gp0: float = np.nan) -> dict:
     named = set(winner.cand.name.split("+"))
     conf = sum(p for m, p in prob.items() if m != "baseline" and named <= set(m.split("+")))
     alts = alternatives(winner, scored, gp0)
-    achieved = all(getattr(d.case, "plan_actual", None) is not None for d in data)
     return {"effect": winner.cand.name, "confidence": round(conf, 4),
             "alternatives": alts,
-            "confounded_on_surface": surface_confounds(winner.cand.name, alts, achieved),
+            "confounded_on_surface": surface_confounds(winner.cand.name, alts, [d.case for d in data]),
             "regions": _explained_regions(data, r0s, winner.heldout) or above_noise,
             "remaining_significant_regions": _significant_regions(data, winner.heldout),
             "remaining_above_noise_regions": _significant_regions(data, winner.heldout, noise_only=True),

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from planner.diagnosis import analysis
 from planner.diagnosis.analysis import MIN_HELDOUT_SHRINK_PCT
 
 __all__ = ["write_diagnosis"]
@@ -149,8 +150,9 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
         intro = (f"Verdict: {v['effect'] if v['effect'] is not None else 'no effect (the gap is within noise + model-form discrepancy)'}"
                  f" (confidence {v['confidence']:.2f})"
                  + (f", regions: {', '.join(v['regions'])}" if v["regions"] else "")
-                 + (f". A surface scan cannot tell it from {', '.join(v['confounded_on_surface'])}: the bones' "
-                    "achieved movements (postop/plan_actual.yaml) would" if v.get("confounded_on_surface") else "")
+                 + "".join(f". A surface scan cannot tell it from {name}: "
+                           f"{analysis.confound_between(v['effect'], name).settled_by} would"
+                           for name in v.get("confounded_on_surface") or ())
                  + f". Noise floor {record['noise_floor_mm']:.2f} mm. Gap = post-op minus prediction "
                    "along the predicted outward normal (> 0: the real face is fuller).")
         write_html_report(tmp / "report.html", "faceplan diagnose", record, images, tables=tables, intro=intro)

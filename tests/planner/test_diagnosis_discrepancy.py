@@ -825,3 +825,32 @@ def test_intervals_with_the_moduli_unknown_hold_a_load_the_conditional_ones_miss
         hit_m += abs(theta - 1.0) <= 1.96 * s.se_marginal[0][0]
     assert hit_m >= 19, (hit_m, hit_c)
     assert hit_c <= 12, (hit_m, hit_c)
+
+
+def test_each_surface_confound_carries_its_own_reason_and_settling_data(monkeypatch):
+    # a second pair with its own reason and settling data: its warning and exemption are its
+    # own, and the first pair's are unchanged
+    extra = analysis.SurfaceConfound(frozenset({"swelling", "gravity"}), why="both fill the cheeks",
+                                     settled_by="an upright scan", settling_field="upright_scan")
+    monkeypatch.setattr(analysis, "CONFOUNDED_ON_SURFACE", analysis.CONFOUNDED_ON_SURFACE + (extra,))
+    alts = [{"effect": e, "bic_gain": 30.0, "heldout_shrink_pct": 20.0, "heldout_lpd_gain": 3.0,
+             "heldout_lpd_gain_probability": 0.8, "significant": False} for e in ("gravity", "sliding")]
+
+    class Case:
+        plan_actual = None
+        upright_scan = None
+
+    assert analysis.surface_confounds("swelling", alts, [Case()]) == ["gravity"]
+    assert analysis.surface_confounds("bone_execution+swelling", alts, [Case()]) == ["gravity", "sliding"]
+    settled = Case()
+    settled.upright_scan = object()
+    assert analysis.surface_confounds("swelling", alts, [Case(), settled]) == ["gravity"]
+    assert analysis.surface_confounds("swelling", alts, [settled, settled]) == []
+    # an alternative unlikely to predict unseen regions better is not flagged
+    assert analysis.surface_confounds("swelling", [dict(alts[0], heldout_lpd_gain_probability=0.3)], [Case()]) == []
+    warn = analysis.confound_warning({"effect": "swelling", "alternatives": alts, "confounded_on_surface": ["gravity"]})
+    assert len(warn) == 1 and "both fill the cheeks" in warn[0] and "an upright scan" in warn[0]
+    assert "plan_actual" not in warn[0]
+    warn = analysis.confound_warning({"effect": "bone_execution", "alternatives": alts,
+                                      "confounded_on_surface": ["sliding"]})
+    assert "plan_actual.yaml" in warn[0] and "cheeks" not in warn[0]

@@ -31,6 +31,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from facemodel.effects import BONE_DOF  # noqa: E402
+
 SEED_BASE = 9901
 
 
@@ -194,9 +196,6 @@ def _relative_errors(fitted: dict, value: dict) -> list[float]:
     return out
 
 
-_COMPONENTS = ("tx", "ty", "tz", "rx", "ry", "rz")
-
-
 def _interval_hits(r: dict, field: str = "intervals") -> list[bool]:
     """Per identifiable parameter of the named effect: does its 95 % interval under noise +
     discrepancy (`parameters.<key>.interval_95`; `field` "intervals_marginal": with the layer
@@ -209,9 +208,9 @@ def _interval_hits(r: dict, field: str = "intervals") -> list[bool]:
     hits = []
     for k, (lo, hi) in (r.get(field) or {}).items():
         head, _, comp = k.rpartition(".")
-        if comp in _COMPONENTS and head.startswith("bone_execution."):
+        if comp in BONE_DOF and head.startswith("bone_execution."):
             vec = value.get(head)
-            truth = 0.0 if achieved or vec is None else float(vec[_COMPONENTS.index(comp)])
+            truth = 0.0 if achieved or vec is None else float(vec[BONE_DOF.index(comp)])
         else:
             truth = float(value[k]) if isinstance(value.get(k), (int, float)) else _none(k)
         hits.append(bool(lo - 1e-9 <= truth <= hi + 1e-9))

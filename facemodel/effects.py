@@ -38,7 +38,7 @@ __all__ = ["EFFECT_NAMES", "LAYERS", "Effects", "EffectError", "Parameter", "par
            "parameters", "swelling_residual", "swelling_weights", "growth_field",
            "gravity_density", "gravity_direction", "correction_matrix", "correction_params",
            "executed_motions", "executed_segments", "CARRIED_BY", "RHO", "G", "SWELLING_MAX", "GRAVITY_MAX",
-           "SWELLING_RADIUS_MM", "MAX_PITCH_DEG"]
+           "SWELLING_RADIUS_MM", "MAX_PITCH_DEG", "BONE_DOF"]
 
 EFFECT_NAMES = ("sliding", "muscle_tone", "swelling", "gravity", "stiffness", "bone_execution")
 # stiffness layers -> the tissue labels they scale

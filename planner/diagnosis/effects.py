@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facemodel.effects import GRAVITY_MAX, SWELLING_MAX
+from facemodel.effects import BONE_DOF, GRAVITY_MAX, LAYERS, SWELLING_MAX
 from planner.errors import InputError
 
 __all__ = ["Parameter", "Effect", "EFFECT_LIBRARY", "available_effects", "effect_strings", "stiffness_effect"]
@@ -91,8 +91,7 @@ def effect_strings(values: dict) -> tuple[str, ...]:
     return tuple(sorted(f"{k}={_fmt(v)}" for k, v in collect_effects(values).items()))
 
 
-STIFFNESS_LAYERS = ("dermis", "hypodermis", "muscle", "mucosa", "nose")
-BONE_DOF = ("tx", "ty", "tz", "rx", "ry", "rz")
+STIFFNESS_LAYERS = tuple(LAYERS)     # the model's stiffness layers, each a factor of its own
 MOVED_SEGMENTS = ("maxilla", "mandible", "chin")
 
 # Bounds are the plausible ranges of the effects' published values (see docs/diagnosis.md):

@@ -1107,7 +1107,7 @@ def confound_warning(verdict: dict) -> list[str]:
         c = confound_between(verdict["effect"], name)
         out.append(f"{name} also explains the gap (BIC gain {a['bic_gain']:g} over the baseline, a held-out "
                    f"gain with probability {a['heldout_lpd_gain_probability']:.2f}) beside the named "
-                   f"{verdict['effect']}: {c.why}; {c.settled_by} tell them apart")
+                   f"{verdict['effect']}: {c.why}; {c.settled_by} would tell them apart")
     return out
 
 

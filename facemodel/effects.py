@@ -11,7 +11,11 @@ the pre-op state, a first-order correction about the CT's already loaded state; 
 pitch in the upright scan, 0 by default: (0, +1, -1)), `stiffness` (factor on every
 modulus, uniform or per layer) and `bone_execution` (a rigid correction per segment composed
 after the plan, or the achieved movements of postop/plan_actual.yaml; the chin rides on the
-mandible: a mandible correction moves the chin segment too, `executed_motions`). `Effects` holds the
+mandible: a mandible correction moves the chin segment too, `executed_motions`). `sliding.hold`
+h in [0, 1] is a setting of sliding (no effect alone): how much the interface between the
+tissue and the bone resists the slide, from free (0, the default) to tied (1), through the
+elastic interface of `facemodel.simulation` (a layer sheared over the bone slips by the share
+1 - h of its surface's movement). `Effects` holds the
 values (the value meaning "none" of each gives exactly the baseline); `parse_effects` reads
 the `NAME=VALUE` strings of `--effect` and the `model.effects` mapping of a plan; `parameters`
 lists each effect's continuous parameters (name, unit, bounds, "none" value) so that a fit can
@@ -106,9 +110,12 @@ class Effects:
     and degrees about the segment's planned post-op centroid; plan_actual: use the achieved
     movements of postop/plan_actual.yaml instead of the plan's. gravity_pitch: head pitch of the
     upright scan (degrees, + = chin down), a setting of the gravity effect (no effect alone).
+    sliding_hold: the sliding interface's hold, 0 (free) to 1 (tied), a setting of the sliding
+    effect (no effect alone).
     """
 
     sliding: tuple = ()
+    sliding_hold: float = 0.0
     muscle_tone: float = 0.0
     swelling: float = 1.0
     gravity: float = 0.0
@@ -153,6 +160,8 @@ class Effects:
         out = {}
         if self.sliding:
             out["sliding"] = 1.0 if self.sliding == ("*",) else ",".join(self.sliding)
+        if self.sliding_hold != 0.0:
+            out["sliding.hold"] = self.sliding_hold
         if self.muscle_tone != 0.0:
             out["muscle_tone"] = self.muscle_tone
         if self.swelling != 1.0:
@@ -182,6 +191,8 @@ class Effects:
             return float(getattr(self, head))
         if name == "gravity.pitch":
             return float(self.gravity_pitch)
+        if name == "sliding.hold":
+            return float(self.sliding_hold)
         if head == "stiffness":
             return self.stiffness if not rest else dict(self.stiffness_layers).get(rest, 1.0)
         if head == "bone_execution" and rest.count(".") == 1:
@@ -198,6 +209,8 @@ class Effects:
             return replace(self, **{head: v})
         if name == "gravity.pitch":
             return replace(self, gravity_pitch=v)
+        if name == "sliding.hold":
+            return replace(self, sliding_hold=v)
         if head == "stiffness":
             if not rest:
                 return replace(self, stiffness=v)
@@ -319,8 +332,12 @@ def parse_effects(items=None, *, segments=SEGMENTS) -> Effects:
         if head not in EFFECT_NAMES:
             raise EffectError(f"unknown effect {name!r} (known: {', '.join(EFFECT_NAMES)})", name)
         if head == "sliding":
+            if rest == "hold":
+                kw["sliding_hold"] = _in(_number(raw, name), 0.0, 1.0, name, "interface hold")
+                continue
             if rest:
-                raise EffectError("effect sliding takes no sub-name: sliding=1 or sliding=SEGMENT", name)
+                raise EffectError("effect sliding takes one sub-name, hold: sliding=1, sliding=SEGMENT "
+                                  "or sliding.hold=H", name)
             text = str(raw).strip().lower() if not isinstance(raw, (bool, int, float)) else raw
             if isinstance(text, str) and text and text not in ("0", "1", "0.0", "1.0", "true", "false",
                                                                  "yes", "no"):

@@ -19,7 +19,14 @@ u_bone . n, and is free in the tangent plane (a `solver.bc.LocalFrame` condition
 the linearisation of "stays on the bone surface": the plane translates with the bone but keeps
 its reference orientation, off the exact surface by |u_t|^2 kappa / 2 for a tangential slide
 u_t on a bone of curvature kappa, plus theta |u_t| for a bone rotation theta, e.g. 0.15 mm for a
-3 mm slide on a 30 mm radius). Contact-based sliding (`solver.contact.RigidSurfaceContact`,
+3 mm slide on a 30 mm radius). `sliding_hold` h in [0, 1] makes the sliding segments' interface
+resist the slide elastically (`solver.loads.TangentialSupport`: springs in the bone's tangent
+plane, anchored to the moving bone): node i gets k_i = h / (1 - h) mu_i A_i / H_i, with A_i its
+share of the deep bone facets' area, mu_i the initial shear modulus of the tissue around it and
+H_i the soft tissue's thickness there (its distance to the skin), so that a layer of that
+thickness sheared over the bone lets the interface take the share 1 - h of its surface's
+tangential movement: h = 0 slides freely, h = 1 is tied (the tissue of a genioplasty's
+degloving, `sliding_nodes`, slides freely whatever h). Contact-based sliding (`solver.contact.RigidSurfaceContact`,
 bilateral) is exact on curved bone but its augmented re-solves cycled on the face. The static
 equilibrium is solved by `solver.newton.newton_solve` (Q1/P0 hexahedra, Newton with line
 search, load stepping, augmented Lagrangian contact).
@@ -54,7 +61,7 @@ from solver.constitution.muscle import Muscle
 from solver.contact import RigidSurfaceContact, SurfaceContact, TriangleSurface, ramped_rigid_motion
 from solver.contact._geometry import triangulate
 from solver.errors import SolveFailed
-from solver.loads import BodyForce
+from solver.loads import BodyForce, TangentialSupport
 from solver.mechanics import SolidBody, von_mises
 from solver.mesh import HexMesh
 from solver.newton import newton_solve
@@ -64,7 +71,7 @@ FLOOR_OWNER = "floor"        # the owner of the held floor of the mouth's: likew
 
 __all__ = ["simulate", "build_problem", "held_boundaries", "moved_constraints", "SimulationResult",
            "MUSCLES", "NECK_CONDITIONS", "FLOOR_CONDITIONS", "PROXIMAL_CONDITIONS",
-           "lip_penetrations", "rigid_motion_ok", "teeth_advance"]
+           "lip_penetrations", "rigid_motion_ok", "teeth_advance", "BoneInterface", "interface_stiffness"]
 
 log = logging.getLogger("facemodel.simulation")
 
@@ -117,6 +124,55 @@ def _local_shear_modulus(model, by_label, facets) -> float:
     return float(np.median(mus)) if len(mus) else 5.0
 
 
+class BoneInterface(TangentialSupport):
+    """The elastic interface of tissue sliding on a bone segment (module text): a
+    `TangentialSupport` anchored to the segment's ramped rigid motion. `segment` names it and
+    setting `motion` (4x4) re-anchors it, as a rigid teeth arch is moved
+    (`planner.pipeline.effect_sensitivities`)."""
+
+    def __init__(self, nodes, normals, stiffness, reference, motion, segment: str):
+        super().__init__(nodes, normals, stiffness, None, reference)
+        self.segment = segment
+        self.motion = motion
+
+    @property
+    def motion(self):
+        return self._motion
+
+    @motion.setter
+    def motion(self, T):
+        self._motion = np.asarray(T, dtype=float)
+        self.anchor = _rigid_displacement(self.X[self.nodes], self._motion)
+
+
+def interface_stiffness(model, by_label, nodes) -> np.ndarray:
+    """mu_i A_i / H_i (mN/mm) at deep bone nodes (module text): A_i a quarter of the area of
+    each "deep_bone" facet at the node, mu_i the median initial shear modulus of the elements
+    around it, H_i its distance to the nearest skin node (at least 1 mm)."""
+    from scipy.spatial import cKDTree
+
+    nodes = np.asarray(nodes, dtype=np.int64)
+    X = np.asarray(model.nodes, dtype=float)
+    F = np.asarray(model.facet_sets.get("deep_bone", np.zeros((0, 4))), dtype=np.int64)
+    p = X[F]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1]), axis=1)
+    A = np.bincount(F.ravel(), np.repeat(area / 4.0, 4), minlength=len(X))[nodes]
+    skin = np.asarray(model.node_sets["skin"], dtype=np.int64)
+    H = np.maximum(cKDTree(X[skin]).query(X[nodes])[0], 1.0)
+    hexes = np.asarray(model.hexes, dtype=np.int64)
+    labels = np.asarray(model.labels, dtype=np.int64)
+    mu_label = {li: _shear_modulus(m) for li, m in by_label.items()}
+    mu_elem = np.array([mu_label.get(int(l), 5.0) for l in labels])
+    row = np.full(len(X), -1, np.int64)
+    row[nodes] = np.arange(len(nodes))
+    e, a = np.nonzero(row[hexes] >= 0)
+    per = [[] for _ in nodes]
+    for r, m in zip(row[hexes[e, a]], mu_elem[e]):
+        per[r].append(m)
+    mu = np.array([np.median(v) if v else 5.0 for v in per])
+    return mu * A / H
+
+
 def _shear_modulus(mat) -> float:
     mu = getattr(mat, "shear_modulus", None)
     if mu is not None:
@@ -158,7 +214,7 @@ def held_boundaries(model, attach: dict, *, neck: str = "free", floor: str = "fr
 def build_problem(model, motions=None, activations=None, *, contact=True, sliding=(),
                   sliding_nodes=None, materials=None, growth=None, body_force=None,
                   penalty_factor=1.0, contact_tolerance=0.05, neck="free", lip_penalty=None,
-                  uzawa_schedule="carried", floor="free", proximal="seated"):
+                  uzawa_schedule="carried", floor="free", proximal="seated", sliding_hold=0.0):
     """The FE problem `simulate` solves: (SolidBody, constraints, contact terms {name: term},
     other terms [body force], lip facet size or None); arguments as `simulate`'s. The body's
     `constraint_segments` names the segment each constraint follows, its `proximal_nodes` counts
@@ -185,6 +241,11 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
     for seg in sliding:
         if seg not in segments:
             raise ModelInputError(f"cannot slide on unknown segment {seg!r}")
+    hold = float(sliding_hold)
+    if not (np.isfinite(hold) and 0.0 <= hold <= 1.0):
+        raise ModelInputError(f"sliding_hold must be in [0, 1], got {sliding_hold}")
+    if hold >= 1.0:
+        sliding = ()                    # an interface that holds fully is tied
 
     X = np.asarray(model.nodes, dtype=float)
     labels = np.asarray(model.labels, dtype=np.int64)
@@ -217,17 +278,24 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
             raise ModelInputError(f"cannot slide on unknown segment {seg!r}")
     on_bone = np.zeros(len(X), dtype=bool)          # nodes of the deep facets on the bone
     on_bone[np.asarray(model.facet_sets.get("deep_bone", np.zeros((0, 4))), dtype=np.int64)] = True
+    extra = []
     for seg, ids in attach.items():
         T = segment_motion(motions, seg)
-        glide = np.intersect1d(np.asarray(sliding_nodes.get(seg, ()), dtype=np.int64), ids)
+        degloved = np.intersect1d(np.asarray(sliding_nodes.get(seg, ()), dtype=np.int64), ids)
+        glide = degloved
         if seg in sliding:
             # the whole segment: every attached node on its bone surface slides
             glide = np.union1d(glide, ids[on_bone[ids]])
         tied = np.setdiff1d(ids, glide)
         if len(glide):
-            constraints.append(LocalFrame(glide, bone_frames(model, glide), fixed=(0,),
+            frames = bone_frames(model, glide)
+            constraints.append(LocalFrame(glide, frames, fixed=(0,),
                                           displacement=_rigid_displacement(X[glide], T)))
             owners.append(seg)
+            held = ~np.isin(glide, degloved)
+            if seg in sliding and hold > 0.0 and held.any():
+                k = hold / (1.0 - hold) * interface_stiffness(model, by_label, glide[held])
+                extra.append(BoneInterface(glide[held], frames[held, 0], k, X, T, seg))
         if len(tied):
             constraints.append(Prescribed(tied, _rigid_displacement(X[tied], T)))
             owners.append(seg)
@@ -269,7 +337,6 @@ def build_problem(model, motions=None, activations=None, *, contact=True, slidin
                     tangent="projected", uzawa_schedule=uzawa_schedule)
                 terms[f"teeth_{name}"].segment = seg     # the segment whose motion it follows
 
-    extra = []
     if body_force is not None:
         extra.append(BodyForce(X, model.hexes, body_force))
     body.constraint_segments = tuple(owners)
@@ -299,7 +366,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
              n_steps: int = 4, log=None, penalty_factor: float = 1.0,
              contact_tolerance: float = 0.05, max_iterations: int = 25,
              guess=None, max_seconds: float | None = None, neck: str = "free",
-             floor: str = "free", proximal: str = "seated") -> SimulationResult:
+             floor: str = "free", proximal: str = "seated", sliding_hold: float = 0.0) -> SimulationResult:
     """Solve the face for bone `motions` {segment: 4x4} and muscle `activations` {muscle: a}.
 
     contact: lip-lip and lip-teeth contact on/off. sliding: segments whose deep nodes slide
@@ -323,7 +390,8 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
     neck: "free" (default) or "held", the boundary condition of the neck cut (module text);
     floor: likewise, of the floor of the mouth (node set "floor_of_mouth"). proximal:
     "seated" (default) or "moved", the mandible's proximal segments when the mandible moves
-    (`facemodel.attachments.attachment_sets`).
+    (`facemodel.attachments.attachment_sets`). sliding_hold: the sliding segments' interface, 0 (free,
+    default) to 1 (tied) (module text).
     Raises `facemodel.errors.ModelInputError` (a
     ValueError) for motions, activations, materials or model parts it cannot use (contact
     asked of a model without lip contact surfaces) and `solver.errors.SolveFailed` if Newton
@@ -337,7 +405,7 @@ def simulate(model, motions: dict | None = None, activations: dict | None = None
             model, motions, activations, contact=contact, sliding=sliding, sliding_nodes=sliding_nodes,
             materials=materials, growth=growth, body_force=body_force, penalty_factor=penalty_factor,
             contact_tolerance=contact_tolerance, neck=neck, floor=floor, proximal=proximal,
-            **contact_options)
+            sliding_hold=sliding_hold, **contact_options)
 
     body, constraints, terms, extra, lip_size = problem()
     X = np.asarray(model.nodes, dtype=float)

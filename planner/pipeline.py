@@ -279,7 +279,8 @@ def model_inputs(setup: dict, effects: Effects) -> dict:
     return dict(motions=motions, activations=activations, contact=plan.model.contact,
                 sliding=sliding, sliding_nodes=degloved, materials=materials, growth=growth,
                 body_force=fe.gravity_density(effects.gravity, effects.gravity_pitch),
-                neck=plan.model.neck, floor=plan.model.floor, proximal=plan.model.proximal)
+                neck=plan.model.neck, floor=plan.model.floor, proximal=plan.model.proximal,
+                sliding_hold=effects.sliding_hold)
 
 
 def solve_plan(model, plan: Plan, bones: dict | None = None, *, effects=None,

@@ -20,7 +20,7 @@ from solver.terms import Term
 from solver.mesh import HexMesh, boundary_facets, check_mesh, scaled_jacobian
 from solver.mechanics import SolidBody
 from solver.bc import LocalFrame, Prescribed, fix
-from solver.loads import BodyForce, FollowerPressure, NodalForce, surface_traction
+from solver.loads import BodyForce, FollowerPressure, NodalForce, TangentialSupport, surface_traction
 from solver.linalg import SymmetricSolver, available_backends
 from solver.control import SolverControl
 from solver.newton import NewtonResult, newton_solve
@@ -30,7 +30,7 @@ __all__ = [
     "SolverError", "MeshError", "MaterialError", "BoundaryConditionError", "SolveFailed",
     "Material", "NeoHooke", "Yeoh", "i1_bar", "i4_bar", "volumetric_function", "Term",
     "HexMesh", "boundary_facets", "check_mesh", "scaled_jacobian", "SolidBody",
-    "Prescribed", "LocalFrame", "fix", "BodyForce", "FollowerPressure", "NodalForce",
+    "Prescribed", "LocalFrame", "fix", "BodyForce", "FollowerPressure", "NodalForce", "TangentialSupport",
     "surface_traction", "SymmetricSolver", "available_backends", "NewtonResult",
     "SolverControl", "newton_solve", "read_vtu", "write_vtu",
 ]

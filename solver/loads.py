@@ -9,6 +9,16 @@ is symmetric for a closed surface or a surface whose boundary is held; otherwise
 part is used (the solver's factorisation is symmetric), which keeps convergence linear-to-
 quadratic. The body force is the dead load f_a = -load * int rho b N_a dV with rho b in mN/mm^3
 (e.g. density 1.0e-3 g/mm^3 times gravity 9810 mm/s^2 = 9.81e-3 mN/mm^3 for soft tissue).
+
+A tangential elastic support (a Robin condition) ties nodes to an anchor moving with a
+prescribed displacement a(load) through springs that act in each node's tangent plane only:
+with n_i the node's normal and P_i = I - n_i n_i^T, the energy is
+1/2 sum_i k_i |P_i (u_i - a_i)|^2, the force f_i = k_i P_i (u_i - a_i) and the stiffness the
+constant block k_i P_i (symmetric, positive semi-definite). Between k = 0 (the node slides
+freely on its support) and k -> infinity (tied), it models an interface that resists sliding
+elastically: a layer of thickness H and shear modulus mu under a shear traction tau on such
+a support with k per unit area lets the interface take the share (tau / k) / (tau H / mu +
+tau / k) = 1 / (1 + k H / mu) of its surface's tangential displacement (linear elasticity).
 """
 from __future__ import annotations
 
@@ -19,7 +29,7 @@ from solver.element import gauss_hex, gauss_quad, hex8_shape, quad4_gradients, q
 from solver.errors import BoundaryConditionError
 from solver.terms import Term
 
-__all__ = ["FollowerPressure", "BodyForce", "NodalForce", "surface_traction"]
+__all__ = ["FollowerPressure", "BodyForce", "NodalForce", "TangentialSupport", "surface_traction"]
 
 
 def _skew(v):
@@ -147,6 +157,56 @@ class NodalForce(Term):
         if self.X is None:
             return 0.0
         return float(load * self.f_unit @ (x - self.X).ravel())
+
+    def end_step(self, x, load):
+        return False
+
+
+class TangentialSupport(Term):
+    """Springs of stiffness `stiffness` (k,) (mN/mm) in the tangent planes of `normals` (k, 3)
+    (unit) at `nodes` (k,), tying them to an anchor displaced by `anchor` ((3,), (k, 3) or a
+    callable load -> (k, 3), as `solver.bc.LocalFrame.displacement`); `reference` (n, 3): the
+    reference nodal coordinates (module text)."""
+
+    static_state = ("nodes", "normals", "stiffness", "anchor", "X", "n", "_P", "_rows", "_cols")
+
+    def __init__(self, nodes, normals, stiffness, anchor, reference):
+        nodes = np.atleast_1d(np.asarray(nodes, dtype=np.int64))
+        X = np.asarray(reference, dtype=float)
+        normals = np.broadcast_to(np.asarray(normals, dtype=float), (len(nodes), 3))
+        stiffness = np.broadcast_to(np.asarray(stiffness, dtype=float), (len(nodes),)).copy()
+        if len(nodes) and (nodes.min() < 0 or nodes.max() >= len(X)):
+            raise BoundaryConditionError("tangential support nodes lie outside the mesh")
+        if not (np.all(np.isfinite(stiffness)) and np.all(stiffness >= 0)):
+            raise BoundaryConditionError("tangential support stiffness must be finite and >= 0")
+        norm = np.linalg.norm(normals, axis=1)
+        if len(nodes) and not np.all(np.abs(norm - 1.0) < 1e-6):
+            raise BoundaryConditionError("tangential support normals must be unit vectors")
+        self.nodes, self.normals, self.stiffness = nodes, normals, stiffness
+        self.anchor = anchor
+        self.X = X
+        self.n = len(X)
+        self._P = np.eye(3)[None] - normals[:, :, None] * normals[:, None, :]       # (k, 3, 3)
+        dofs = 3 * nodes[:, None] + np.arange(3)
+        self._rows = np.repeat(dofs, 3, axis=1).ravel()
+        self._cols = np.tile(dofs, (1, 3)).ravel()
+
+    def _slip(self, x, load):
+        a = self.anchor(load) if callable(self.anchor) else np.broadcast_to(
+            np.asarray(self.anchor, dtype=float), (len(self.nodes), 3))
+        return np.asarray(x, float)[self.nodes] - self.X[self.nodes] - a
+
+    def assemble(self, x, load):
+        fn = self.stiffness[:, None] * np.einsum("kij,kj->ki", self._P, self._slip(x, load))
+        f = np.zeros(3 * self.n)
+        np.add.at(f, (3 * self.nodes[:, None] + np.arange(3)).ravel(), fn.ravel())
+        Ke = self.stiffness[:, None, None] * self._P
+        K = sp.coo_matrix((Ke.ravel(), (self._rows, self._cols)), shape=(3 * self.n, 3 * self.n))
+        return f, K
+
+    def energy(self, x, load):
+        d = self._slip(x, load)
+        return float(0.5 * np.sum(self.stiffness * np.einsum("ki,kij,kj->k", d, self._P, d)))
 
     def end_step(self, x, load):
         return False

@@ -6,7 +6,8 @@ gap to each continuous parameter at the baseline, J = dr/dtheta, from the model'
 factorisation for all parameters, mapped onto the scan points by `ScanGap.linearised`), or by
 finite differences of full forward solves where the tangent is not available (central, or
 one-sided second order at a bound), and each discrete choice (a switch such as `sliding=1`)
-solved outright. Parameters the data cannot pin down
+solved outright; the chosen switch's settings (how freely the tissue slides, `Effect.settings`)
+are solved at each of their values and the one most likely under noise + discrepancy is kept. Parameters the data cannot pin down
 (Fisher information, `planner.diagnosis.fit`) stay at "none". The identifiable ones are fitted
 by bounded Gauss-Newton on the linearised gap, then refined by full nonlinear solves at the
 fitted values (Levenberg-Marquardt style: a step that does not lower the weighted residual is
@@ -34,7 +35,9 @@ largest held-out shrinkage (significant or not: two effects can act together whe
 does alone) are tried when it leaves a gap above the noise. A partner with discrete choices (a
 switch such as which segments' tissue slides) is paired once per choice, each anchored at a
 full solve of the lead's fitted values with that switch, and the pair that fits best after
-refinement is kept: with the lead's effect present another switch can fit than alone. The
+refinement is kept: with the lead's effect present another switch can fit than alone. A lead
+with a switch beside a partner without one swaps roles: its switch is re-chosen beside the
+partner's fit. The
 verdict is the best significant effect (or pair, when the pair is itself significant, shrinks the held-out gap further than
 each of its members and is strongly better in BIC than each member and than the best
 significant single effect); else null when no region's gap stands
@@ -320,6 +323,7 @@ def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -
                 cand.failed = f"case {d.case.name}: every choice failed to solve"
                 return cand
             _, choice, anchor, m_best = best
+            choice, anchor = _best_setting(e, d, c, tuple(choice), anchor, m_best, forward, cand)
             cand.M.append(m_best)
         else:
             cand.M.append(None)
@@ -356,6 +360,39 @@ def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -
         cand.theta.append(cand.origin.copy())
     cand.sensitivity = " and ".join(sorted(methods)) if methods else "none (discrete choices)"
     return cand
+
+
+def _best_setting(e: Effect, d: CaseData, c: int, choice: tuple, anchor, m, forward, cand: Candidate):
+    """The chosen switch with its settings (`Effect.settings`, e.g. how freely the tissue
+    slides): each setting's values are solved with the switch and the one whose gap has the
+    highest profile likelihood under noise + discrepancy is kept (the switch's default among
+    them). Likelihood, not the residual's size: a setting can leave a smaller gap whose
+    structure the discrepancy explains worse (the generalised least squares of the fitted
+    values, for the same reason). The free switch's mesh correction `m` stands for its
+    settings. Returns (choice, anchor)."""
+    for key, values in e.settings:
+        variants = [choice + ((key, v),) for v in values]
+        skins = forward.solve([(c, effect_strings(dict(v))) for v in variants])
+        cand.solves += len(variants)
+        best = (d.error.fit(anchor).loglik, choice, anchor)
+        for v, skin in zip(variants, skins):
+            if not _ok(skin):
+                continue
+            r = d.gap.distances(skin) + (0.0 if m is None else m)
+            ll = d.error.fit(r).loglik
+            if ll > best[0]:
+                best = (ll, v, r)
+        _, choice, anchor = best
+    return choice, anchor
+
+
+def _switched(cand: Candidate) -> bool:
+    return any(e.choices for e in cand.effects)
+
+
+def _discrete(cand: Candidate) -> int:
+    """The discrete choices a candidate makes per case: its switches and their settings."""
+    return sum((1 if e.choices else 0) + len(e.settings) for e in cand.effects)
 
 
 # --------------------------------------------------------------------------- fitting
@@ -607,7 +644,7 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
     rss = sum(_rss(d, r) for d, r in zip(data, fitted))
     n_free = int(cand.free.sum()) if cand.free is not None else 0
     k = n_free * (1 if cand.shared else cand.n_cases)
-    k += sum(1 for e in cand.effects if e.choices) * cand.n_cases
+    k += _discrete(cand) * cand.n_cases
     identifiable = bool(n_free > 0 or any(e.choices for e in cand.effects))
     if any(e.choices for e in cand.effects) and not n_free:
         # a switch is identifiable when turning it on moves the gap above the noise
@@ -795,7 +832,7 @@ def evidence(cand: Candidate | None, data: list[CaseData]) -> tuple[list, float]
         if cand is None:
             fits.append(d.error.fit(d.r0))
             continue
-        n_choice = sum(1 for e in cand.effects if e.choices)
+        n_choice = _discrete(cand)
         free = cand.free if cand.free is not None else np.zeros(len(cand.params), bool)
         if cand.shared and len(data) > 1:
             f = d.error.fit(cand.anchor_r[c], extra_k=n_choice)
@@ -935,7 +972,9 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
         if partners:
             say(f"{lead.cand.name} leaves a significant gap: trying pairs with "
                 + ", ".join(p.cand.name for p in partners))
-            variants = [_pairs_with(lead.cand, p.cand, data, forward) for p in partners]
+            # the switch is re-chosen beside the other effect's fit whichever of the two leads
+            variants = [_pairs_with(*((p.cand, lead.cand) if _switched(lead.cand) and not _switched(p.cand)
+                                      else (lead.cand, p.cand)), data, forward) for p in partners]
             refine([v for vs in variants for v in vs], data, forward)
             pair_cands = [_best_fit(vs, data) for vs in variants]
             pairs = [score(c, data, rms0, n_eff) for c in pair_cands]

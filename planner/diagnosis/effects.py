@@ -19,7 +19,8 @@ import numpy as np
 from facemodel.effects import BONE_DOF, GRAVITY_MAX, LAYERS, SWELLING_MAX
 from planner.errors import InputError
 
-__all__ = ["Parameter", "Effect", "EFFECT_LIBRARY", "available_effects", "effect_strings", "stiffness_effect"]
+__all__ = ["Parameter", "Effect", "EFFECT_LIBRARY", "available_effects", "effect_strings", "stiffness_effect",
+           "SLIDING_HOLDS"]
 
 
 @dataclass(frozen=True)
@@ -59,10 +60,14 @@ class Effect:
     choices: tuple[tuple[tuple[str, object], ...], ...] = ()
     shared: bool = False        # one value for every patient (left-one-case-out in a cohort)
     description: str = ""
+    # settings of the chosen switch: (`--effect` name, values tried beside its default), each
+    # chosen by the evidence under noise + discrepancy (`analysis`), e.g. how freely the tissue
+    # slides (`SLIDING_HOLDS`)
+    settings: tuple[tuple[str, tuple[float, ...]], ...] = ()
 
     @property
     def n_parameters(self) -> int:
-        return len(self.parameters) if self.parameters else (1 if self.choices else 0)
+        return (len(self.parameters) if self.parameters else (1 if self.choices else 0)) + len(self.settings)
 
     def values(self, theta: np.ndarray) -> dict[str, float]:
         """Fit coordinates -> {key: value} (parameters at their "none" value are left out)."""
@@ -147,7 +152,18 @@ def stiffness_effect(layers: bool = True) -> Effect | None:
     return None
 
 
+# how much the sliding interface resists the slide (`facemodel.effects` `sliding.hold`: 0 free,
+# the switch's default, 1 tied), the values tried beside the free slide: a patient's tissue
+# slides partly, and a model whose layers and moduli are not the patient's slides otherwise
+# than the patient's tissue even where both slide freely. The interface smooths the slide as it
+# holds (its pattern changes, not only its size), so the setting is a few full solves chosen
+# by the evidence, not a derivative
+SLIDING_HOLDS = (0.5, 0.8)
+
+
 def _sliding(moved: tuple[str, ...]) -> Effect | None:
+    """Which segments' tissue slides (every moved segment, or one of them) and how freely
+    (`SLIDING_HOLDS`)."""
     base = next(e for e in EFFECT_LIBRARY if e.name == "sliding")
     choices = []
     if _accepted(["sliding=1"]):
@@ -155,7 +171,11 @@ def _sliding(moved: tuple[str, ...]) -> Effect | None:
     for seg in moved if len(moved) > 1 else ():       # one moved segment: the same as sliding=1
         if _accepted([f"sliding={seg}"]):
             choices.append((("sliding", seg),))
-    return Effect("sliding", choices=tuple(choices), shared=False, description=base.description) if choices else None
+    if not choices:
+        return None
+    settings = (("sliding.hold", SLIDING_HOLDS),) if _accepted(["sliding=1", "sliding.hold=0.5"]) else ()
+    return Effect("sliding", choices=tuple(choices), shared=False, description=base.description,
+                  settings=settings)
 
 
 def _bone_execution(moved: tuple[str, ...], plan_actual: bool = False) -> Effect | None:

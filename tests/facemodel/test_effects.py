@@ -21,8 +21,11 @@ from solver.examples import block
 # ------------------------------------------------------------------ parsing
 def test_parse_forms_and_round_trip():
     e = parse_effects(["stiffness.hypodermis=0.6", "sliding=chin", "gravity=1", "swelling=1.05",
-                       "bone_execution.maxilla=[0, 1, 0, 0, 0, 2]", "muscle_tone=0.3", "stiffness=2"])
+                       "bone_execution.maxilla=[0, 1, 0, 0, 0, 2]", "muscle_tone=0.3", "stiffness=2",
+                       "sliding.hold=0.4"])
     assert e.sliding == ("chin",) and e.layer_factor("hypodermis") == pytest.approx(1.2)
+    assert e.sliding_hold == 0.4 and e.value("sliding.hold") == 0.4
+    assert e.with_value("sliding.hold", 0.7).sliding_hold == 0.7
     assert e.correction("maxilla") == (0, 1, 0, 0, 0, 2)
     # the flat form is what --effect and model.effects take: parsing it gives the same values
     assert parse_effects(e.as_dict()) == e
@@ -30,7 +33,7 @@ def test_parse_forms_and_round_trip():
     assert nested.stiffness_layers == (("hypodermis", 0.6),)
     assert parse_effects(["sliding"]).sliding == ("*",) and parse_effects(["bone_execution=1"]).plan_actual
     # the values meaning "none" are the baseline
-    none = parse_effects(["sliding=0", "muscle_tone=0", "swelling=1", "gravity=0", "stiffness=1",
+    none = parse_effects(["sliding=0", "sliding.hold=0", "muscle_tone=0", "swelling=1", "gravity=0", "stiffness=1",
                           "stiffness.dermis=1", "bone_execution=0", "bone_execution.chin=[0,0,0,0,0,0]"])
     assert none.active == () and none.as_dict() == {}
 
@@ -38,6 +41,7 @@ def test_parse_forms_and_round_trip():
 @pytest.mark.parametrize("item, field", [
     ("stiffness.bone=2", "stiffness.bone"), ("gravity=x", "gravity"), ("swelling=0.9", "swelling"),
     ("bone_execution.maxilla=[1,2]", "bone_execution.maxilla"), ("sliding=jaw", "sliding"),
+    ("sliding.hold=1.5", "sliding.hold"), ("sliding.grip=0.5", "sliding.grip"),
     ("bone_execution.maxilla=[0,0,30,0,0,0]", "bone_execution.maxilla"), ("wind=1", "wind")])
 def test_bad_effects_name_the_field(item, field):
     with pytest.raises(InputError) as exc:

@@ -121,6 +121,37 @@ def test_tissue_sliding_on_the_impacted_maxilla_keeps_the_normal_and_frees_the_t
     np.testing.assert_allclose(u[pair], u[j[pair]] * mirror, atol=1e-6)
 
 
+def test_the_sliding_interface_hold_spans_free_to_tied(face):
+    """`sliding_hold` (facemodel.simulation module text) on the same Le Fort I impaction: 0 is
+    the free slide and 1 the tied face exactly (the same constraints: 1e-9 mm); between, the
+    sliding nodes' tangential lag behind the bone shrinks monotonically as the interface holds
+    more, and at h = 0.5 it lies strictly between (the lag is not proportional to 1 - h on the
+    face, whose tissue is not one uniform sheared layer: only the order is asserted). The
+    normal condition stays the bone's (1e-8 mm, as for free sliding)."""
+    from facemodel.attachments import bone_normals
+
+    T = _translation(dz=3.0)
+    ids = np.asarray(face.node_sets["attach_maxilla"])
+    n = bone_normals(face)[ids]
+    on = np.linalg.norm(n, axis=1) > 0.5
+    runs = {h: simulate(face, {"maxilla": T}, contact=False, sliding=("maxilla",), sliding_hold=h)
+            for h in (0.0, 0.5, 0.9, 1.0)}
+    tied = simulate(face, {"maxilla": T}, contact=False)
+    free = simulate(face, {"maxilla": T}, contact=False, sliding=("maxilla",))
+    assert all(r.converged for r in runs.values())
+    np.testing.assert_allclose(runs[0.0].displacement, free.displacement, atol=1e-9)
+    np.testing.assert_allclose(runs[1.0].displacement, tied.displacement, atol=1e-9)
+    bone = np.array([0.0, 0.0, 3.0])
+    lag = {h: float(np.mean(np.linalg.norm(r.displacement[ids[on]] - bone, axis=1)))
+           for h, r in runs.items()}
+    assert lag[0.0] > lag[0.5] > lag[0.9] > lag[1.0] + 1e-3
+    assert lag[1.0] < 1e-8
+    u = runs[0.5].displacement[ids[on]]
+    np.testing.assert_allclose(np.einsum("ij,ij->i", u, n[on]), n[on] @ bone, atol=1e-8)
+    with pytest.raises(ValueError, match="sliding_hold"):
+        simulate(face, {"maxilla": T}, contact=False, sliding=("maxilla",), sliding_hold=1.5)
+
+
 def test_the_lip_penalty_sets_the_conditioning_not_the_answer(face, seed7_motions, monkeypatch):
     """The lip-lip contact is an augmented Lagrangian: at convergence the multipliers, not the
     penalty, carry the contact force, so the face solved with a tenth of the lips' penalty

@@ -748,3 +748,51 @@ def test_a_switch_is_fitted_with_its_converged_mesh_response():
         plain = analysis._single_candidate(sliding, [other], forward, [{}])
         assert np.allclose(plain.anchor_r[0], r0 + dr_d, atol=1e-12)
         assert plain.M == [None]
+
+
+def test_a_switch_setting_is_chosen_by_the_evidence_not_the_residual():
+    """`Effect.settings` (how freely the tissue slides): each value is solved with the chosen
+    switch and kept when its gap is more likely under noise + discrepancy than the switch's
+    default. Here the free slide leaves the smallest gap but a rough one (white structure at
+    twice the noise), a held slide a larger but smooth one; an error model that prices
+    rough structure as noise keeps the held one. A setting that fails to solve is skipped, the
+    setting counts as one more discrete choice in the penalty, and without settings the
+    switch is as it was."""
+    from types import SimpleNamespace
+
+    from planner.diagnosis import analysis
+    from planner.diagnosis.effects import Effect
+
+    rng = np.random.default_rng(3)
+    n = 400
+    x = np.linspace(0.0, 1.0, n)
+    r0 = 0.8 * np.sin(np.pi * x)
+    rough = 0.3 * rng.standard_normal(n)               # the free slide's residual
+    smooth = 0.5 * np.sin(np.pi * x)                     # the held slide's residual
+    skins = {(): r0, ("sliding=1",): rough, ("sliding.hold=0.5", "sliding=1"): smooth,
+             ("sliding.hold=0.8", "sliding=1"): "solve failed"}
+
+    class Fwd:
+        def solve(self, reqs):
+            return [skins[k] for _, k in reqs]
+
+        def baseline(self, c):
+            return r0
+
+    def loglik(r):                                       # smooth fields are cheap, roughness is noise
+        smooth_part = np.convolve(r, np.ones(41) / 41, mode="same")
+        return -0.5 * float(np.sum((r - smooth_part) ** 2) / 0.1 ** 2 + 0.1 * np.sum(smooth_part ** 2))
+
+    d = SimpleNamespace(case=SimpleNamespace(name="case"), r0=r0, choice_mesh={}, mesh_jac={},
+                        gap=SimpleNamespace(weights=np.ones(n), distances=lambda s: np.asarray(s, float)),
+                        error=SimpleNamespace(fit=lambda r: SimpleNamespace(loglik=loglik(r))))
+    held = Effect("sliding", choices=((("sliding", 1),),), settings=(("sliding.hold", (0.5, 0.8)),))
+    cand = analysis._single_candidate(held, [d], Fwd(), [{}])
+    assert float(np.sum(rough ** 2)) < float(np.sum(smooth ** 2))      # the free slide fits closer
+    assert cand.choices[0] == (("sliding", 1), ("sliding.hold", 0.5))
+    assert np.array_equal(cand.anchor_r[0], smooth)
+    assert cand.strings(0, cand.theta[0]) == ("sliding.hold=0.5", "sliding=1")
+    assert analysis._discrete(cand) == 2 and held.n_parameters == 2
+    free = Effect("sliding", choices=((("sliding", 1),),))
+    plain = analysis._single_candidate(free, [d], Fwd(), [{}])
+    assert plain.choices[0] == (("sliding", 1),) and analysis._discrete(plain) == 1

@@ -645,8 +645,8 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
     n_free = int(cand.free.sum()) if cand.free is not None else 0
     k = n_free * (1 if cand.shared else cand.n_cases)
     k += _discrete(cand) * cand.n_cases
-    identifiable = bool(n_free > 0 or any(e.choices for e in cand.effects))
-    if any(e.choices for e in cand.effects) and not n_free:
+    identifiable = bool(n_free > 0 or _switched(cand))
+    if _switched(cand) and not n_free:
         # a switch is identifiable when turning it on moves the gap above the noise
         change = _pooled_rms(data, [a - d.r0 for a, d in zip(cand.anchor_r, data)])
         sigma = max(d.gap.noise_floor_mm for d in data)

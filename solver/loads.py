@@ -26,6 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from solver.element import gauss_hex, gauss_quad, hex8_shape, quad4_gradients, quad4_shape
+from solver.bc import _values
 from solver.errors import BoundaryConditionError
 from solver.terms import Term
 
@@ -165,10 +166,11 @@ class NodalForce(Term):
 class TangentialSupport(Term):
     """Springs of stiffness `stiffness` (k,) (mN/mm) in the tangent planes of `normals` (k, 3)
     (unit) at `nodes` (k,), tying them to an anchor displaced by `anchor` ((3,), (k, 3) or a
-    callable load -> (k, 3), as `solver.bc.LocalFrame.displacement`); `reference` (n, 3): the
+    callable load -> (k, 3), as `solver.bc.LocalFrame.displacement`: a constant is ramped with
+    the load, a callable gives the displacement at the load); `reference` (n, 3): the
     reference nodal coordinates (module text)."""
 
-    static_state = ("nodes", "normals", "stiffness", "anchor", "X", "n", "_P", "_rows", "_cols")
+    static_state = ("nodes", "normals", "stiffness", "anchor", "X", "n", "_P", "_dofs", "_K")
 
     def __init__(self, nodes, normals, stiffness, anchor, reference):
         nodes = np.atleast_1d(np.asarray(nodes, dtype=np.int64))
@@ -187,22 +189,22 @@ class TangentialSupport(Term):
         self.X = X
         self.n = len(X)
         self._P = np.eye(3)[None] - normals[:, :, None] * normals[:, None, :]       # (k, 3, 3)
-        dofs = 3 * nodes[:, None] + np.arange(3)
-        self._rows = np.repeat(dofs, 3, axis=1).ravel()
-        self._cols = np.tile(dofs, (1, 3)).ravel()
+        self._dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
+        # the stiffness is constant: assembled once
+        Ke = stiffness[:, None, None] * self._P
+        rows = np.repeat(self._dofs.reshape(-1, 3), 3, axis=1).ravel()
+        cols = np.tile(self._dofs.reshape(-1, 3), (1, 3)).ravel()
+        self._K = sp.coo_matrix((Ke.ravel(), (rows, cols)), shape=(3 * self.n, 3 * self.n)).tocsr()
 
     def _slip(self, x, load):
-        a = self.anchor(load) if callable(self.anchor) else np.broadcast_to(
-            np.asarray(self.anchor, dtype=float), (len(self.nodes), 3))
-        return np.asarray(x, float)[self.nodes] - self.X[self.nodes] - a
+        # the anchor ramps with the load as a constraint's displacement does
+        return np.asarray(x, float)[self.nodes] - self.X[self.nodes] - _values(self.anchor, self.nodes, load)
 
     def assemble(self, x, load):
         fn = self.stiffness[:, None] * np.einsum("kij,kj->ki", self._P, self._slip(x, load))
         f = np.zeros(3 * self.n)
-        np.add.at(f, (3 * self.nodes[:, None] + np.arange(3)).ravel(), fn.ravel())
-        Ke = self.stiffness[:, None, None] * self._P
-        K = sp.coo_matrix((Ke.ravel(), (self._rows, self._cols)), shape=(3 * self.n, 3 * self.n))
-        return f, K
+        np.add.at(f, self._dofs, fn.ravel())
+        return f, self._K
 
     def energy(self, x, load):
         d = self._slip(x, load)

@@ -234,6 +234,25 @@ def test_bone_corrections(face):
     assert 0.3 < sens["bone_execution.maxilla.ty"][lip, 1].mean() < 1.1
 
 
+@pytest.mark.parametrize("name", ["bone_execution.maxilla.ty", "bone_execution.maxilla.rx"])
+def test_bone_sensitivities_move_a_partly_held_interface_with_the_bone(face, name):
+    """With the tissue half-held on a sliding maxilla (`sliding.hold`, an elastic interface
+    anchored to the bone's motion) a bone correction moves the interface's anchors too: the
+    tangent's du/dp (`skin_sensitivities`, the anchors re-set from the corrected motion)
+    against central differences of full solves at p +- 0.05 (mm or deg). Contact off: the
+    response is smooth, truncation O(h^2) and Newton's tolerance keep the difference near
+    1e-5 of the largest sensitivity; leaving the anchors where the plan put them is off by
+    5-12 %. 0.5 % separates the two with a wide margin either way."""
+    plan = _plan({"maxilla": {"translation": [0.0, 3.0, 1.0]}})
+    eff = parse_effects(["sliding=maxilla", "sliding.hold=0.5"])
+    ids, sens = skin_sensitivities(solve_plan(face, plan, effects=eff), [name])
+    h = 0.05
+    up, dn = (solve_plan(face, plan, effects=eff.with_value(name, v)).predicted_nodes[ids] for v in (h, -h))
+    fd = (up - dn) / (2 * h)
+    assert np.abs(fd).max() > 0.02
+    assert np.abs(sens[name] - fd).max() < 5e-3 * np.abs(fd).max()
+
+
 # ------------------------------------------------------------------ gravity: head pitch
 def test_gravity_pitch_direction_and_magnitude():
     """The upright gravity rotated by the head pitch phi about the left-right axis:

@@ -440,3 +440,18 @@ def test_when_every_fallback_fails_the_first_failure_is_raised(face, seed7_motio
     with pytest.raises(SolveFailed, match="forced failure 1"):
         simulate(face, seed7_motions, {}, contact=False)
     assert len(calls) == 1
+
+
+def test_the_interface_modulus_is_the_median_of_each_nodes_elements():
+    """`_median_per_node` (the shear modulus an interface node takes from the elements around
+    it) equals numpy's median of each node's values, exactly (the same middle values are
+    averaged), and the default where a node has none."""
+    from facemodel.simulation import _median_per_node
+
+    rng = np.random.default_rng(3)
+    for n, m in ((1, 1), (7, 30), (60, 400)):
+        rows = rng.integers(0, n, m)
+        values = rng.choice([2.5, 5.0, 12.0, rng.normal()], size=m)
+        got = _median_per_node(rows, values, n + 3, 5.0)
+        want = [np.median(values[rows == i]) if np.any(rows == i) else 5.0 for i in range(n + 3)]
+        np.testing.assert_array_equal(got, want)

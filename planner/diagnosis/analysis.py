@@ -457,21 +457,39 @@ def _groups(cand: Candidate) -> list[list[int]]:
     return [list(range(cand.n_cases))] if cand.shared else [[c] for c in range(cand.n_cases)]
 
 
-def refine(cands: list[Candidate], data: list[CaseData], forward) -> None:
-    """Bounded Gauss-Newton steps with full solves, all candidates' solves batched together."""
+def _refinable(cands: list[Candidate], data: list[CaseData]) -> list[Candidate]:
+    """The candidates with identifiable parameters (`_identify` run on each)."""
     for c in cands:
         if c.failed is None:
             _identify(c, data)
-    active = [c for c in cands if c.failed is None and c.free is not None and c.free.any()]
+    return [c for c in cands if c.failed is None and c.free is not None and c.free.any()]
+
+
+def _proposals(active: list[Candidate], data: list[CaseData]) -> list:
+    """The next Gauss-Newton step of each candidate and case group, (candidate, cases, theta),
+    where it moves a parameter by more than 2 % of its range."""
+    out = []
+    for cand in active:
+        for g in _groups(cand):
+            new = _fit_theta(cand, data, g)
+            rng = cand.upper - cand.lower
+            if np.all(np.abs(new - cand.theta[g[0]]) <= 0.02 * rng):
+                continue
+            out.append((cand, g, new))
+    return out
+
+
+def first_refinement_requests(cands: list[Candidate], data: list[CaseData]) -> list:
+    """The solves `refine`'s first step will ask for (the same requests), for
+    `Forward.prefetch`."""
+    return [(c, cand.strings(c, new)) for cand, g, new in _proposals(_refinable(cands, data), data) for c in g]
+
+
+def refine(cands: list[Candidate], data: list[CaseData], forward) -> None:
+    """Bounded Gauss-Newton steps with full solves, all candidates' solves batched together."""
+    active = _refinable(cands, data)
     for _ in range(MAX_REFINEMENTS):
-        proposals = []
-        for cand in active:
-            for g in _groups(cand):
-                new = _fit_theta(cand, data, g)
-                rng = cand.upper - cand.lower
-                if np.all(np.abs(new - cand.theta[g[0]]) <= 0.02 * rng):
-                    continue
-                proposals.append((cand, g, new))
+        proposals = _proposals(active, data)
         if not proposals:
             break
         reqs = [(c, cand.strings(c, new)) for cand, g, new in proposals for c in g]
@@ -949,9 +967,16 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
                 f"converged mesh (kappa {-d.mesh_coef:.2f} ± {d.mesh_coef_sd:.2f})")
     reqs = _sensitivity_requests(data, effects, sens)
     say(f"{len(set(reqs))} solve(s) for finite differences and discrete choices")
+    forward.prefetch(reqs)
+    # the effects the tangent alone sets up (no switch, no finite differences) need none of
+    # those solves: their first nonlinear refinement starts now beside them, the very requests
+    # `refine` makes, so no worker waits for a batch's slowest solve
+    early = {id(e): _single_candidate(e, data, forward, sens) for e in effects
+             if not e.choices and all(not _fd_params(e, s) for s in sens)}
+    forward.prefetch(first_refinement_requests(list(early.values()), data))
     forward.solve(reqs)                                             # one parallel batch
     choice_corrections(data, effects, forward, say)
-    cands = [_single_candidate(e, data, forward, sens) for e in effects]
+    cands = [early[id(e)] if id(e) in early else _single_candidate(e, data, forward, sens) for e in effects]
     say("fitting and refining with full nonlinear solves")
     refine(cands, data, forward)
     scored = [score(c, data, rms0, n_eff) for c in cands if c.failed is None]

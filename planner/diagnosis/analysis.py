@@ -479,10 +479,15 @@ def _proposals(active: list[Candidate], data: list[CaseData]) -> list:
     return out
 
 
+def _requests(proposals: list) -> list:
+    """The solves of `_proposals`: (case index, effect strings), candidate by candidate."""
+    return [(c, cand.strings(c, new)) for cand, g, new in proposals for c in g]
+
+
 def first_refinement_requests(cands: list[Candidate], data: list[CaseData]) -> list:
     """The solves `refine`'s first step will ask for (the same requests), for
     `Forward.prefetch`."""
-    return [(c, cand.strings(c, new)) for cand, g, new in _proposals(_refinable(cands, data), data) for c in g]
+    return _requests(_proposals(_refinable(cands, data), data))
 
 
 def refine(cands: list[Candidate], data: list[CaseData], forward) -> None:
@@ -492,8 +497,7 @@ def refine(cands: list[Candidate], data: list[CaseData], forward) -> None:
         proposals = _proposals(active, data)
         if not proposals:
             break
-        reqs = [(c, cand.strings(c, new)) for cand, g, new in proposals for c in g]
-        skins = iter(forward.solve(reqs))
+        skins = iter(forward.solve(_requests(proposals)))
         for cand, g, new in proposals:
             results = [next(skins) for _ in g]
             cand.solves += len(g)

@@ -405,6 +405,52 @@ def test_prefetched_solves_are_collected_once_with_the_same_results():
     assert np.all(local.solve([(0, ())])[0] == 0.0)
 
 
+def test_the_early_refinement_asks_for_exactly_the_solves_refine_collects(patient, forward):
+    """On a cluster the first refinement of an effect the tangent alone sets up (tone) starts
+    with the switch solves (`analysis.first_refinement_requests`): the very requests `refine`
+    then makes. A runner that solves at submission and records the order shows it: no request
+    is submitted twice, none is left uncollected, tone's first refinement is submitted before
+    the sliding switch's settings (which wait for the switch solves). The solves being the ones
+    `refine` asks for, the diagnosis is the one without the early start (the cluster against
+    this process: `test_diagnose_cli`)."""
+    from types import SimpleNamespace
+
+    from planner.diagnosis.forward import _solve_task
+
+    _diagnose(patient, forward, "tone", ["muscle_tone=0.15"], seed=1)      # makes and keeps the scan
+    scan = _RESULTS["tone_scan"]
+    submitted = []
+
+    class Cluster:                              # solves when submitted: futures already done
+        n_workers = 2
+
+        def submit(self, cases, requests, guesses=None):
+            guesses = guesses or {}
+            submitted.extend((id(cases[i]), s) for i, s in requests)
+            return [SimpleNamespace(key=len(submitted) + k, value=_solve_task(cases[i], s, guesses.get(i)))
+                    for k, (i, s) in enumerate(requests)]
+
+        def gather(self, futures, on_done=None):
+            for k in range(len(futures)):
+                if on_done:
+                    on_done(k)
+            return [f.value for f in futures]
+
+        def map(self, cases, requests, on_done=None, guesses=None):
+            return self.gather(self.submit(cases, requests, guesses), on_done)
+
+    fwd = Forward([patient], Cluster())
+    effects = ("sliding", "muscle_tone")
+    rec = diagnose_data([patient], [scan], forward=fwd, effect_names=effects, boundary=())["record"]
+    assert len(submitted) == len(set(submitted)) and not fwd._pending
+    # the plain solves of this case, in submission order (not the sensitivity requests)
+    mine = [s for key, s in submitted if key == id(patient) and all(isinstance(x, str) for x in s)]
+    tone = next(k for k, s in enumerate(mine) if any(x.startswith("muscle_tone=") for x in s))
+    hold = next(k for k, s in enumerate(mine) if any(x.startswith("sliding.hold=") for x in s))
+    assert tone < hold
+    assert rec["verdict"]["effect"] == "muscle_tone"
+
+
 # --------------------------------------------------------------------------- parts
 
 def test_effect_strings_parse_and_none_is_the_baseline(patient):

@@ -358,33 +358,44 @@ def test_a_baseline_with_a_contact_left_unmet_is_a_warning(patient, forward):
     assert fwd.contact_unmet(0, ("muscle_tone=0.5",)) == {}
 
 
+class _DoneCluster:
+    """A runner whose futures are done at submission: `result(cases, i, strings, guess)` gives
+    each; `submitted` records (case index, strings) in submission order."""
+
+    n_workers = 2
+
+    def __init__(self, result):
+        self.result = result
+        self.submitted = []
+
+    def submit(self, cases, requests, guesses=None):
+        from types import SimpleNamespace
+
+        guesses = guesses or {}
+        self.submitted.extend(requests)
+        return [SimpleNamespace(key=len(self.submitted) + k, value=self.result(cases, i, s, guesses.get(i)))
+                for k, (i, s) in enumerate(requests)]
+
+    def gather(self, futures, on_done=None):
+        for k in range(len(futures)):
+            if on_done:
+                on_done(k)
+        return [f.value for f in futures]
+
+    def map(self, cases, requests, on_done=None, guesses=None):
+        return self.gather(self.submit(cases, requests, guesses), on_done)
+
+
 def test_prefetched_solves_are_collected_once_with_the_same_results():
     """`Forward.prefetch` starts solves without waiting; the later `solve` collects them: each
     request is submitted once, and the results are those of solving when asked. A runner
     that cannot submit (solves in this process) makes prefetch a no-op."""
     from types import SimpleNamespace
 
-    submitted = []
-
-    class Cluster:                              # futures that are already done
-        n_workers = 2
-
-        def submit(self, cases, requests, guesses=None):
-            submitted.extend(requests)
-            return [SimpleNamespace(key=len(submitted) + k, value=(np.full((2, 3), float(i) + len(s)), {}))
-                    for k, (i, s) in enumerate(requests)]
-
-        def gather(self, futures, on_done=None):
-            for k in range(len(futures)):
-                if on_done:
-                    on_done(k)
-            return [f.value for f in futures]
-
-        def map(self, cases, requests, on_done=None, guesses=None):
-            return self.gather(self.submit(cases, requests, guesses), on_done)
-
+    cluster = _DoneCluster(lambda cases, i, s, guess: (np.full((2, 3), float(i) + len(s)), {}))
+    submitted = cluster.submitted
     cases = [SimpleNamespace(name="a"), SimpleNamespace(name="b")]
-    fwd = Forward(cases, Cluster())
+    fwd = Forward(cases, cluster)
     fwd.prefetch([(0, ()), (1, ("gravity=1",)), (0, ())])
     assert submitted == [(0, ()), (1, ("gravity=1",))]          # a repeated request once
     out = fwd.solve([(1, ("gravity=1",)), (0, ()), (1, ())])
@@ -413,38 +424,18 @@ def test_the_early_refinement_asks_for_exactly_the_solves_refine_collects(patien
     the sliding switch's settings (which wait for the switch solves). The solves being the ones
     `refine` asks for, the diagnosis is the one without the early start (the cluster against
     this process: `test_diagnose_cli`)."""
-    from types import SimpleNamespace
-
     from planner.diagnosis.forward import _solve_task
 
     _diagnose(patient, forward, "tone", ["muscle_tone=0.15"], seed=1)      # makes and keeps the scan
     scan = _RESULTS["tone_scan"]
-    submitted = []
-
-    class Cluster:                              # solves when submitted: futures already done
-        n_workers = 2
-
-        def submit(self, cases, requests, guesses=None):
-            guesses = guesses or {}
-            submitted.extend((id(cases[i]), s) for i, s in requests)
-            return [SimpleNamespace(key=len(submitted) + k, value=_solve_task(cases[i], s, guesses.get(i)))
-                    for k, (i, s) in enumerate(requests)]
-
-        def gather(self, futures, on_done=None):
-            for k in range(len(futures)):
-                if on_done:
-                    on_done(k)
-            return [f.value for f in futures]
-
-        def map(self, cases, requests, on_done=None, guesses=None):
-            return self.gather(self.submit(cases, requests, guesses), on_done)
-
-    fwd = Forward([patient], Cluster())
+    cluster = _DoneCluster(lambda cases, i, s, guess: _solve_task(cases[i], s, guess))
+    fwd = Forward([patient], cluster)
     effects = ("sliding", "muscle_tone")
     rec = diagnose_data([patient], [scan], forward=fwd, effect_names=effects, boundary=())["record"]
+    submitted = cluster.submitted
     assert len(submitted) == len(set(submitted)) and not fwd._pending
-    # the plain solves of this case, in submission order (not the sensitivity requests)
-    mine = [s for key, s in submitted if key == id(patient) and all(isinstance(x, str) for x in s)]
+    # the plain solves, in submission order (not the sensitivity requests)
+    mine = [s for _, s in submitted if all(isinstance(x, str) for x in s)]
     tone = next(k for k, s in enumerate(mine) if any(x.startswith("muscle_tone=") for x in s))
     hold = next(k for k, s in enumerate(mine) if any(x.startswith("sliding.hold=") for x in s))
     assert tone < hold

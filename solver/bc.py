@@ -16,10 +16,12 @@ import numpy as np
 
 from solver.errors import BoundaryConditionError
 
-__all__ = ["Prescribed", "LocalFrame", "fix", "ConstraintSet"]
+__all__ = ["Prescribed", "LocalFrame", "fix", "ConstraintSet", "ramped_values"]
 
 
-def _values(spec, nodes, load):
+def ramped_values(spec, nodes, load):
+    """The (k, 3) nodal values of `spec` at load fraction `load`: load * spec for a constant
+    (3,) or (k, 3) spec (a linear ramp), spec(load) for a callable (a non-linear path)."""
     if callable(spec):
         v = np.asarray(spec(load), dtype=float)
     else:
@@ -55,7 +57,7 @@ class Prescribed:
                 raise BoundaryConditionError("prescribed displacement is not finite")
 
     def values(self, load: float) -> np.ndarray:
-        return _values(self.displacement, self.nodes, load)
+        return ramped_values(self.displacement, self.nodes, load)
 
 
 def fix(nodes, components=(0, 1, 2)) -> Prescribed:
@@ -98,7 +100,7 @@ class LocalFrame:
         object.__setattr__(self, "fixed", fixed)
 
     def values(self, load: float) -> np.ndarray:
-        return _values(self.displacement, self.nodes, load)
+        return ramped_values(self.displacement, self.nodes, load)
 
 
 @dataclass

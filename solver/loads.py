@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from solver.element import gauss_hex, gauss_quad, hex8_shape, quad4_gradients, quad4_shape
-from solver.bc import _values
+from solver.bc import ramped_values
 from solver.errors import BoundaryConditionError
 from solver.terms import Term
 
@@ -198,7 +198,7 @@ class TangentialSupport(Term):
 
     def _slip(self, x, load):
         # the anchor ramps with the load as a constraint's displacement does
-        return np.asarray(x, float)[self.nodes] - self.X[self.nodes] - _values(self.anchor, self.nodes, load)
+        return np.asarray(x, float)[self.nodes] - self.X[self.nodes] - ramped_values(self.anchor, self.nodes, load)
 
     def assemble(self, x, load):
         fn = self.stiffness[:, None] * np.einsum("kij,kj->ki", self._P, self._slip(x, load))

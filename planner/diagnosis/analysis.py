@@ -10,8 +10,11 @@ solved outright; the chosen switch's settings (how freely the tissue slides, `Ef
 are solved at each of their values and the one most likely under noise + discrepancy is kept. Parameters the data cannot pin down
 (Fisher information, `planner.diagnosis.fit`) stay at "none". The identifiable ones are fitted
 by bounded Gauss-Newton on the linearised gap, then refined by full nonlinear solves at the
-fitted values (Levenberg-Marquardt style: a step that does not lower the weighted residual is
-halved; the Jacobian follows by Broyden updates), at most `MAX_REFINEMENTS` solves per case.
+fitted values, at most `MAX_REFINEMENTS` solves per case: a step that lowers the weighted
+residual moves the anchor, whose Jacobian is then the model's tangent there (the solve brings
+it), or the Broyden update along the step where a parameter has no tangent; a step that does
+not is refused, and the next one is halved (with the tangent) or follows the Broyden-updated
+secant (without it) (`refine`).
 
 The model is never exact: the gap carries a smooth model-form discrepancy besides the scan
 noise. Each effect is therefore judged against noise + discrepancy (`planner.diagnosis.
@@ -93,6 +96,7 @@ import numpy as np
 from planner.diagnosis import discrepancy, fit
 from planner.diagnosis.gap import correlation_length
 from planner.diagnosis.effects import Effect, Parameter, effect_strings, stiffness_effect
+from planner.diagnosis.forward import SENSITIVITIES
 
 __all__ = ["CaseData", "Candidate", "analyse", "alternatives", "surface_confounds", "confound_warning", "confound_between",
            "SurfaceConfound", "CONFOUNDED_ON_SURFACE",
@@ -209,6 +213,11 @@ class Candidate:
     # per case kappa J_ref where every parameter has a second mesh's tangent and no discrete
     # choice shares the solves (`corrected`); None otherwise
     KR: list = field(default_factory=list)
+    # per case: every parameter has the model's tangent there (the refinement's solves then
+    # bring the tangent at their values, `refine`)
+    tangent: list = field(default_factory=list)
+    # per case group (its first case index): the factor of the next refinement step (`refine`)
+    step: dict = field(default_factory=dict)
     free: np.ndarray | None = None
     se: np.ndarray | None = None
     failed: str | None = None
@@ -238,6 +247,22 @@ class Candidate:
 
     def strings(self, c: int, theta: np.ndarray | None = None) -> tuple[str, ...]:
         return effect_strings(self.values(c, theta))
+
+    def has_tangent(self, c: int) -> bool:
+        return bool(self.tangent) and bool(self.tangent[c]) and len(self.params) > 0
+
+    def jacobian_at(self, c: int, d: "CaseData", skin: np.ndarray, sens: dict, theta: np.ndarray) -> np.ndarray:
+        """dr/dtheta of `corrected` at theta from the diagnosis mesh's tangent there, `sens`
+        {key: d skin/d value} at the solve `skin`: d value/d theta is the value for a factor
+        (theta = log value), 1 otherwise; the mesh corrections are those of the origin (the
+        reference's response is known there only)."""
+        Jd = np.stack([d.gap.linearised(skin, sens[p.key]) * (p.value(t) if p.log else 1.0)
+                       for p, t in zip(self.params, np.asarray(theta, float))], axis=1)
+        if self.KR and self.KR[c] is not None:
+            return (1.0 + float(d.mesh_coef)) * Jd + self.KR[c]
+        if self.C and np.any(self.C[c]):
+            return Jd + self.C[c]
+        return Jd
 
     def corrected(self, c: int, d: "CaseData", r: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """The gap r of a full solve at theta on case d's diagnosis mesh extrapolated to the
@@ -355,6 +380,7 @@ def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -
             methods.add("finite differences")
         cand.J.append(J + C)
         cand.C.append(C)
+        cand.tangent.append(not fd)
         exact = not e.choices and len(e.parameters) > 0 and all(p.key in d.mesh_jac for p in e.parameters)
         cand.KR.append(C - float(d.mesh_coef) * J if exact else None)      # kappa J_ref = C + kappa J_d
         cand.theta.append(cand.origin.copy())
@@ -467,11 +493,15 @@ def _refinable(cands: list[Candidate], data: list[CaseData]) -> list[Candidate]:
 
 def _proposals(active: list[Candidate], data: list[CaseData]) -> list:
     """The next Gauss-Newton step of each candidate and case group, (candidate, cases, theta),
-    where it moves a parameter by more than 2 % of its range."""
+    shortened by the group's step factor (`refine`), where it moves a parameter by more than 2 %
+    of its range."""
     out = []
     for cand in active:
         for g in _groups(cand):
             new = _fit_theta(cand, data, g)
+            step = cand.step.get(g[0], 1.0)
+            if step < 1.0:
+                new = np.clip(cand.theta[g[0]] + step * (new - cand.theta[g[0]]), cand.lower, cand.upper)
             rng = cand.upper - cand.lower
             if np.all(np.abs(new - cand.theta[g[0]]) <= 0.02 * rng):
                 continue
@@ -479,9 +509,18 @@ def _proposals(active: list[Candidate], data: list[CaseData]) -> list:
     return out
 
 
+def _request(cand: Candidate, c: int, theta: np.ndarray) -> tuple:
+    """The solve of case c at theta: with the tangent of every parameter there where the
+    model gives it at the origin (`Candidate.tangent`), else the plain solve."""
+    strings = cand.strings(c, theta)
+    if cand.has_tangent(c):
+        return (c, (SENSITIVITIES, tuple(p.key for p in cand.params), strings))
+    return (c, strings)
+
+
 def _requests(proposals: list) -> list:
-    """The solves of `_proposals`: (case index, effect strings), candidate by candidate."""
-    return [(c, cand.strings(c, new)) for cand, g, new in proposals for c in g]
+    """The solves of `_proposals`, candidate by candidate (`_request`)."""
+    return [_request(cand, c, new) for cand, g, new in proposals for c in g]
 
 
 def first_refinement_requests(cands: list[Candidate], data: list[CaseData]) -> list:
@@ -491,27 +530,48 @@ def first_refinement_requests(cands: list[Candidate], data: list[CaseData]) -> l
 
 
 def refine(cands: list[Candidate], data: list[CaseData], forward) -> None:
-    """Bounded Gauss-Newton steps with full solves, all candidates' solves batched together."""
+    """Bounded Gauss-Newton steps with full solves, all candidates' solves batched together.
+
+    A step that lowers the weighted residual moves the anchor there. Its Jacobian is then the
+    model's tangent at the new anchor where every parameter has one (the solve brings it:
+    `_request`), a Gauss-Newton step on the exact local model; else the Broyden update along
+    the step. A step that does not lower the residual, or cannot be solved, leaves the anchor;
+    with the tangent the next step is then halved (the response between the two points is not
+    the anchor's linear model: a contact that closes or a fold that forms on the way can make
+    the far point another equilibrium branch, whose secant would mislead every later step and
+    the held-out prediction, which uses the anchor's Jacobian), without it the Jacobian takes
+    the Broyden update along the refused step, the next step following the secant."""
     active = _refinable(cands, data)
     for _ in range(MAX_REFINEMENTS):
         proposals = _proposals(active, data)
         if not proposals:
             break
-        skins = iter(forward.solve(_requests(proposals)))
+        results = iter(forward.solve(_requests(proposals)))
         for cand, g, new in proposals:
-            results = [next(skins) for _ in g]
+            got = [next(results) for _ in g]
             cand.solves += len(g)
-            if not all(_ok(s) for s in results):
+            skins = [out[0] if cand.has_tangent(c) else out for c, out in zip(g, got)]
+            if not all(_ok(s) for s in skins):
+                cand.step[g[0]] = 0.5 * cand.step.get(g[0], 1.0)
                 continue            # that value cannot be solved: keep the anchor
-            rs = [cand.corrected(c, data[c], data[c].gap.distances(s), new) for c, s in zip(g, results)]
+            rs = [cand.corrected(c, data[c], data[c].gap.distances(s), new) for c, s in zip(g, skins)]
             old = sum(_rss(data[c], cand.anchor_r[c]) for c in g)
-            newrss = sum(_rss(data[c], r) for c, r in zip(g, rs))
-            for c, r in zip(g, rs):
+            better = sum(_rss(data[c], r) for c, r in zip(g, rs)) < old
+            exact = all(cand.has_tangent(c) and isinstance(out[1], dict) for c, out in zip(g, got))
+            for c, r, s, out in zip(g, rs, skins, got):
                 dtheta = new - cand.theta[c]
-                cand.J[c] = fit.broyden(cand.J[c], dtheta, r - cand.anchor_r[c])
-                if newrss < old:
+                if better and exact:
+                    cand.J[c] = cand.jacobian_at(c, data[c], s, out[1], new)
+                elif better or not cand.has_tangent(c):
+                    # no tangent at the new point (none asked, or not available): the secant
+                    cand.J[c] = fit.broyden(cand.J[c], dtheta, r - cand.anchor_r[c])
+                if better:
                     cand.theta[c] = new.copy()
                     cand.anchor_r[c] = r
+            if better:
+                cand.step[g[0]] = 1.0
+            elif cand.has_tangent(g[0]):
+                cand.step[g[0]] = 0.5 * cand.step.get(g[0], 1.0)
 
 
 # --------------------------------------------------------------------------- held-out
@@ -893,6 +953,7 @@ def _pair(a: Candidate, b: Candidate, data: list[CaseData], b_choices: list | No
         ms = [m for m in (a.M[c] if a.M else None, mb) if m is not None]
         cand.M.append(sum(ms) if ms else None)
         cand.anchor_r.append(a.anchor_r[c])
+        cand.tangent.append(bool(a.tangent) and bool(b.tangent) and a.tangent[c] and b.tangent[c])
     cand.sensitivity = a.sensitivity
     return cand
 

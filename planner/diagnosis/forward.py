@@ -346,7 +346,11 @@ class Forward:
             for r, out in zip(todo, results):
                 if r[1] and r[1][0] == SENSITIVITIES:
                     out, unmet = out[:3], out[3]
-                    self._unmet_of((r[0], tuple(r[1][2]) if len(r[1]) > 2 else ()), unmet)
+                    # the skin is the plain solve's of the same effects: a later plain request
+                    # takes it from the store
+                    plain = (r[0], tuple(r[1][2]) if len(r[1]) > 2 else ())
+                    self._unmet_of(plain, unmet)
+                    self._store.setdefault(self._key(plain), out[0])
                 else:
                     out, unmet = out
                 self._unmet_of(r, unmet)
@@ -362,10 +366,9 @@ class Forward:
 
     def sensitivities(self, names_per_case: list[tuple[str, ...]]) -> list:
         """Per case (baseline skin, {name: d skin/dp} or reason) in one parallel batch; the
-        baseline skins are stored as the baseline solves."""
+        baseline skins are stored as the baseline solves (`solve`)."""
         out = self.solve(self.sensitivity_requests(names_per_case))
         for i, (skin, _, u) in enumerate(out):
-            self._store.setdefault(self._key((i, ())), skin)
             if u is not None and not isinstance(skin, str):
                 self._guess[i] = u
         return [(skin, sens) for skin, sens, _ in out]
@@ -373,11 +376,9 @@ class Forward:
     def sensitivities_at(self, requests: list[tuple[int, tuple[str, ...]]], names_per_request: list) -> list:
         """Per (case index, effect strings) request the (skin, {name: d skin/dp} or reason) of
         the prediction with those effects, in one parallel batch from the baselines'
-        displacements; the skins are stored as the plain solves of the same effects."""
+        displacements; the skins are stored as the plain solves of the same effects (`solve`)."""
         reqs = [(i, (SENSITIVITIES, tuple(n), tuple(s))) for (i, s), n in zip(requests, names_per_request)]
         out = self.solve(reqs)
-        for (i, s), (skin, _, _) in zip(requests, out):
-            self._store.setdefault(self._key((i, tuple(s))), skin)
         return [(skin, sens) for skin, sens, _ in out]
 
     def _unmet_of(self, r, unmet: dict) -> None:

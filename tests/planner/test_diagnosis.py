@@ -416,6 +416,31 @@ def test_prefetched_solves_are_collected_once_with_the_same_results():
     assert np.all(local.solve([(0, ())])[0] == 0.0)
 
 
+def test_a_solve_with_sensitivities_serves_the_plain_solve_of_the_same_effects():
+    """A sensitivity request (at the baseline or with effects, as a refinement's solve asks)
+    stores its skin as the plain solve of the same effects: asking for that plain solve later
+    submits nothing more, and the contacts it left unmet are those of the plain solve too."""
+    from types import SimpleNamespace
+
+    from planner.diagnosis.forward import SENSITIVITIES
+
+    def result(cases, i, s, guess):
+        strings = s[2] if len(s) > 2 else ()
+        skin = np.full((2, 3), float(i) + len(strings))
+        return (skin, {"gravity": np.ones((2, 3))}, None, {"lip_contact": 0.3} if strings else {})
+
+    cluster = _DoneCluster(result)
+    cases = [SimpleNamespace(name="a")]
+    fwd = Forward(cases, cluster)
+    (skin, sens, _), = fwd.solve([(0, (SENSITIVITIES, ("gravity",), ("gravity=1",)))])    # as `refine` asks
+    assert isinstance(sens, dict)
+    fwd.sensitivities([("gravity",)])
+    n = len(cluster.submitted)
+    plain = fwd.solve([(0, ("gravity=1",)), (0, ())])
+    assert len(cluster.submitted) == n == 2
+    assert np.array_equal(plain[0], skin) and float(plain[1][0, 0]) == 0.0
+    assert fwd.contact_unmet(0, ("gravity=1",)) == {"lip_contact": 0.3}
+
 def test_the_early_refinement_asks_for_exactly_the_solves_refine_collects(patient, forward):
     """On a cluster the first refinement of an effect the tangent alone sets up (tone) starts
     with the switch solves (`analysis.first_refinement_requests`): the very requests `refine`

@@ -253,10 +253,9 @@ class Candidate:
 
     def jacobian_at(self, c: int, d: "CaseData", skin: np.ndarray, sens: dict, theta: np.ndarray) -> np.ndarray:
         """dr/dtheta of `corrected` at theta from the diagnosis mesh's tangent there, `sens`
-        {key: d skin/d value} at the solve `skin`: d value/d theta is the value for a factor
-        (theta = log value), 1 otherwise; the mesh corrections are those of the origin (the
-        reference's response is known there only)."""
-        Jd = np.stack([d.gap.linearised(skin, sens[p.key]) * (p.value(t) if p.log else 1.0)
+        {key: d skin/d value} at the solve `skin` (per theta by `Parameter.dvalue`); the mesh
+        corrections are those of the origin (the reference's response is known there only)."""
+        Jd = np.stack([d.gap.linearised(skin, sens[p.key]) * p.dvalue(t)
                        for p, t in zip(self.params, np.asarray(theta, float))], axis=1)
         if self.KR and self.KR[c] is not None:
             return (1.0 + float(d.mesh_coef)) * Jd + self.KR[c]
@@ -361,10 +360,10 @@ def _single_candidate(e: Effect, data: list[CaseData], forward, tangent: list) -
         for k, p in enumerate(e.parameters):
             if k not in fd:
                 # d r / d theta = d r / d value * d value / d theta (value = exp(theta) for factors)
-                J[:, k] = d.gap.linearised(skin0, tangent[c][p.key]) * (p.none if p.log else 1.0)
+                J[:, k] = d.gap.linearised(skin0, tangent[c][p.key]) * p.dvalue(p.origin)
                 methods.add("tangent")
                 if p.key in d.mesh_jac:
-                    C[:, k] = d.mesh_jac[p.key] * (p.none if p.log else 1.0)
+                    C[:, k] = d.mesh_jac[p.key] * p.dvalue(p.origin)
         for k, a, b in _fd_points(e, fd):
             rs = []
             for off in (a, b):

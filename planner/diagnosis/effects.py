@@ -41,6 +41,11 @@ class Parameter:
     def value(self, coordinate: float) -> float:
         return float(np.exp(coordinate)) if self.log else float(coordinate)
 
+    def dvalue(self, coordinate: float) -> float:
+        """d value / d coordinate at `coordinate`: the chain rule's factor that turns a
+        sensitivity per unit value into one per unit of the fit coordinate."""
+        return self.value(coordinate) if self.log else 1.0
+
     @property
     def bounds(self) -> tuple[float, float]:
         return self.coordinate(self.lower), self.coordinate(self.upper)

@@ -441,6 +441,7 @@ def test_a_solve_with_sensitivities_serves_the_plain_solve_of_the_same_effects()
     assert np.array_equal(plain[0], skin) and float(plain[1][0, 0]) == 0.0
     assert fwd.contact_unmet(0, ("gravity=1",)) == {"lip_contact": 0.3}
 
+
 def test_the_early_refinement_asks_for_exactly_the_solves_refine_collects(patient, forward):
     """On a cluster the first refinement of an effect the tangent alone sets up (tone) starts
     with the switch solves (`analysis.first_refinement_requests`): the very requests `refine`
@@ -889,6 +890,34 @@ def test_refinement_steps_take_the_tangent_at_the_new_anchor():
     analysis.refine([secant], [d], fwd)
     ts = float(secant.theta[0][0])
     assert abs(ts - 0.0798) < 1e-3 and abs(ts - best) > 0.1 * best
+
+
+def test_the_tangent_at_a_new_anchor_is_the_derivative_of_the_mesh_corrected_gap():
+    """`Candidate.jacobian_at` is d/dtheta of `Candidate.corrected` (the gap extrapolated to
+    the converged mesh) at a point away from the origin, with the second mesh's tangent (the
+    solve's own change scaled by 1 + kappa, plus kappa J_ref) and without it (the linear mesh
+    correction C added): against central differences of `corrected` over full solves.
+    Tolerance 1e-4 relative: the step h = 1e-4 leaves a truncation error of h^2 a3 / (6 a1)
+    = h^2 / (6 tau^2), about 2e-7 relative, on this response (a1, a3 its first and third
+    derivatives, tau = 0.1), and rounding in the differences is below 1e-10."""
+    analysis, effect, d, fwd, phi, slope, _ = _saturating_case()
+    d.mesh_jac = {"tone": 0.3 * np.cos(np.linspace(0.0, np.pi, len(phi)))}
+    d.mesh_coef = 0.5
+    t, h = 0.04, 1e-4
+
+    def gap_at(theta):
+        return np.asarray(fwd.solve([(0, (f"tone={theta:.10g}",))])[0], float)
+
+    for with_reference in (True, False):
+        cand = analysis._single_candidate(effect, [d], fwd, [{"tone": slope(0.0) * phi}])
+        assert (cand.KR[0] is not None) and np.any(cand.C[0])
+        if not with_reference:
+            cand.KR = [None]
+        skin, sens, _ = fwd.solve([(0, ("sensitivities", ("tone",), (f"tone={t:.10g}",)))])[0]
+        J = cand.jacobian_at(0, d, skin, sens, np.array([t]))
+        fd = (cand.corrected(0, d, gap_at(t + h), np.array([t + h]))
+              - cand.corrected(0, d, gap_at(t - h), np.array([t - h]))) / (2.0 * h)
+        assert np.allclose(J[:, 0], fd, rtol=1e-4, atol=1e-4 * np.abs(fd).max())
 
 
 def test_a_refused_refinement_step_is_halved_where_the_tangent_is_known():

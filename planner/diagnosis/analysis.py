@@ -9,9 +9,13 @@ one-sided second order at a bound), and each discrete choice (a switch such as `
 solved outright; the chosen switch's settings (how freely the tissue slides, `Effect.settings`)
 are solved at each of their values and the one most likely under noise + discrepancy is kept. Parameters the data cannot pin down
 (Fisher information, `planner.diagnosis.fit`) stay at "none". The identifiable ones are fitted
-by bounded Gauss-Newton on the linearised gap, then refined by full nonlinear solves at the
+by bounded Gauss-Newton on the linearised gap, under their Gaussian priors where they have one
+(`Candidate.prior_sd`: a bone correction's plausible range, or the accuracy of the measured
+movements it is a remainder on, `Effect.measurement`; maximum a posteriori, the prior's term
+weighed against the data by the information one unit of the weighted residual carries under
+the scan noise, `prior_weight`), then refined by full nonlinear solves at the
 fitted values, at most `MAX_REFINEMENTS` solves per case: a step that lowers the weighted
-residual moves the anchor, whose Jacobian is then the model's tangent there (the solve brings
+residual (with the prior's term) moves the anchor, whose Jacobian is then the model's tangent there (the solve brings
 it), or the Broyden update along the step where a parameter has no tangent; a step that does
 not is refused, and the next one is halved (with the tangent) or follows the Broyden-updated
 secant (without it) (`refine`).
@@ -23,7 +27,8 @@ the face, whose amplitudes and length are estimated by maximum likelihood under 
 Kennedy & O'Hagan 2001), and its reported
 values are the generalised least-squares estimates under that error model about the refined
 fit (Brynjarsdottir & O'Hagan 2014: ordinary least squares lets the parameters absorb the
-discrepancy). Effects are ranked by held-out shrinkage of the RMS gap: with one case, spatial
+discrepancy), under the parameters' priors where they have one (the posterior's mode and
+spread; the evidence keeps the data's likelihood there). Effects are ranked by held-out shrinkage of the RMS gap: with one case, spatial
 cross-validation over the face regions (each region's gap predicted by the parameters fitted on
 all other regions); with several cases, parameters shared by every patient (stiffness, posture)
 are fitted leaving each case out in turn and case-specific ones per case with spatial
@@ -248,6 +253,27 @@ class Candidate:
     def strings(self, c: int, theta: np.ndarray | None = None) -> tuple[str, ...]:
         return effect_strings(self.values(c, theta))
 
+    def prior_sd(self, c: int) -> np.ndarray:
+        """Per parameter the standard deviation of its Gaussian prior about "none" in case c
+        (fit coordinate, inf: flat; `Parameter.prior`, narrowed where the case's choices hold
+        the parameter's effect's measurement, `Effect.measured`)."""
+        choice = self.choices[c] if self.choices else ()
+        measured = {p.key for e in self.effects if e.measured(choice) for p in e.parameters}
+        return np.array([p.prior(p.key in measured) for p in self.params], float)
+
+    def has_prior(self, c: int) -> bool:
+        """Has a free parameter a Gaussian prior in case c?"""
+        return self.free is not None and bool(np.isfinite(self.prior_sd(c)[self.free]).any())
+
+    def penalty(self, c: int, theta: np.ndarray, weight: float) -> float:
+        """The prior's term of case c's least-squares objective at theta: `weight` sum
+        ((theta - none) / sd)^2 over the free parameters (`fit.linear_fit`)."""
+        if self.free is None or not self.params:
+            return 0.0
+        sd = self.prior_sd(c)[self.free]
+        z = (np.asarray(theta, float) - self.origin)[self.free] / sd
+        return float(weight * np.sum(z[np.isfinite(sd)] ** 2))
+
     def has_tangent(self, c: int) -> bool:
         return bool(self.tangent) and bool(self.tangent[c]) and len(self.params) > 0
 
@@ -465,8 +491,23 @@ def _identify(cand: Candidate, data: list[CaseData]) -> None:
     cand.free = free
 
 
+def prior_weight(data: list[CaseData], cases: list[int], masks=None) -> float:
+    """The weight of the prior's term in the least-squares objective sum w r^2 over `cases`
+    (`masks`: the points each keeps): sigma^2 W / n_eff, the weighted squared residual that one
+    unit of Fisher information is worth under the scan noise (`fit.standard_errors`: the noise
+    floor over its own independent samples, pooled as `_identify` pools them), so that a
+    parameter's prior weighs against the data as its standard error does."""
+    masks = [None] * len(cases) if masks is None else masks
+    W = sum(float(np.sum(data[c].gap.weights if m is None else data[c].gap.weights[m])) for c, m in zip(cases, masks))
+    full = sum(float(np.sum(data[c].gap.weights)) for c in cases)
+    n = sum(data[c].gap.noise_n_eff() for c in cases) * W / max(full, 1e-300)
+    sigma = max(data[c].gap.noise_floor_mm for c in cases)
+    return float(sigma ** 2 * W / max(n, 1e-300))
+
+
 def _fit_theta(cand: Candidate, data: list[CaseData], cases: list[int], masks=None) -> np.ndarray:
-    """Linearised bounded fit about the anchors over `cases` (shared parameters) or of one case."""
+    """Linearised bounded fit about the anchors over `cases` (shared parameters) or of one case,
+    under the parameters' priors (`Candidate.prior_sd`, those of the first case)."""
     theta_a = cand.theta[cases[0]]
     if not cand.free.any():
         return theta_a.copy()
@@ -475,7 +516,10 @@ def _fit_theta(cand: Candidate, data: list[CaseData], cases: list[int], masks=No
     r = np.concatenate([cand.anchor_r[c] if m is None else cand.anchor_r[c][m] for c, m in zip(cases, masks)])
     J = np.concatenate([cand.J[c] if m is None else cand.J[c][m] for c, m in zip(cases, masks)])
     w = np.concatenate([data[c].gap.weights if m is None else data[c].gap.weights[m] for c, m in zip(cases, masks)])
-    return fit.linear_fit(r, J, w, theta_a, cand.lower, cand.upper, cand.free, fixed_value=cand.origin)
+    if not cand.has_prior(cases[0]):
+        return fit.linear_fit(r, J, w, theta_a, cand.lower, cand.upper, cand.free, fixed_value=cand.origin)
+    return fit.linear_fit(r, J, w, theta_a, cand.lower, cand.upper, cand.free, fixed_value=cand.origin,
+                          prior_sd=cand.prior_sd(cases[0]), prior_weight=prior_weight(data, cases, masks))
 
 
 def _groups(cand: Candidate) -> list[list[int]]:
@@ -531,7 +575,8 @@ def first_refinement_requests(cands: list[Candidate], data: list[CaseData]) -> l
 def refine(cands: list[Candidate], data: list[CaseData], forward) -> None:
     """Bounded Gauss-Newton steps with full solves, all candidates' solves batched together.
 
-    A step that lowers the weighted residual moves the anchor there. Its Jacobian is then the
+    A step that lowers the weighted residual, with the prior's term (`Candidate.penalty`),
+    moves the anchor there. Its Jacobian is then the
     model's tangent at the new anchor where every parameter has one (the solve brings it:
     `_request`), a Gauss-Newton step on the exact local model; else the Broyden update along
     the step. A step that does not lower the residual, or cannot be solved, leaves the anchor;
@@ -554,8 +599,9 @@ def refine(cands: list[Candidate], data: list[CaseData], forward) -> None:
                 cand.step[g[0]] = 0.5 * cand.step.get(g[0], 1.0)
                 continue            # that value cannot be solved: keep the anchor
             rs = [cand.corrected(c, data[c], data[c].gap.distances(s), new) for c, s in zip(g, skins)]
-            old = sum(_rss(data[c], cand.anchor_r[c]) for c in g)
-            better = sum(_rss(data[c], r) for c, r in zip(g, rs)) < old
+            lam = prior_weight(data, g) if cand.has_prior(g[0]) else 0.0
+            old = sum(_rss(data[c], cand.anchor_r[c]) for c in g) + cand.penalty(g[0], cand.theta[g[0]], lam)
+            better = sum(_rss(data[c], r) for c, r in zip(g, rs)) + cand.penalty(g[0], new, lam) < old
             exact = all(cand.has_tangent(c) and isinstance(out[1], dict) for c, out in zip(g, got))
             for c, r, s, out in zip(g, rs, skins, got):
                 dtheta = new - cand.theta[c]
@@ -748,8 +794,10 @@ def model_form_errors(cand: Candidate, data: list[CaseData], fits: list,
                       nuisance: list | None = None) -> list[np.ndarray]:
     """Per case the standard errors of the reported estimates (fit coordinates; NaN for the
     parameters held at "none") under the error model each was fitted with: sqrt(diag(F^-1)),
-    F = J^T Sigma^-1 J with Sigma = noise + discrepancy (`discrepancy.ErrorModel`), summed over
-    the cases for parameters shared by every patient. The identifiability test
+    F = J^T Sigma^-1 J + P^-1 with Sigma = noise + discrepancy (`discrepancy.ErrorModel`),
+    summed over the cases for parameters shared by every patient, and P the parameters' prior
+    covariance (`Candidate.prior_sd`; 0 precision where flat): the posterior's spread, which a
+    measured effect (`Effect.measurement`) holds within the measurement's accuracy. The identifiability test
     (`_identify`) asks whether the scan noise alone could pin a parameter; these ask how well
     the data pin it once the model's own form error is counted too, the spread a user should
     read on a fitted value: a correlated discrepancy leaves far fewer independent samples than
@@ -762,6 +810,9 @@ def model_form_errors(cand: Candidate, data: list[CaseData], fits: list,
         return out
     nuisance = nuisance or [None] * len(data)
     infos = [d.error.information(cand.J[c][:, free], fits[c], nuisance[c]) for c, d in enumerate(data)]
+    # the parameters' priors add their precision (once for a shared parameter)
+    for c in range(1 if cand.shared and len(data) > 1 else len(data)):
+        infos[c] = infos[c] + np.diag(1.0 / cand.prior_sd(c)[free] ** 2)
     if cand.shared and len(data) > 1:
         se = fit.information_errors(sum(infos))
         for o in out:
@@ -899,7 +950,7 @@ def heldout_lpd(cand: Candidate | None, data: list[CaseData], fits: list, heldou
             out.append(d.error.heldout_lpd(r, folds, f))
         else:
             out.append(d.error.heldout_lpd(cand.anchor_r[c], folds, f, cand.J[c], cand.theta[c],
-                                           cand.lower, cand.upper, cand.free, cand.origin))
+                                           cand.lower, cand.upper, cand.free, cand.origin, cand.prior_sd(c)))
     return np.concatenate(out)
 
 
@@ -920,7 +971,7 @@ def evidence(cand: Candidate | None, data: list[CaseData]) -> tuple[list, float]
             f.k = 0 if c else int(free.sum()) + n_choice * len(data)
         else:
             f = d.error.fit(cand.anchor_r[c], cand.J[c], cand.theta[c], cand.lower, cand.upper, free,
-                            extra_k=n_choice)
+                            extra_k=n_choice, prior_sd=cand.prior_sd(c), origin=cand.origin)
         fits.append(f)
     loglik = sum(f.loglik for f in fits)
     k = sum(f.k for f in fits)

@@ -308,12 +308,15 @@ class ErrorModel:
         return (fit.sigma_d ** 2 * K + fit.sigma_long ** 2 * (B @ B.T)
                 + (N * self._nsd2) @ N.T + self.sigma_n ** 2 * np.eye(int(sel.sum())))
 
-    def _profiles(self, zr, zJ, C, v, longs, lo, hi):
-        """(log L, x, s_L, mesh-error coefficients) at the best long-scale amplitude among
-        `longs`, for fixed s_d and l: bounded GLS of theta (offset x from the anchor) with the
-        long-scale and mesh-error coefficients under their Gaussian priors, in the normal
-        equations of the whitened system (module text; the eigenbasis of K_l makes the
-        whitening diagonal). The columns of C are the long-scale basis, then the mesh error."""
+    def _profiles(self, zr, zJ, C, v, longs, lo, hi, prec=None, centre=None):
+        """(log posterior, x, s_L, mesh-error coefficients, log L) at the best long-scale
+        amplitude among `longs`, for fixed s_d and l: bounded GLS of theta (offset x from the
+        anchor) with the long-scale and mesh-error coefficients under their Gaussian priors, in
+        the normal equations of the whitened system (module text; the eigenbasis of K_l makes
+        the whitening diagonal). The columns of C are the long-scale basis, then the mesh error.
+        `prec`: per parameter the precision of its Gaussian prior (0: flat), about the offset
+        -`centre` (the anchor's distance from the prior's centre is `centre`); the log
+        posterior then holds the prior's term, log L the data's alone."""
         w = 1.0 / v
         k = zJ.shape[1] if zJ is not None else 0
         G = np.concatenate([zJ if k else np.zeros((len(zr), 0)), -C], axis=1)
@@ -321,6 +324,11 @@ class ErrorModel:
         H0 = G.T @ Gw
         g0 = Gw.T @ zr
         q0 = float(zr @ (zr * w))
+        if prec is not None and k:
+            # (x + centre)^T P (x + centre) added to the quadratic
+            H0[:k, :k] += np.diag(prec)
+            g0[:k] += prec * centre
+            q0 += float(centre @ (prec * centre))
         base = float(np.sum(np.log(v))) + len(zr) * np.log(2 * np.pi)
         q_mesh = self.N.shape[1]
         m = C.shape[1] - q_mesh
@@ -347,24 +355,36 @@ class ErrorModel:
             else:
                 q, x, nu = q0, np.zeros(0), np.zeros(0)
             ll = -0.5 * (q + logdet + base)
+            prior = 0.0 if prec is None or not k else float(np.sum(prec * (x + centre) ** 2))
             if best is None or ll > best[0]:
-                best = (ll, x, float(s_l), nu)
+                best = (ll, x, float(s_l), nu, ll + 0.5 * prior)
         return best
 
     def fit(self, r: np.ndarray, J: np.ndarray | None = None, theta_a: np.ndarray | None = None,
-            lower=None, upper=None, free=None, extra_k: int = 0, long_scale: bool = True) -> Fit:
+            lower=None, upper=None, free=None, extra_k: int = 0, long_scale: bool = True,
+            prior_sd: np.ndarray | None = None, origin: np.ndarray | None = None) -> Fit:
         """Profile maximum of log N(r + J (theta - theta_a); 0, Sigma) over the free parameters
         within bounds, s_d, l and s_L; `r` and `J` on all scan points (the subsample is taken
-        here). k = free parameters + `extra_k` (discrete choices). `long_scale` False: s_L = 0."""
+        here). k = free parameters + `extra_k` (discrete choices). `long_scale` False: s_L = 0.
+        `prior_sd`: per parameter the standard deviation of a Gaussian prior about `origin`
+        (inf: flat); the maximum is then the posterior's (theta and the amplitudes together),
+        and `Fit.loglik` the data's log likelihood there."""
         r = np.asarray(r, float)[self.idx]
         nfree = 0
         lo = hi = np.zeros(0)
+        prec = centre = None
         if J is not None and free is not None and np.any(free):
             free = np.asarray(free, bool)
             Jf = np.asarray(J, float)[self.idx][:, free]
             nfree = int(free.sum())
             lo = np.asarray(lower, float)[free] - theta_a[free]
             hi = np.asarray(upper, float)[free] - theta_a[free]
+            if prior_sd is not None:
+                sd = np.asarray(prior_sd, float)[free]
+                prec = np.where(np.isfinite(sd) & (sd > 0), 1.0 / np.where(sd > 0, sd, 1.0) ** 2, 0.0)
+                centre = (np.asarray(theta_a, float) - np.asarray(origin, float))[free]
+                if not prec.any():
+                    prec = centre = None
         scale = float(np.sqrt(np.mean(r * r))) or self.sigma_n
         longs = self.long_amplitudes if long_scale else np.zeros(1)
         best = None
@@ -374,13 +394,13 @@ class ErrorModel:
             here = -np.inf
             for s_d in scale * _AMPLITUDES:
                 v = s_d * s_d * lam + self.sigma_n ** 2
-                top = self._profiles(zr, zJ, UB, v, scale * longs, lo, hi)
+                top = self._profiles(zr, zJ, UB, v, scale * longs, lo, hi, prec, centre)
                 if best is None or top[0] > best[0]:
-                    best = (top[0], s_d, ell, top[1], top[2], top[3], rho)
+                    best = (top[0], s_d, ell, top[1], top[2], top[3], rho, top[4])
                 if top[0] < here - 1e-9:
                     break               # past this length's maximum in s_d (unimodal)
                 here = top[0]
-        ll, s_d, ell, x, s_l, nu, rho = best
+        _, s_d, ell, x, s_l, nu, rho, ll = best
         theta = None
         if theta_a is not None:
             theta = np.array(theta_a, float)
@@ -445,10 +465,11 @@ class ErrorModel:
 
     def heldout_lpd(self, r: np.ndarray, folds: list[np.ndarray], fit: Fit, J: np.ndarray | None = None,
                     theta_a: np.ndarray | None = None, lower=None, upper=None, free=None,
-                    origin: np.ndarray | None = None) -> np.ndarray:
+                    origin: np.ndarray | None = None, prior_sd: np.ndarray | None = None) -> np.ndarray:
         """Per fold (a mask on all scan points) the log predictive density of its gap given the
         other folds. The effect's free parameters are integrated out under a Gaussian prior
-        centred on "none" (`origin`) with a standard deviation of half their range, so the gap
+        centred on "none" (`origin`) with their own prior's standard deviation where they have
+        one (`prior_sd`, finite), else half their range, so the gap
         is Gaussian with covariance Sigma + J P J^T (Sigma: the error model `fit`) and the
         fold's predictive distribution is the conditional Gaussian given the other folds: the
         parameters are in effect fitted on the other folds, and a parameter they do not
@@ -464,6 +485,9 @@ class ErrorModel:
             o = theta_a if origin is None else np.asarray(origin, float)
             e = e + Jf @ (o[free] - theta_a[free])
             sd = 0.5 * (np.asarray(upper, float)[free] - np.asarray(lower, float)[free])
+            if prior_sd is not None:
+                own = np.asarray(prior_sd, float)[free]
+                sd = np.where(np.isfinite(own), own, sd)
             S = S + (Jf * sd ** 2) @ Jf.T
         out = []
         for mask in folds:

@@ -20,7 +20,7 @@ from facemodel.effects import BONE_DOF, GRAVITY_MAX, LAYERS, SWELLING_MAX
 from planner.errors import InputError
 
 __all__ = ["Parameter", "Effect", "EFFECT_LIBRARY", "available_effects", "effect_strings", "stiffness_effect",
-           "SLIDING_HOLDS"]
+           "SLIDING_HOLDS", "MEASURED_MOVEMENT_SD"]
 
 
 @dataclass(frozen=True)
@@ -34,12 +34,22 @@ class Parameter:
     step: float                 # finite-difference step in the fit coordinate
     log: bool = False           # the fit coordinate is log(value) (factors)
     unit: str = ""
+    # standard deviation of the Gaussian prior about "none" in the fit coordinate (inf: flat,
+    # the bounds alone), and the one that replaces it when the effect's measurement is given
+    # (`Effect.measurement`): the parameter is then what remains on top of a measured value
+    prior_sd: float = np.inf
+    measured_sd: float | None = None
 
     def coordinate(self, value: float) -> float:
         return float(np.log(value)) if self.log else float(value)
 
     def value(self, coordinate: float) -> float:
         return float(np.exp(coordinate)) if self.log else float(coordinate)
+
+    def prior(self, measured: bool = False) -> float:
+        """The standard deviation of the parameter's Gaussian prior about "none" (fit
+        coordinate, inf: flat); `measured`: its effect's measurement is in the model."""
+        return self.measured_sd if measured and self.measured_sd is not None else self.prior_sd
 
     def dvalue(self, coordinate: float) -> float:
         """d value / d coordinate at `coordinate`: the chain rule's factor that turns a
@@ -69,6 +79,14 @@ class Effect:
     # chosen by the evidence under noise + discrepancy (`analysis`), e.g. how freely the tissue
     # slides (`SLIDING_HOLDS`)
     settings: tuple[tuple[str, tuple[float, ...]], ...] = ()
+    # the choice that puts a measurement of the effect in the model (`bone_execution=1`: the
+    # achieved movements of postop/plan_actual.yaml), under which the parameters are what
+    # remains on top of it and take their `Parameter.measured_sd` prior
+    measurement: tuple[tuple[str, object], ...] = ()
+
+    def measured(self, choice=()) -> bool:
+        """Is the effect's measurement among a case's discrete choices `choice`?"""
+        return bool(self.measurement) and set(self.measurement) <= set(tuple(choice))
 
     @property
     def n_parameters(self) -> int:
@@ -183,6 +201,24 @@ def _sliding(moved: tuple[str, ...]) -> Effect | None:
                   settings=settings)
 
 
+# A segment's correction (planned-to-achieved difference): within +-3 mm and +-4 degrees per
+# axis, the plausible range of published execution errors with the largest reported differences
+# inside it (Stokbro et al., Int J Oral Maxillofac Surg 43:957, 2014, systematic review; Hsu et
+# al., J Oral Maxillofac Surg 71:128, 2013), taken as the 95 % interval of a Gaussian prior, as
+# the layer moduli's range is (`planner.diagnosis.analysis`, "Values marginal over the moduli"):
+# a rotation and the translation it resembles at the skin are then not traded along a ridge the
+# scan cannot resolve.
+BONE_TRANSLATION_BOUND_MM = 3.0
+BONE_ROTATION_BOUND_DEG = 4.0
+# With the achieved movements measured (postop/plan_actual.yaml), the correction is what remains
+# on top of the measurement: its prior is the measurement's accuracy. Superimposed post-op CBCT
+# locates a segment's landmarks to about 0.3 mm (voxel- and surface-based superimposition
+# errors below 0.2 mm, landmark differences of 0.2-0.3 mm), and a rotation to that over a lever
+# arm of about 35 mm, 0.5 degrees. Without this prior a correction fitted on top of the
+# measurement takes up the model's own form error.
+MEASURED_MOVEMENT_SD = (0.3, 0.5)
+
+
 def _bone_execution(moved: tuple[str, ...], plan_actual: bool = False) -> Effect | None:
     """Rigid corrections per moved segment: the three translations (mm) and three rotations
     (degrees, about the segment's centroid) of `bone_execution.SEGMENT=[tx, ty, tz, rx, ry,
@@ -192,13 +228,16 @@ def _bone_execution(moved: tuple[str, ...], plan_actual: bool = False) -> Effect
         if not _accepted([f"bone_execution.{seg}=[0.5, 0, 0, 0, 0, 0]"]):
             continue
         for i, dof in enumerate(BONE_DOF):
-            params.append(Parameter(f"bone_execution.{seg}.{dof}", 0.0, -3.0 if i < 3 else -4.0,
-                                    3.0 if i < 3 else 4.0, 0.5, unit="mm" if i < 3 else "deg"))
-    choices = ((), (("bone_execution", 1),)) if plan_actual and _accepted(["bone_execution=1"]) else ()
+            bound = BONE_TRANSLATION_BOUND_MM if i < 3 else BONE_ROTATION_BOUND_DEG
+            params.append(Parameter(f"bone_execution.{seg}.{dof}", 0.0, -bound, bound, 0.5,
+                                    unit="mm" if i < 3 else "deg", prior_sd=bound / 1.96,
+                                    measured_sd=MEASURED_MOVEMENT_SD[0 if i < 3 else 1]))
+    achieved = (("bone_execution", 1),)
+    choices = ((), achieved) if plan_actual and _accepted(["bone_execution=1"]) else ()
     if not params and not choices:
         return None
     return Effect("bone_execution", tuple(params), choices=choices, shared=False,
-                  description="bones moved other than planned")
+                  description="bones moved other than planned", measurement=achieved if choices else ())
 
 
 def available_effects(moved_segments: tuple[str, ...] = MOVED_SEGMENTS,

@@ -2,8 +2,10 @@
 
 The gap r(theta) (signed distances on the scan's fixed points, area weights w) is modelled
 about an anchor theta_a as r(theta) = r_a + J (theta - theta_a), J = dr/dtheta (Gauss-Newton);
-the fitted parameters minimise sum w r^2 within the effect's bounds (`linear_fit`, a bounded
-linear least-squares problem solved exactly by scipy's `lsq_linear`); the anchor moves to each
+the fitted parameters minimise sum w r^2 within the effect's bounds, plus a Gaussian prior's
+term for the parameters that have one (`linear_fit`, a bounded linear least-squares problem,
+the prior as one more row per parameter, solved exactly by scipy's `lsq_linear`; Tikhonov
+regularisation, the maximum a posteriori estimate); the anchor moves to each
 full nonlinear solve and J is updated by Broyden's rank-one secant rule (Broyden 1965; Dennis &
 Schnabel, *Numerical methods for unconstrained optimization*, 1983, sect. 8.1), which for one
 parameter is the secant slope through the two solves.
@@ -36,9 +38,13 @@ IDENTIFIABLE_FRACTION = 0.1    # standard error below this fraction of the param
 
 def linear_fit(r_a: np.ndarray, J: np.ndarray, w: np.ndarray, theta_a: np.ndarray,
                lower: np.ndarray, upper: np.ndarray, free: np.ndarray | None = None,
-               fixed_value: np.ndarray | None = None) -> np.ndarray:
-    """theta in [lower, upper] minimising sum w (r_a + J (theta - theta_a))^2; parameters not
-    `free` stay at `fixed_value` (default theta_a)."""
+               fixed_value: np.ndarray | None = None, prior_sd: np.ndarray | None = None,
+               prior_weight: float = 1.0) -> np.ndarray:
+    """theta in [lower, upper] minimising sum w (r_a + J (theta - theta_a))^2 + prior_weight
+    sum ((theta - fixed_value) / prior_sd)^2 (the free parameters with a finite `prior_sd`: a
+    Gaussian prior about `fixed_value`, the maximum a posteriori estimate when prior_weight is
+    the weighted squared residual one unit of information is worth); parameters not `free`
+    stay at `fixed_value` (default theta_a)."""
     from scipy.optimize import lsq_linear
 
     theta_a = np.asarray(theta_a, float)
@@ -51,6 +57,16 @@ def linear_fit(r_a: np.ndarray, J: np.ndarray, w: np.ndarray, theta_a: np.ndarra
     # the fixed parameters' offset from the anchor moves the free ones' target
     b = -(r_a + J[:, ~free] @ (theta[~free] - theta_a[~free])) * sw
     A = J[:, free] * sw[:, None]
+    if prior_sd is not None:
+        # one row per parameter with a prior: sqrt(weight) (x + theta_a - centre) / sd
+        sd = np.asarray(prior_sd, float)[free]
+        has = np.isfinite(sd) & (sd > 0)
+        if has.any():
+            rows = np.zeros((int(has.sum()), int(free.sum())))
+            rows[np.arange(rows.shape[0]), np.flatnonzero(has)] = np.sqrt(prior_weight) / sd[has]
+            centre = theta[free][has]
+            A = np.concatenate([A, rows])
+            b = np.concatenate([b, -np.sqrt(prior_weight) * (theta_a[free][has] - centre) / sd[has]])
     lo, hi = np.asarray(lower, float)[free], np.asarray(upper, float)[free]
     # the problem is solved about the anchor: x = theta - theta_a
     res = lsq_linear(A, b, bounds=(lo - theta_a[free], hi - theta_a[free]), method="bvls")

@@ -448,6 +448,10 @@ def _effect_entry(s: analysis.Scored) -> dict:
                 "interval_95": _per_case(c, [_interval(p, coords[k], x) for k, x in enumerate(se_m)]),
                 "standard_error_marginal": _per_case(c, [_r(x, 4) for x in se_g]),
                 "interval_95_marginal": _per_case(c, [_interval(p, coords[k], x) for k, x in enumerate(se_g)]),
+                # the standard deviation of the parameter's Gaussian prior about "none" (fit
+                # coordinate), null where flat; with a measured effect the measurement's accuracy
+                "prior_sd": _per_case(c, [_r(x, 4) if np.isfinite(x) else None
+                                          for x in (c.prior_sd(k)[i] for k in range(c.n_cases))]),
                 "coordinate": "log" if p.log else "value", "unit": p.unit,
                 "bounds": [p.lower, p.upper], "none": p.none}
     return entry

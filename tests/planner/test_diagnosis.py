@@ -620,6 +620,32 @@ def test_linear_fit_recovers_parameters_within_bounds():
     assert got[1] == pytest.approx(0.0, abs=1e-12)
 
 
+def test_linear_fit_with_a_prior_is_the_ridge_solution():
+    """A Gaussian prior about the fixed value: the unbounded optimum of sum w r^2 + lam sum
+    ((theta - c) / sd)^2 is the ridge solution (J^T W J + lam P^-1)^-1 (J^T W (J theta_a - r_a)
+    + lam P^-1 c) (1e-9: one linear system solved two ways); a flat prior (inf) is the plain
+    fit, and a parameter without a prior beside one with a prior keeps the data's pull."""
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(200, 2))
+    w = rng.uniform(0.5, 2.0, 200)
+    theta_a, c = np.array([0.1, -0.1]), np.array([0.0, 0.2])
+    r_a = -J @ (np.array([0.3, -0.2]) - theta_a) + rng.normal(0, 0.05, 200)
+    lo, hi = np.array([-5.0, -5.0]), np.array([5.0, 5.0])
+    sd, lam = np.array([0.05, 0.1]), 0.7
+    got = fit.linear_fit(r_a, J, w, theta_a, lo, hi, fixed_value=c, prior_sd=sd, prior_weight=lam)
+    Pinv = np.diag(lam / sd ** 2)
+    want = np.linalg.solve((J.T * w) @ J + Pinv, (J.T * w) @ (J @ theta_a - r_a) + Pinv @ c)
+    assert np.allclose(got, want, atol=1e-9)
+    plain = fit.linear_fit(r_a, J, w, theta_a, lo, hi, fixed_value=c)
+    flat = fit.linear_fit(r_a, J, w, theta_a, lo, hi, fixed_value=c, prior_sd=np.full(2, np.inf), prior_weight=lam)
+    assert np.allclose(flat, plain, atol=1e-12)
+    half = fit.linear_fit(r_a, J, w, theta_a, lo, hi, fixed_value=c, prior_sd=np.array([np.inf, 0.1]),
+                          prior_weight=lam)
+    Pinv = np.diag([0.0, lam / 0.1 ** 2])
+    want = np.linalg.solve((J.T * w) @ J + Pinv, (J.T * w) @ (J @ theta_a - r_a) + Pinv @ c)
+    assert np.allclose(half, want, atol=1e-9)
+
+
 def test_finite_difference_jacobian_is_second_order():
     """Central and one-sided second-order differences of r(t) = exp(t) at t = 0: errors fall
     as h^2 (ratio ~4 when h halves)."""

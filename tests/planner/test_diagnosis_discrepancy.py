@@ -854,3 +854,70 @@ def test_each_surface_confound_carries_its_own_reason_and_settling_data(monkeypa
     warn = analysis.confound_warning({"effect": "bone_execution", "alternatives": alts,
                                       "confounded_on_surface": ["sliding"]})
     assert "plan_actual.yaml" in warn[0] and "cheeks" not in warn[0]
+
+
+def test_a_prior_gives_the_posterior_mode_and_keeps_the_datas_likelihood(sheet):
+    """`ErrorModel.fit` with a parameter's Gaussian prior: at the fit's own amplitudes and
+    length its value is the closed-form posterior mode, x = -(J^T S^-1 J + 1/sd^2)^-1 (J^T S^-1
+    r_a + (theta_a - centre) / sd^2) with S the dense covariance (`ErrorModel.covariance`), and
+    `Fit.loglik` is the data's log density there, without the prior's term (1e-6: the solves
+    of one linear system two ways, Woodbury against dense). A flat prior changes nothing; the
+    data's likelihood at the mode is below the flat fit's, whose maximum it is."""
+    P, w, em = sheet
+    pat = _pattern(P, 70.0, 45.0, 25.0)
+    delta, eps = _gp_sample(P, 21)
+    data = 1.2 * pat + delta + eps
+    J = -pat[:, None]
+    theta_a, centre, sd = np.array([0.3]), np.array([0.0]), np.array([0.25])
+    r_a = data - theta_a[0] * pat
+    flat = em.fit(r_a, J, theta_a, [-5.0], [5.0], np.ones(1, bool))
+    same = em.fit(r_a, J, theta_a, [-5.0], [5.0], np.ones(1, bool), prior_sd=np.array([np.inf]), origin=centre)
+    assert same.theta[0] == flat.theta[0] and same.loglik == flat.loglik
+    f = em.fit(r_a, J, theta_a, [-5.0], [5.0], np.ones(1, bool), prior_sd=sd, origin=centre)
+    S = em.covariance(f)
+    Jw, rw = J[em.idx], r_a[em.idx]
+    A = Jw.T @ np.linalg.solve(S, Jw) + np.diag(1.0 / sd ** 2)
+    b = Jw.T @ np.linalg.solve(S, rw) + (theta_a - centre) / sd ** 2
+    x = -np.linalg.solve(A, b)
+    assert f.theta[0] == pytest.approx(theta_a[0] + x[0], rel=1e-6)
+    e = rw + Jw @ x
+    ll = -0.5 * (e @ np.linalg.solve(S, e) + np.linalg.slogdet(S)[1] + len(e) * np.log(2 * np.pi))
+    assert f.loglik == pytest.approx(ll, rel=1e-6)
+    assert f.loglik <= flat.loglik + 1e-9
+    # the mode lies between the centre and the data's own estimate
+    assert 0.0 < f.theta[0] < flat.theta[0]
+
+
+def test_a_measured_effect_takes_the_measurements_prior_in_its_fit_and_errors(sheet):
+    """A parameter's prior is its `measured_sd` where the case's choices hold its effect's
+    measurement (`Effect.measurement`, as `bone_execution=1` holds the achieved movements) and
+    its `prior_sd` otherwise, in a pair too; the reported standard error is the posterior's,
+    1 / sqrt(F + 1 / sd^2), F the error model's information (rel 1e-9: the same arithmetic)."""
+    P, w, em = sheet
+    pat = _pattern(P, 70.0, 45.0, 25.0)
+    delta, eps = _gp_sample(P, 22)
+    r = 0.4 * pat + delta + eps
+    p = Parameter("shift", 0.0, -3.0, 3.0, 0.5, prior_sd=1.5, measured_sd=0.1)
+    e = Effect("shift", (p,), choices=((), (("shift", 1),)), measurement=(("shift", 1),))
+    q = Parameter("other", 0.0, -5.0, 5.0, 0.1)
+    other = Effect("other", (q,))
+    for choice, want in (((("shift", 1),), 0.1), ((), 1.5)):
+        c = analysis.Candidate("shift", (e,), False, 1, (p,))
+        c.choices, c.theta, c.anchor_r, c.J = [choice], [np.zeros(1)], [r], [-pat[:, None]]
+        c.free = np.ones(1, bool)
+        assert c.prior_sd(0)[0] == want and c.has_prior(0)
+        pair = analysis.Candidate("shift+other", (e, other), False, 1, (p, q))
+        pair.choices = [choice]
+        assert list(pair.prior_sd(0)) == [want, np.inf]
+        d = _case(P, w, r, em)
+        f = analysis.evidence(c, [d])[0][0]
+        se = analysis.model_form_errors(c, [d], [f])[0][0]
+        F = em.information(c.J[0], f)[0, 0]
+        assert se == pytest.approx(1.0 / np.sqrt(F + 1.0 / want ** 2), rel=1e-9)
+        assert se < want
+    # the measured prior holds the value near "none" where the flat fit follows the data
+    c.choices = [(("shift", 1),)]
+    measured = analysis.evidence(c, [d])[0][0].theta[0]
+    c.choices = [()]
+    loose = analysis.evidence(c, [d])[0][0].theta[0]
+    assert abs(measured) < 0.5 * abs(loose)

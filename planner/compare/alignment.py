@@ -84,6 +84,9 @@ class Alignment:
     face_coverage: float = float("nan")   # scan fraction within 2 mm of the face (pose check)
     unoperated_median_mm: float = float("nan")   # untrimmed agreement on the unoperated regions
     unoperated_width_scale_pct: float = float("nan")   # how much wider the scan's face is there
+    # the share of the unoperated regions' area both checks used: the prediction moves the rest
+    # (`comparison.STILL_MM`); NaN where the prediction's displacement is not known
+    unoperated_still_pct: float = float("nan")
 
     @property
     def rotation_deg(self) -> float:
@@ -105,6 +108,7 @@ class Alignment:
             "face_coverage": self.face_coverage,
             "unoperated_median_mm": self.unoperated_median_mm,
             "unoperated_width_scale_pct": self.unoperated_width_scale_pct,
+            "unoperated_still_pct": self.unoperated_still_pct,
             "rotation_deg": self.rotation_deg,
             "translation_mm": self.translation_mm,
             "matrix": self.matrix.tolist(),

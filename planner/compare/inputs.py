@@ -49,6 +49,9 @@ class Prediction:
     landmarks: dict[str, np.ndarray]
     path: Path
     notes: list[str] = field(default_factory=list)
+    # (n, 3) the prediction's displacement of each vertex from the pre-op skin (mm), None when
+    # not known: where surgery moves the "unoperated" regions in this plan (`check_same_patient`)
+    displacement: np.ndarray | None = None
 
 
 def _read_pyvista(path: Path):
@@ -246,8 +249,14 @@ def _read_prediction_folder(folder: Path) -> Prediction:
     unop, source = _unoperated(names, ("skin_predicted.vtp", _field_strings(poly, "unoperated_regions")),
                                ("report.json", report.get("unoperated_regions")))
     lms = _landmarks(report.get("landmarks_predicted", {}), report_path)
+    disp = None
+    if "displacement" in poly.point_data:
+        disp = np.asarray(poly.point_data["displacement"], float)
+        if disp.shape != surf.vertices.shape:
+            raise InputError(f"point data 'displacement' has shape {disp.shape}, the surface "
+                             f"{surf.vertices.shape}", file=str(vtp), field="displacement")
     return Prediction(surf.vertices, surf.faces, region, tuple(names), unop, lms, folder,
-                      notes=[f"unoperated regions from {source}"])
+                      notes=[f"unoperated regions from {source}"], displacement=disp)
 
 
 def _read_bare_prediction(case: Path | None, path: Path) -> Prediction:

@@ -292,10 +292,12 @@ def baseline_prediction(case, skin: np.ndarray) -> ComparePrediction:
         if hit.size:
             landmarks[name] = np.asarray(skin[hit[0]], float)
     vertices, faces = case.predicted_surface(skin)
+    rest = case.predicted_surface(np.asarray(case.model.nodes, float)[np.asarray(case.skin_ids)])[0]
     region = case.region if case.surface is None else case.surface.region
     return ComparePrediction(vertices, np.asarray(faces), np.asarray(region),
                              tuple(case.region_names), tuple(case.unoperated), landmarks,
-                             Path(f"<baseline prediction of {case.name}>"))
+                             Path(f"<baseline prediction of {case.name}>"),
+                             displacement=np.asarray(vertices, float) - np.asarray(rest, float))
 
 
 def measure_gap(case, skin: np.ndarray, scan: Surface, max_residual_mm: float = 3.0) -> ScanGap:

@@ -104,14 +104,15 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
         named = next((e for e in record["effects"] if e["name"] == record["verdict"]["effect"]), None)
         rows = [[key, _shown(q.get("value")), _shown(q.get("interval_95")), _shown(q.get("interval_95_marginal")),
                  q.get("unit"), q.get("standard_error"), _shown(q.get("standard_error_with_discrepancy")),
-                 _shown(q.get("standard_error_marginal")), q.get("coordinate")]
+                 _shown(q.get("standard_error_marginal")), _shown(q.get("prior_sd")), q.get("coordinate")]
                 for key, q in ((named or {}).get("parameters") or {}).items() if q.get("identifiable")]
         if rows:
             tables[f"Fitted values of {named['name']}, with their 95 % intervals under noise + discrepancy, "
                    "at the model's moduli and with the patient's layer moduli unknown"] = (
                 ["parameter", "value", "95 % interval", "95 % interval, moduli unknown", "unit",
                  "standard error, noise alone", "standard error, noise + discrepancy",
-                 "standard error, moduli unknown", "coordinate of the standard errors"], rows)
+                 "standard error, moduli unknown", "standard deviation of the prior (none: flat)",
+                 "coordinate of the standard errors"], rows)
         alts = record["verdict"].get("alternatives") or []
         if alts:
             tables["Other effects that explain the gap with strong evidence in-sample, not named"] = (

@@ -179,8 +179,8 @@ def test_mesh_reference_equal_to_the_resolution_exits_2(case, tmp_path, capsys):
 
 def test_the_report_lists_the_named_effects_values_with_their_intervals(tmp_path):
     """report.html shows each identifiable fitted value of the verdict's effect with its 95 %
-    interval and both standard errors, and the interval and error with the patient's moduli
-    unknown; a parameter held at "none" is not listed."""
+    interval and both standard errors, the interval and error with the patient's moduli
+    unknown, and its prior's standard deviation; a parameter held at "none" is not listed."""
     from planner.diagnosis.outputs import write_diagnosis
 
     def param(value, interval, identifiable=True):
@@ -192,7 +192,7 @@ def test_the_report_lists_the_named_effects_values_with_their_intervals(tmp_path
               "shrink_pct": 40.0, "heldout_shrink_pct": 38.0, "heldout_shrink_spread_pct": 5.0,
               "probability": 1.0, "significant": True,
               "parameters": {"gravity": dict(param(1.087978, [1.021, 1.155]), standard_error_marginal=0.3117,
-                                             interval_95_marginal=[0.477, 1.5]),
+                                             interval_95_marginal=[0.477, 1.5], prior_sd=0.7654),
                              "gravity.other": param(0.0, None, identifiable=False)}}
     record = {"effects": [effect], "localization": [], "noise_floor_mm": 0.2,
               "verdict": {"effect": "gravity", "confidence": 1.0, "regions": []}}
@@ -201,6 +201,7 @@ def test_the_report_lists_the_named_effects_values_with_their_intervals(tmp_path
     assert "Fitted values of gravity, with their 95 % intervals" in html
     assert "[1.021, 1.155]" in html and "0.0341" in html and "1.087978" in html
     assert "95 % interval, moduli unknown" in html and "[0.477, 1.5]" in html and "0.3117" in html
+    assert "standard deviation of the prior" in html and "0.7654" in html
     assert "<td>gravity</td>" in html and "<td>gravity.other</td>" not in html
 
 

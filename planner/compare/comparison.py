@@ -295,6 +295,10 @@ def check_same_patient(result: Comparison, scan_path) -> None:
         result.alignment.unoperated_still_pct = round(100.0 * float(area[unop].sum()) / max(whole, 1e-300), 1)
         if not still.all():
             note = f"; where the prediction moves the skin by under {STILL_MM:g} mm"
+        if not unop.any():
+            result.warnings.append(
+                f"the prediction moves every unoperated region ({', '.join(pred.unoperated_regions)}) by more "
+                f"than {STILL_MM:g} mm: whether the post-op scan is this patient's was not checked")
     median = unoperated_median_mm(result.scan_vertices, surface, unop)
     where = ", ".join(pred.unoperated_regions) + note
     if median > OTHER_PATIENT_MEDIAN_MM:

@@ -123,7 +123,7 @@ def _prediction(pred, displacement):
 
 
 def _checked(pred, vertices, faces):
-    """(refusal message or None, alignment) of `check_same_patient` on a scan."""
+    """(refusal message or None, the comparison) of `check_same_patient` on a scan."""
     from pathlib import Path
 
     from planner.compare.comparison import check_same_patient, compare_surfaces
@@ -134,8 +134,8 @@ def _checked(pred, vertices, faces):
     try:
         check_same_patient(comp, "postop/skin.stl")
     except InputError as e:
-        return str(e), comp.alignment
-    return None, comp.alignment
+        return str(e), comp
+    return None, comp
 
 
 def test_the_checks_leave_out_the_unoperated_skin_the_prediction_moves(phantoms):
@@ -144,7 +144,8 @@ def test_the_checks_leave_out_the_unoperated_skin_the_prediction_moves(phantoms)
     regions only, is refused as another head when the prediction's displacement is not known,
     and accepted when it is and says the prediction moves those regions (2 mm: above
     `STILL_MM`), the checks then made over the forehead and nasal bridge; a whole head 3 %
-    wider is still refused there."""
+    wider is still refused there. A prediction that moves every unoperated region leaves
+    nothing to check on: not checked, and a warning says so."""
     from scipy.spatial import cKDTree
 
     pred, scan = phantoms
@@ -155,8 +156,9 @@ def test_the_checks_leave_out_the_unoperated_skin_the_prediction_moves(phantoms)
     displacement = np.where(moved[:, None], np.array([0.0, 2.0, 0.0]), 0.0)
     refused, _ = _checked(_prediction(pred, None), own, scan.faces)
     assert refused is not None and "wider" in refused
-    refused, alignment = _checked(_prediction(pred, displacement), own, scan.faces)
+    refused, comp = _checked(_prediction(pred, displacement), own, scan.faces)
     assert refused is None, refused
+    alignment = comp.alignment
     # the still share: the forehead and nasal bridge's area of the four regions' (the phantom's
     # 2.5 mm facets: within 5 points of the share of vertices)
     share = 100.0 * np.mean(~moved[np.isin(pred.region, [pred.region_names.index(n) for n in pred.unoperated_regions])])
@@ -165,3 +167,8 @@ def test_the_checks_leave_out_the_unoperated_skin_the_prediction_moves(phantoms)
     other = (_noisy(scan, 0.2, 7) - CENTRE) * np.array([1.03, 1.0, 1.0]) + CENTRE
     refused, _ = _checked(_prediction(pred, displacement), other, scan.faces)
     assert refused is not None and "wider" in refused and "where the prediction moves the skin" in refused
+    # a prediction that moves every unoperated region: nothing to check on, and it says so
+    everywhere = np.tile(np.array([0.0, 2.0, 0.0]), (len(pred.vertices), 1))
+    refused, comp = _checked(_prediction(pred, everywhere), other, scan.faces)
+    assert refused is None and comp.alignment.unoperated_still_pct == 0.0
+    assert any("was not checked" in w for w in comp.warnings)

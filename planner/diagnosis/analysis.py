@@ -516,10 +516,9 @@ def _fit_theta(cand: Candidate, data: list[CaseData], cases: list[int], masks=No
     r = np.concatenate([cand.anchor_r[c] if m is None else cand.anchor_r[c][m] for c, m in zip(cases, masks)])
     J = np.concatenate([cand.J[c] if m is None else cand.J[c][m] for c, m in zip(cases, masks)])
     w = np.concatenate([data[c].gap.weights if m is None else data[c].gap.weights[m] for c, m in zip(cases, masks)])
-    if not cand.has_prior(cases[0]):
-        return fit.linear_fit(r, J, w, theta_a, cand.lower, cand.upper, cand.free, fixed_value=cand.origin)
-    return fit.linear_fit(r, J, w, theta_a, cand.lower, cand.upper, cand.free, fixed_value=cand.origin,
-                          prior_sd=cand.prior_sd(cases[0]), prior_weight=prior_weight(data, cases, masks))
+    prior = ({"prior_sd": cand.prior_sd(cases[0]), "prior_weight": prior_weight(data, cases, masks)}
+             if cand.has_prior(cases[0]) else {})
+    return fit.linear_fit(r, J, w, theta_a, cand.lower, cand.upper, cand.free, fixed_value=cand.origin, **prior)
 
 
 def _groups(cand: Candidate) -> list[list[int]]:

@@ -380,8 +380,7 @@ class ErrorModel:
             lo = np.asarray(lower, float)[free] - theta_a[free]
             hi = np.asarray(upper, float)[free] - theta_a[free]
             if prior_sd is not None:
-                sd = np.asarray(prior_sd, float)[free]
-                prec = np.where(np.isfinite(sd) & (sd > 0), 1.0 / np.where(sd > 0, sd, 1.0) ** 2, 0.0)
+                prec = 1.0 / np.asarray(prior_sd, float)[free] ** 2      # 0 where flat (inf)
                 centre = (np.asarray(theta_a, float) - np.asarray(origin, float))[free]
                 if not prec.any():
                     prec = centre = None

@@ -290,7 +290,7 @@ def check_same_patient(result: Comparison, scan_path) -> None:
     unop = faces_of(pred.unoperated_regions)
     note = ""
     if pred.displacement is not None:
-        area = vertex_areas(pred.vertices, pred.faces)[pred.faces].sum(axis=1)
+        area = surface.face_areas
         whole = float(area[in_regions(pred.unoperated_regions)].sum())
         result.alignment.unoperated_still_pct = round(100.0 * float(area[unop].sum()) / max(whole, 1e-300), 1)
         if not still.all():

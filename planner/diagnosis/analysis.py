@@ -270,9 +270,8 @@ class Candidate:
         ((theta - none) / sd)^2 over the free parameters (`fit.linear_fit`)."""
         if self.free is None or not self.params:
             return 0.0
-        sd = self.prior_sd(c)[self.free]
-        z = (np.asarray(theta, float) - self.origin)[self.free] / sd
-        return float(weight * np.sum(z[np.isfinite(sd)] ** 2))
+        z = (np.asarray(theta, float) - self.origin)[self.free] / self.prior_sd(c)[self.free]
+        return float(weight * np.sum(z ** 2))       # 0 where flat (inf)
 
     def has_tangent(self, c: int) -> bool:
         return bool(self.tangent) and bool(self.tangent[c]) and len(self.params) > 0

@@ -58,15 +58,10 @@ def linear_fit(r_a: np.ndarray, J: np.ndarray, w: np.ndarray, theta_a: np.ndarra
     b = -(r_a + J[:, ~free] @ (theta[~free] - theta_a[~free])) * sw
     A = J[:, free] * sw[:, None]
     if prior_sd is not None:
-        # one row per parameter with a prior: sqrt(weight) (x + theta_a - centre) / sd
-        sd = np.asarray(prior_sd, float)[free]
-        has = np.isfinite(sd) & (sd > 0)
-        if has.any():
-            rows = np.zeros((int(has.sum()), int(free.sum())))
-            rows[np.arange(rows.shape[0]), np.flatnonzero(has)] = np.sqrt(prior_weight) / sd[has]
-            centre = theta[free][has]
-            A = np.concatenate([A, rows])
-            b = np.concatenate([b, -np.sqrt(prior_weight) * (theta_a[free][has] - centre) / sd[has]])
+        # one row per free parameter, sqrt(weight) (x + theta_a - centre) / sd: zero where flat
+        s = np.sqrt(prior_weight) / np.asarray(prior_sd, float)[free]
+        A = np.concatenate([A, np.diag(s)])
+        b = np.concatenate([b, -s * (theta_a[free] - theta[free])])
     lo, hi = np.asarray(lower, float)[free], np.asarray(upper, float)[free]
     # the problem is solved about the anchor: x = theta - theta_a
     res = lsq_linear(A, b, bounds=(lo - theta_a[free], hi - theta_a[free]), method="bvls")

@@ -111,7 +111,7 @@ def _client(args):
 
 def run(args) -> int:
     from planner.diagnosis.forward import Runner
-    from planner.diagnosis.outputs import write_diagnosis
+    from planner.diagnosis.outputs import verdict_text, write_diagnosis
     from planner.diagnosis.run import diagnose_cases
     from planner.pipeline import Progress
 
@@ -135,9 +135,7 @@ def run(args) -> int:
     else:
         out = cases[0].resolve().parent / "diagnose_cohort"
     record = write_diagnosis(result, out, render_images=not args.no_images, say=progress.say)
-    v = record["verdict"]
-    print(f"verdict: {v['effect']} (confidence {v['confidence']:.2f})"
-          + (f" in {', '.join(v['regions'])}" if v["regions"] else "") + f" -> {out}")
+    print(f"verdict: {verdict_text(record)} -> {out}")
     for w in record.get("warnings", []):
         print(f"  warning: {w}", file=sys.stderr)
     return 0

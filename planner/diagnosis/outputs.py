@@ -16,7 +16,7 @@ import numpy as np
 from planner.diagnosis import analysis
 from planner.diagnosis.analysis import MIN_HELDOUT_SHRINK_PCT
 
-__all__ = ["write_diagnosis"]
+__all__ = ["write_diagnosis", "params_text", "verdict_text"]
 
 CLIM_MM = 3.0
 
@@ -70,6 +70,78 @@ def _images(result: dict, img: Path) -> list[tuple[Path, str]]:
     return out
 
 
+def _number(v) -> str:
+    return f"{float(v):.3g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v)
+
+
+def _param_text(key: str, v) -> str:
+    """One entry of an effect's `params` as a sentence fragment."""
+    from planner.diagnosis.effects import BONE_DOF
+
+    parts = key.split(".")
+    if parts[0] == "bone_execution" and len(parts) == 2 and isinstance(v, list) and len(v) == len(BONE_DOF):
+        move = ", ".join(f"{float(x):+.2f}" for x in v[:3])
+        turn = ", ".join(f"{float(x):+.2f}" for x in v[3:])
+        return f"{parts[1]} corrected by ({move}) mm and ({turn}) deg"
+    if key == "bone_execution":
+        return "the achieved movements of postop/plan_actual.yaml"
+    if key == "sliding":
+        return "the tissue slides on every moved segment" if v == 1 else f"the tissue slides on the {v}"
+    if key == "sliding.hold":
+        return f"interface hold {_number(v)}"
+    return f"{key} {_number(v)}"
+
+
+def params_text(params) -> str:
+    """An effect's `params` (diagnosis.json) as a reader takes them: each value to three
+    significant digits, a bone correction as its translation (mm) and rotation (degrees), a
+    switch in words, per case where the values are case-specific; "-" for none."""
+    if isinstance(params, dict) and "per_case" in params:
+        return "; ".join(f"case {k + 1}: {params_text(p)}" for k, p in enumerate(params["per_case"]))
+    if not params:
+        return "-"
+    return "; ".join(_param_text(k, v) for k, v in params.items())
+
+
+def verdict_text(record: dict) -> str:
+    """The verdict of a diagnosis record as one sentence: the named effect with its confidence,
+    its regions and the effects a surface scan cannot tell from it; or `null` / `unexplained`
+    with the probability of the prediction without an effect, and the effects the data
+    support that remove too little of the held-out gap to be named, each with that share and
+    the share naming asks (`analysis._judge`)."""
+    v = record["verdict"]
+    name = v["effect"]
+    regions = ", ".join(v.get("regions") or ())
+    if name not in (None, "unexplained"):
+        text = (f"{name} (confidence {v['confidence']:.2f}, the probability of the models that contain it)"
+                + (f" in {regions}" if regions else "")
+                + "".join(f"; a surface scan cannot tell it from {other}: "
+                          f"{analysis.confound_between(name, other).settled_by} would tell them apart"
+                          for other in v.get("confounded_on_surface") or ()))
+        return text
+    if name is None:
+        text = "no effect named: the gap is within the scan noise and the model-form discrepancy"
+    else:
+        text = (f"unexplained: a gap beyond the scan noise and the model-form discrepancy remains"
+                + (f" in {regions}" if regions else "") + " and no effect removes it")
+    text += f" (probability of the prediction without an effect {v['confidence']:.2f})"
+    effects = {e["name"]: e for e in record.get("effects") or ()}
+    supported = []
+    for other in v.get("supported_not_named") or ():
+        e = effects.get(other, {})
+        share, spread = e.get("heldout_noise_shrink_pct"), e.get("heldout_noise_shrink_spread_pct")
+        if share is None or spread is None:
+            supported.append(other)
+            continue
+        need = max(MIN_HELDOUT_SHRINK_PCT, 2.0 * spread)
+        supported.append(f"{other} ({share:.0f} ± {spread:.0f} % of the held-out gap beyond the noise "
+                         f"removed, {need:.0f} % needed)")
+    if supported:
+        text += ("; supported by the data but removing too little of the held-out gap to be named: "
+                 + ", ".join(supported))
+    return text
+
+
 def _shown(x):
     """A per-parameter report value for a table cell: one value, or the cases' values."""
     if isinstance(x, dict) and "per_case" in x:
@@ -91,7 +163,7 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
         tables = {"Effects, best first (held-out shrinkage of the RMS gap)": (
             ["effect", "params", "identifiable", "RMS after (mm)", "shrink %", "held-out shrink %",
              "spread %", "held-out shrink beyond noise %", "held-out log density gain", "probability", "significant"],
-            [[e["name"], json.dumps(e["params"]), e["identifiable"], e["rms_after_mm"], e["shrink_pct"],
+            [[e["name"], params_text(e["params"]), e["identifiable"], e["rms_after_mm"], e["shrink_pct"],
               e["heldout_shrink_pct"], e["heldout_shrink_spread_pct"], e.get("heldout_noise_shrink_pct"),
               None if e.get("heldout_lpd_gain") is None else
               f"{e['heldout_lpd_gain']} ± {e['heldout_lpd_gain_se']} (P > 0: {e.get('heldout_lpd_gain_probability')})",
@@ -147,15 +219,8 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
                 [["overall", *[shrink["overall"][k] for k in ("before_mm", "after_mm", "heldout_after_mm", "heldout_shrink_pct")]]]
                 + [[n, r["before_mm"], r["after_mm"], r["heldout_after_mm"], r["heldout_shrink_pct"]]
                    for n, r in shrink["regions"].items()])
-        v = record["verdict"]
-        intro = (f"Verdict: {v['effect'] if v['effect'] is not None else 'no effect (the gap is within noise + model-form discrepancy)'}"
-                 f" (confidence {v['confidence']:.2f})"
-                 + (f", regions: {', '.join(v['regions'])}" if v["regions"] else "")
-                 + "".join(f". A surface scan cannot tell it from {name}: "
-                           f"{analysis.confound_between(v['effect'], name).settled_by} would"
-                           for name in v.get("confounded_on_surface") or ())
-                 + f". Noise floor {record['noise_floor_mm']:.2f} mm. Gap = post-op minus prediction "
-                   "along the predicted outward normal (> 0: the real face is fuller).")
+        intro = (f"Verdict: {verdict_text(record)}. Noise floor {record['noise_floor_mm']:.2f} mm. Gap = "
+                 "post-op minus prediction along the predicted outward normal (> 0: the real face is fuller).")
         write_html_report(tmp / "report.html", "faceplan diagnose", record, images, tables=tables, intro=intro)
     say(f"diagnosis written to {out_dir}")
     return record

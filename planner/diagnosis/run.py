@@ -18,6 +18,7 @@ from planner.diagnosis import analysis, discrepancy, fit
 from planner.diagnosis.effects import available_effects
 from planner.diagnosis.forward import Forward, Runner, prepare_case
 from planner.diagnosis.gap import measure_gap, region_table
+from planner.diagnosis.outputs import verdict_text
 from planner.errors import InputError
 
 __all__ = ["load_diagnosis_case", "diagnose_cases", "diagnose_data", "build_record", "mesh_reference",
@@ -375,11 +376,7 @@ def diagnose_data(cases: list, scans: list, *, runner: Runner | None = None, say
                            "effects": round(time.perf_counter() - t_fit, 2)}
     record["solves"] = {"count": forward.n_solves, "time_s": round(forward.solve_time_s, 2),
                         "workers": forward.runner.n_workers}
-    v = record["verdict"]
-    say(f"verdict: {v['effect']} (confidence {v['confidence']:.2f})"
-        + (f" in {', '.join(v['regions'])}" if v["regions"] else "")
-        + (f"; a surface scan cannot tell it from {', '.join(v['confounded_on_surface'])}"
-           if v.get("confounded_on_surface") else ""))
+    say(f"verdict: {verdict_text(record)}")
     return {"record": record, "data": data, "analysis": result}
 
 

@@ -225,3 +225,33 @@ def test_the_report_shows_the_alternatives_and_the_surface_confound(tmp_path):
     assert "Other effects that explain the gap with strong evidence in-sample, not named" in html
     assert "<td>61.1</td>" in html and "<td>16.6</td>" in html
     assert "cannot tell it from sliding" in html and "plan_actual.yaml" in html
+
+
+def test_the_verdict_sentence_says_why_a_supported_effect_is_not_named(tmp_path):
+    """A `null` verdict reads as no effect named with the probability of the prediction without
+    one, and each effect the data support but do not name comes with the share of the held-out
+    gap it removes and the share naming asks: 10 % and twice its bootstrap spread
+    (`analysis._judge`); the effects' values read as words and numbers, not JSON."""
+    from planner.diagnosis.outputs import params_text, verdict_text, write_diagnosis
+
+    sliding = {"name": "sliding", "params": {"sliding": 1, "sliding.hold": 0.8}, "identifiable": True,
+               "rms_after_mm": 0.398, "shrink_pct": 31.2, "heldout_shrink_pct": 31.2,
+               "heldout_shrink_spread_pct": 16.0, "heldout_noise_shrink_pct": 42.71,
+               "heldout_noise_shrink_spread_pct": 23.09, "probability": 1.0, "significant": False}
+    bone = {"name": "bone_execution", "identifiable": True, "rms_after_mm": 0.34, "shrink_pct": 40.7,
+            "heldout_shrink_pct": 38.0, "heldout_shrink_spread_pct": 8.9, "probability": 0.0,
+            "significant": False,
+            "params": {"bone_execution.maxilla": [0.015952, -1.437634, -2.902737, 1.992344, -0.246527, 0.522332]}}
+    record = {"effects": [bone, sliding], "localization": [], "noise_floor_mm": 0.27,
+              "verdict": {"effect": None, "confidence": 0.0, "regions": [], "supported_not_named": ["sliding"]}}
+    text = verdict_text(record)
+    assert text.startswith("no effect named") and "without an effect 0.00" in text
+    # 2 x 23.09 = 46.2 % needed, above the 10 % floor
+    assert "sliding (43 ± 23 % of the held-out gap beyond the noise removed, 46 % needed)" in text
+    assert params_text(bone["params"]) == "maxilla corrected by (+0.02, -1.44, -2.90) mm and (+1.99, -0.25, +0.52) deg"
+    assert params_text({"per_case": [{"gravity": 1.08797}, {}]}) == "case 1: gravity 1.09; case 2: -"
+    assert params_text({"sliding": "maxilla"}) == "the tissue slides on the maxilla"
+    write_diagnosis({"record": record}, tmp_path / "d", render_images=False)
+    html = (tmp_path / "d" / "report.html").read_text()
+    assert "46 % needed" in html and "interface hold 0.8" in html
+    assert "<td>maxilla corrected by (+0.02, -1.44, -2.90) mm and (+1.99, -0.25, +0.52) deg</td>" in html

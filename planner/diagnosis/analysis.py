@@ -56,7 +56,10 @@ baseline and the models that pass both the BIC and the held-out checks: `probabi
 the ranking.
 
 Where the mesh's own error is estimated from a second mesh (`remove_mesh_error`: the gap's
-coefficient a on the direction r_ref - r_d, taken out of every gap), the effects are fitted on
+coefficient a on the direction r_ref - r_d, taken out of every gap; each model's own fit
+re-estimates it, and the change is taken out of that model's fitted and held-out gaps,
+`_mesh_shift`, so that an effect resembling the direction is not charged for the part of it
+the baseline's estimate took), the effects are fitted on
 the converged model's response too (`mesh_corrections`): the diagnosis mesh responds to an
 effect otherwise than the converged model does (a coarse mesh is too stiff where the tissue
 bends; near a contact limit its tangent can even overstate a response many times), as its
@@ -504,15 +507,18 @@ def prior_weight(data: list[CaseData], cases: list[int], masks=None) -> float:
     return float(sigma ** 2 * W / max(n, 1e-300))
 
 
-def _fit_theta(cand: Candidate, data: list[CaseData], cases: list[int], masks=None) -> np.ndarray:
+def _fit_theta(cand: Candidate, data: list[CaseData], cases: list[int], masks=None,
+               offsets: list | None = None) -> np.ndarray:
     """Linearised bounded fit about the anchors over `cases` (shared parameters) or of one case,
-    under the parameters' priors (`Candidate.prior_sd`, those of the first case)."""
+    under the parameters' priors (`Candidate.prior_sd`, those of the first case); `offsets`
+    (per case, or None): a field taken out of each anchor's gap first (`_mesh_shift`)."""
     theta_a = cand.theta[cases[0]]
     if not cand.free.any():
         return theta_a.copy()
     if masks is None:
         masks = [None] * len(cases)
-    r = np.concatenate([cand.anchor_r[c] if m is None else cand.anchor_r[c][m] for c, m in zip(cases, masks)])
+    anchors = cand.anchor_r if offsets is None else [a - o for a, o in zip(cand.anchor_r, offsets)]
+    r = np.concatenate([anchors[c] if m is None else anchors[c][m] for c, m in zip(cases, masks)])
     J = np.concatenate([cand.J[c] if m is None else cand.J[c][m] for c, m in zip(cases, masks)])
     w = np.concatenate([data[c].gap.weights if m is None else data[c].gap.weights[m] for c, m in zip(cases, masks)])
     prior = ({"prior_sd": cand.prior_sd(cases[0]), "prior_weight": prior_weight(data, cases, masks)}
@@ -619,23 +625,26 @@ def refine(cands: list[Candidate], data: list[CaseData], forward) -> None:
 
 # --------------------------------------------------------------------------- held-out
 
-def heldout_residuals(cand: Candidate, data: list[CaseData]) -> list[np.ndarray]:
-    """Per case the gap predicted for data not used in the fit (see the module text)."""
+def heldout_residuals(cand: Candidate, data: list[CaseData], offsets: list | None = None) -> list[np.ndarray]:
+    """Per case the gap predicted for data not used in the fit (see the module text);
+    `offsets` (per case, or None): a field taken out of each anchor's gap first, the model's
+    own mesh-error field (`_mesh_shift`)."""
     out = []
     n = cand.n_cases
+    anchors = cand.anchor_r if offsets is None else [a - o for a, o in zip(cand.anchor_r, offsets)]
     for c, d in enumerate(data):
-        r_ho = np.array(cand.anchor_r[c], float)
+        r_ho = np.array(anchors[c], float)
         if cand.free is None or not cand.free.any():
             out.append(r_ho)
             continue
         if cand.shared and n > 1:
             others = [o for o in range(n) if o != c]
-            th = _fit_theta(cand, data, others)
-            r_ho = cand.anchor_r[c] + cand.J[c] @ (th - cand.theta[c])
+            th = _fit_theta(cand, data, others, offsets=offsets)
+            r_ho = anchors[c] + cand.J[c] @ (th - cand.theta[c])
         else:
             for name, m in d.folds.items():
-                th = _fit_theta(cand, data, [c], [~m])
-                r_ho[m] = cand.anchor_r[c][m] + cand.J[c][m] @ (th - cand.theta[c])
+                th = _fit_theta(cand, data, [c], [~m], offsets=offsets)
+                r_ho[m] = anchors[c][m] + cand.J[c][m] @ (th - cand.theta[c])
         out.append(r_ho)
     return out
 
@@ -750,6 +759,15 @@ class Scored:
                     and self.lpd_gain_prob >= HELDOUT_GAIN_PROBABILITY)
 
 
+def _mesh_shift(d: CaseData, f) -> np.ndarray | float:
+    """The mesh-error field a model's own fit under noise + discrepancy puts on top of the one
+    taken out of the gap (`remove_mesh_error`, estimated on the baseline gap): 0 without a
+    mesh-error direction."""
+    if f is None or d.mesh_error is None or f.mesh_coef is None or not np.size(f.mesh_coef):
+        return 0.0
+    return np.asarray(d.mesh_error, float).reshape(len(d.r0), -1) @ np.ravel(f.mesh_coef)
+
+
 def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> Scored:
     gp, gp_bic = evidence(cand, data)
     theta = [np.array(t, float) for t in cand.theta]
@@ -762,7 +780,14 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
         for c, f in enumerate(gp):
             fitted[c] = cand.anchor_r[c] + cand.J[c] @ (f.theta - cand.theta[c])
             theta[c] = f.theta.copy()
-    heldout = heldout_residuals(cand, data)
+    # the mesh-error field this model's own fit puts on top of the baseline's (`_mesh_shift`):
+    # taken out of its fitted and held-out gaps as the baseline's was out of the baseline gap,
+    # so that an effect is not charged for the part of it that the baseline's estimate took
+    shifts = [_mesh_shift(d, f) for d, f in zip(data, gp)]
+    for c, shift in enumerate(shifts):
+        fitted[c] = fitted[c] - shift
+    heldout_gap = heldout_residuals(cand, data)
+    heldout = heldout_residuals(cand, data, offsets=shifts) if any(np.any(x) for x in shifts) else heldout_gap
     rms_after = _pooled_rms(data, fitted)
     rms_ho = _pooled_rms(data, heldout)
     W = sum(float(d.gap.weights.sum()) for d in data)
@@ -784,7 +809,8 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
     out.noise_shrink_pct, out.noise_spread_pct = beyond_noise_shrink(data, r0s, heldout), noise_spread
     out.gp, out.gp_bic, out.theta = gp, gp_bic, theta
     out.se_model = model_form_errors(cand, data, gp)
-    out.lpd = heldout_lpd(cand, data, gp, heldout)
+    # the held-out density integrates the mesh-error coefficient out under its prior itself
+    out.lpd = heldout_lpd(cand, data, gp, heldout_gap)
     return out
 
 

@@ -119,9 +119,6 @@ __all__ = ["ErrorModel", "Fit", "subsample", "matern32", "smooth_basis", "LENGTH
            "BORDER_RATIOS", "MIN_BORDER_SHARE"]
 
 MAX_POINTS = 900                      # subsample size of the likelihood
-# prior standard deviation of the mesh-error coefficient (module text): the error of a mesh is
-# 1/(2^p - 1) of the change to the next coarser one and 2^p/(2^p - 1) of the change to the next
-# finer one, p the order of convergence; 2 covers both for p >= 0.6
 REGION_P = 1e-3                       # a region's gap beyond noise + discrepancy at this p-value
 # prior standard deviation of the mesh-error coefficient (module text): a mesh's error is
 # 1/(2^p - 1) of its change to the next coarser mesh and 2^p/(2^p - 1) of its change to the next

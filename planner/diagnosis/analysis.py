@@ -108,7 +108,7 @@ from planner.diagnosis.forward import SENSITIVITIES
 
 __all__ = ["CaseData", "Candidate", "analyse", "alternatives", "surface_confounds", "confound_warning", "confound_between",
            "SurfaceConfound", "CONFOUNDED_ON_SURFACE",
-           "MIN_HELDOUT_SHRINK_PCT", "MAX_REFINEMENTS"]
+           "MIN_HELDOUT_SHRINK_PCT", "MAX_REFINEMENTS", "naming_share"]
 
 # An effect must remove at least this share of the held-out RMS gap beyond the scan noise to be
 # named, and twice its bootstrap spread over the cross-validation units. The share is of the gap
@@ -1187,7 +1187,13 @@ def _judge(scored: list[Scored], gp0: float, lpd0: np.ndarray) -> None:
         s.lpd_gain_se = float(np.sqrt(len(diff)) * np.std(diff)) if len(diff) > 1 else 0.0
         s.lpd_gain_prob = fit.gain_probability(diff)
         s.significant = bool(s.identifiable and gp0 - s.gp_bic >= fit.STRONG_EVIDENCE and s.wins_heldout
-                             and bool(s.noise_shrink_pct >= max(MIN_HELDOUT_SHRINK_PCT, 2.0 * s.noise_spread_pct)))
+                             and bool(s.noise_shrink_pct >= naming_share(s.noise_spread_pct)))
+
+
+def naming_share(spread_pct: float) -> float:
+    """The held-out shrinkage of the gap beyond the noise (%) an effect must reach to be named,
+    given that shrinkage's bootstrap spread: `MIN_HELDOUT_SHRINK_PCT`, and twice the spread."""
+    return max(MIN_HELDOUT_SHRINK_PCT, 2.0 * spread_pct)
 
 
 def _significant_regions(data: list[CaseData], rs: list[np.ndarray], noise_only: bool = False) -> list[str]:

@@ -108,17 +108,16 @@ def verdict_text(record: dict) -> str:
     its regions and the effects a surface scan cannot tell from it; or `null` / `unexplained`
     with the probability of the prediction without an effect, and the effects the data
     support that remove too little of the held-out gap to be named, each with that share and
-    the share naming asks (`analysis._judge`)."""
+    the share naming asks (`analysis.naming_share`)."""
     v = record["verdict"]
     name = v["effect"]
     regions = ", ".join(v.get("regions") or ())
     if name not in (None, "unexplained"):
-        text = (f"{name} (confidence {v['confidence']:.2f}, the probability of the models that contain it)"
+        return (f"{name} (confidence {v['confidence']:.2f}, the probability of the models that contain it)"
                 + (f" in {regions}" if regions else "")
                 + "".join(f"; a surface scan cannot tell it from {other}: "
                           f"{analysis.confound_between(name, other).settled_by} would tell them apart"
                           for other in v.get("confounded_on_surface") or ()))
-        return text
     if name is None:
         text = "no effect named: the gap is within the scan noise and the model-form discrepancy"
     else:
@@ -133,7 +132,7 @@ def verdict_text(record: dict) -> str:
         if share is None or spread is None:
             supported.append(other)
             continue
-        need = max(MIN_HELDOUT_SHRINK_PCT, 2.0 * spread)
+        need = analysis.naming_share(spread)
         supported.append(f"{other} ({share:.0f} ± {spread:.0f} % of the held-out gap beyond the noise "
                          f"removed, {need:.0f} % needed)")
     if supported:

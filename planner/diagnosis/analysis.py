@@ -786,8 +786,14 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
     shifts = [_mesh_shift(d, f) for d, f in zip(data, gp)]
     for c, shift in enumerate(shifts):
         fitted[c] = fitted[c] - shift
-    heldout_gap = heldout_residuals(cand, data)
-    heldout = heldout_residuals(cand, data, offsets=shifts) if any(np.any(x) for x in shifts) else heldout_gap
+    heldout = heldout_residuals(cand, data, offsets=shifts)
+    # the held-out density integrates the mesh-error coefficient out under its prior itself, so
+    # it sees the gaps without the model's shift: those fitted on the other cases where the
+    # parameters are shared by several, else the anchors it refits per fold (`heldout_lpd`)
+    if not any(np.any(x) for x in shifts):
+        heldout_gap = heldout
+    else:
+        heldout_gap = heldout_residuals(cand, data) if cand.shared and len(data) > 1 else None
     rms_after = _pooled_rms(data, fitted)
     rms_ho = _pooled_rms(data, heldout)
     W = sum(float(d.gap.weights.sum()) for d in data)
@@ -809,7 +815,6 @@ def score(cand: Candidate, data: list[CaseData], rms0: float, n_eff: float) -> S
     out.noise_shrink_pct, out.noise_spread_pct = beyond_noise_shrink(data, r0s, heldout), noise_spread
     out.gp, out.gp_bic, out.theta = gp, gp_bic, theta
     out.se_model = model_form_errors(cand, data, gp)
-    # the held-out density integrates the mesh-error coefficient out under its prior itself
     out.lpd = heldout_lpd(cand, data, gp, heldout_gap)
     return out
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from planner.compare.alignment import rotation_matrix
 from planner.compare.comparison import check_same_patient, compare_surfaces
 from planner.compare.distances import TriangleSurface, vertex_areas
 from planner.compare.inputs import Prediction as ComparePrediction
@@ -39,6 +40,13 @@ MIN_FACE_MATCH = 0.5         # share of the scan within 2 mm of the face once su
 MIN_COVERAGE = 0.20          # a scan covering less of the modelled face gets a warning
 REGION_COVERED = 0.25        # a region with less of its area covered is reported uncovered
 REALIGN_KEEP = 0.9           # unoperated points kept for the pose (compare's trimmed ICP keeps 0.9)
+# the pose of a full prediction's gap (`ScanGap.distances_to`): Gauss-Newton steps of the
+# point-to-plane fit at fresh closest points, until a step moves the unoperated points by less
+# than REPOSE_TOL_MM (RMS) or after REPOSE_STEPS steps. A prediction that moves the superimposed
+# regions can need a pose millimetres away from the baseline's, mostly along those regions'
+# surfaces, where the fit about the baseline's closest points is not its first order
+REPOSE_STEPS = 8
+REPOSE_TOL_MM = 1e-3
 
 
 @dataclass
@@ -130,10 +138,41 @@ class ScanGap:
 
     def distances_to(self, vertices: np.ndarray, faces: np.ndarray, pose: bool = True) -> np.ndarray:
         """Signed distances of the fixed scan points to another predicted face (vertices,
-        faces), in the baseline's superimposition (and `realign`ed when `pose`): the gap a
-        prediction of the same case on another mesh leaves on the same points."""
-        d = TriangleSurface(np.asarray(vertices, float), np.asarray(faces)).closest(self.points).signed
-        return self.realign(d) if pose else d
+        faces): in the baseline's superimposition (`pose` False), or with the scan's pose
+        re-fitted on the unoperated regions to this face (`repose`): the gap a prediction of
+        the same case, or on another mesh, leaves on the same points."""
+        surface = TriangleSurface(np.asarray(vertices, float), np.asarray(faces))
+        d = surface.closest(self.points).signed
+        return self.repose(surface, d) if pose else d
+
+    def repose(self, surface: TriangleSurface, d: np.ndarray) -> np.ndarray:
+        """The distances of the scan points to `surface` with the scan's pose re-fitted on the
+        trimmed unoperated points (`fix_pose`), d their distances in the baseline's pose: the
+        rigid motion of the scan that `realign` fits to first order, solved by Gauss-Newton
+        steps of the same point-to-plane fit at fresh closest points (`REPOSE_STEPS`), as
+        compare's ICP does. Its first step is `realign`'s, so the two agree to first order
+        about the baseline, and the Jacobians (`linearised`) keep the linear map."""
+        pose = getattr(self, "_pose", None)
+        if pose is None:
+            return d
+        _, idx, _ = pose
+        sw = np.sqrt(self.weights[idx])
+        w = self.weights[idx] / self.weights[idx].sum()
+        points = self.points
+        for _ in range(REPOSE_STEPS):
+            cp = surface.closest(points[idx])
+            off = points[idx] - cp.point
+            far = np.abs(cp.signed) > 1e-9
+            u = np.where(far[:, None], off / np.where(far, cp.signed, 1.0)[:, None], cp.normal)
+            centre = w @ points[idx]
+            A = np.concatenate([np.cross(points[idx] - centre, u), u], axis=1) * sw[:, None]
+            x = np.linalg.lstsq(A, cp.signed * sw, rcond=None)[0]
+            rot = rotation_matrix(-x[:3])
+            points = (points - centre) @ rot.T + centre - x[3:]
+            step = np.cross(x[:3], points[idx] - centre) + x[3:]
+            if np.sqrt(w @ np.sum(step * step, axis=1)) < REPOSE_TOL_MM:
+                break
+        return surface.closest(points).signed
 
     def vertices(self, skin: np.ndarray) -> np.ndarray:
         """The predicted face's vertices (`faces`) for the model's skin positions `skin`."""

@@ -7,7 +7,11 @@ predicted, area weights). A scan is refused as another patient's when the superi
 residual exceeds 3 mm (compare's rule) or when less than half of it lies within 2 mm of the
 predicted face once superimposed. The scan points that overlap the baseline prediction are then kept
 fixed, so that every candidate prediction (an effect added) is measured on the same points with
-the same weights and the same superimposition: `ScanGap.distances(skin)`.
+the same weights: `ScanGap.distances(skin)`, with the scan's pose re-fitted to that prediction
+on the trimmed unoperated points (`ScanGap.repose`: Gauss-Newton steps of the point-to-plane fit
+at fresh closest points), since an effect can move the regions the superimposition rests on.
+The gap's derivatives (`ScanGap.linearised`) re-fit the pose to first order about the
+baseline's (`ScanGap.realign`).
 
 The noise floor comes from the data: the larger of the superimposition residual on the
 unoperated regions (scanner noise plus what registration leaves there) and the scan's own

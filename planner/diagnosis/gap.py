@@ -115,14 +115,8 @@ class ScanGap:
         return self.realign(out) if pose else out
 
     def _closest_with_direction(self, vertices, faces):
-        """(closest points of the scan points on (vertices, faces), u): the signed distance
-        is s = u . (p - c), u the unit direction from the closest point c to p (outward-signed),
-        so ds = -u . dc; u is the face normal where p lies over a triangle's interior, the
-        direction to an edge or corner otherwise."""
-        cp = TriangleSurface(vertices, faces).closest(self.points)
-        off = self.points - cp.point
-        far = np.abs(cp.signed) > 1e-9
-        return cp, np.where(far[:, None], off / np.where(far, cp.signed, 1.0)[:, None], cp.normal)
+        """`_closest_with_direction` of the scan points on (vertices, faces)."""
+        return _closest_with_direction(TriangleSurface(vertices, faces), self.points)
 
     @staticmethod
     def _distance_velocity(closest, faces, dvertices):
@@ -146,30 +140,25 @@ class ScanGap:
         re-fitted on the unoperated regions to this face (`repose`): the gap a prediction of
         the same case, or on another mesh, leaves on the same points."""
         surface = TriangleSurface(np.asarray(vertices, float), np.asarray(faces))
-        d = surface.closest(self.points).signed
-        return self.repose(surface, d) if pose else d
+        return self.repose(surface) if pose else surface.closest(self.points).signed
 
-    def repose(self, surface: TriangleSurface, d: np.ndarray) -> np.ndarray:
+    def repose(self, surface: TriangleSurface) -> np.ndarray:
         """The distances of the scan points to `surface` with the scan's pose re-fitted on the
-        trimmed unoperated points (`fix_pose`), d their distances in the baseline's pose: the
-        rigid motion of the scan that `realign` fits to first order, solved by Gauss-Newton
+        trimmed unoperated points (`fix_pose`; the baseline's pose without them): the rigid motion of the scan that `realign` fits to first order, solved by Gauss-Newton
         steps of the same point-to-plane fit at fresh closest points (`REPOSE_STEPS`), as
         compare's ICP does. Its first step is `realign`'s, so the two agree to first order
         about the baseline, and the Jacobians (`linearised`) keep the linear map."""
         pose = getattr(self, "_pose", None)
         if pose is None:
-            return d
+            return surface.closest(self.points).signed
         _, idx, _ = pose
         sw = np.sqrt(self.weights[idx])
         w = self.weights[idx] / self.weights[idx].sum()
         points = self.points
         for _ in range(REPOSE_STEPS):
-            cp = surface.closest(points[idx])
-            off = points[idx] - cp.point
-            far = np.abs(cp.signed) > 1e-9
-            u = np.where(far[:, None], off / np.where(far, cp.signed, 1.0)[:, None], cp.normal)
+            cp, u = _closest_with_direction(surface, points[idx])
             centre = w @ points[idx]
-            A = np.concatenate([np.cross(points[idx] - centre, u), u], axis=1) * sw[:, None]
+            A = _rigid_basis(points[idx] - centre, u) * sw[:, None]
             x = np.linalg.lstsq(A, cp.signed * sw, rcond=None)[0]
             rot = rotation_matrix(-x[:3])
             points = (points - centre) @ rot.T + centre - x[3:]
@@ -196,7 +185,7 @@ class ScanGap:
         cp, u = self._lin
         raw = cp.signed
         q = self.points - np.average(self.points[self.unoperated], axis=0, weights=self.weights[self.unoperated])
-        R = np.concatenate([np.cross(q, u), u], axis=1)
+        R = _rigid_basis(q, u)
         idx = np.nonzero(self.unoperated)[0]
         dev = np.abs(raw[idx] - np.median(raw[idx]))
         idx = idx[dev <= np.quantile(dev, REALIGN_KEEP)]
@@ -341,6 +330,24 @@ def baseline_prediction(case, skin: np.ndarray) -> ComparePrediction:
                              tuple(case.region_names), tuple(case.unoperated), landmarks,
                              Path(f"<baseline prediction of {case.name}>"),
                              displacement=np.asarray(vertices, float) - np.asarray(rest, float))
+
+
+def _closest_with_direction(surface: TriangleSurface, points: np.ndarray):
+    """(closest points of `points` on `surface`, u): the signed distance is s = u . (p - c),
+    u the unit direction from the closest point c to p (outward-signed), so ds = -u . dc; u is
+    the face normal where p lies over a triangle's interior, the direction to an edge or
+    corner otherwise."""
+    cp = surface.closest(points)
+    off = points - cp.point
+    far = np.abs(cp.signed) > 1e-9
+    return cp, np.where(far[:, None], off / np.where(far, cp.signed, 1.0)[:, None], cp.normal)
+
+
+def _rigid_basis(q: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """(n, 6) change of the signed distances per small rotation omega (about the origin of
+    q, the points' offsets) and translation t of the points: u . (omega x q + t) =
+    (q x u) . omega + u . t."""
+    return np.concatenate([np.cross(q, u), u], axis=1)
 
 
 def measure_gap(case, skin: np.ndarray, scan: Surface, max_residual_mm: float = 3.0) -> ScanGap:

@@ -144,9 +144,10 @@ class ScanGap:
 
     def repose(self, surface: TriangleSurface) -> np.ndarray:
         """The distances of the scan points to `surface` with the scan's pose re-fitted on the
-        trimmed unoperated points (`fix_pose`; the baseline's pose without them): the rigid motion of the scan that `realign` fits to first order, solved by Gauss-Newton
-        steps of the same point-to-plane fit at fresh closest points (`REPOSE_STEPS`), as
-        compare's ICP does. Its first step is `realign`'s, so the two agree to first order
+        trimmed unoperated points (`fix_pose`; the baseline's pose without them): the rigid
+        motion of the scan that `realign` fits to first order, solved by Gauss-Newton steps of
+        the same point-to-plane fit at fresh closest points (`REPOSE_STEPS`), as compare's ICP
+        does. Its first step is `realign`'s, so the two agree to first order
         about the baseline, and the Jacobians (`linearised`) keep the linear map."""
         pose = getattr(self, "_pose", None)
         if pose is None:

@@ -27,7 +27,7 @@ import numpy as np
 from planner.compare.distances import TriangleSurface
 
 __all__ = ["Alignment", "trimmed_icp", "align_to_reference", "global_initialisation", "superimpose",
-           "rotation_matrix", "apply", "unoperated_median_mm", "unoperated_width_scale_pct",
+           "rotation_matrix", "apply", "rigid_basis", "point_to_plane_step", "unoperated_median_mm", "unoperated_width_scale_pct",
            "OTHER_PATIENT_MEDIAN_MM", "OTHER_PATIENT_SCALE_PCT", "SCALE_MAX_STDERR_PCT",
            "SCALE_IGNORED_REGIONS",
            "DOUBTFUL_MEDIAN_MM"]
@@ -69,6 +69,36 @@ def rotation_matrix(omega: np.ndarray) -> np.ndarray:
 def apply(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 rigid matrix to (n, 3) points."""
     return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def rigid_basis(q: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """(m, 6) change of the residuals n . (p - closest point) per small rotation omega of the
+    points about the origin of their offsets q and per translation t: n . (omega x q + t) =
+    (q x n) . omega + n . t."""
+    return np.concatenate([np.cross(q, n), n], axis=1)
+
+
+def point_to_plane_step(p: np.ndarray, r: np.ndarray, n: np.ndarray,
+                        weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One linearised point-to-plane step (Low 2004): the rotation omega about the (weighted)
+    centroid c0 of the points p (m, 3) and the translation t that minimise
+    sum w (r + (p - c0) x n . omega + n . t)^2, r = n . (p - closest point) their residuals
+    along the unit directions n. Returns (the 4x4 rigid step, applied through the exact
+    rotation, omega, t, c0)."""
+    w = np.ones(len(p)) if weights is None else np.asarray(weights, float)
+    c0 = (w / w.sum()) @ p
+    A = rigid_basis(p - c0, n)
+    AtA = A.T @ (A * w[:, None])
+    # a tiny Tikhonov term keeps nearly symmetric patches (sphere-like foreheads) regular;
+    # 1e-9 of the trace changes a well-posed solution by ~1e-9 relative.
+    AtA += 1e-9 * np.trace(AtA) * np.eye(6)
+    sol = np.linalg.solve(AtA, -A.T @ (w * r))
+    omega, t = sol[:3], sol[3:]
+    R = rotation_matrix(omega)
+    step = np.eye(4)
+    step[:3, :3] = R
+    step[:3, 3] = c0 + t - R @ c0
+    return step, omega, t, c0
 
 
 @dataclass
@@ -163,19 +193,7 @@ def trimmed_icp(
         n = cp.normal[idx]
         r = np.einsum("pi,pi->p", p - q, n)
         history.append(float(np.sqrt(np.mean(r**2))))
-        # linearised point-to-plane: r + (c x n).omega + n.t = 0, with c = p - centroid
-        c0 = p.mean(axis=0)
-        A = np.hstack([np.cross(p - c0, n), n])
-        AtA = A.T @ A
-        # a tiny Tikhonov term keeps nearly symmetric patches (sphere-like foreheads) regular;
-        # 1e-9 of the trace changes a well-posed solution by ~1e-9 relative.
-        AtA += 1e-9 * np.trace(AtA) * np.eye(6)
-        sol = np.linalg.solve(AtA, -A.T @ r)
-        omega, t = sol[:3], sol[3:]
-        R = rotation_matrix(omega)
-        step = np.eye(4)
-        step[:3, :3] = R
-        step[:3, 3] = c0 + t - R @ c0
+        step, omega, t, c0 = point_to_plane_step(p, r, n)
         T = step @ T
         if np.linalg.norm(omega) * (radius + np.linalg.norm(c0 - centre)) + np.linalg.norm(t) < tol_mm:
             converged = True

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planner.compare.alignment import rotation_matrix
+from planner.compare.alignment import apply, point_to_plane_step, rigid_basis
 from planner.compare.comparison import check_same_patient, compare_surfaces
 from planner.compare.distances import TriangleSurface, vertex_areas
 from planner.compare.inputs import Prediction as ComparePrediction
@@ -146,25 +146,23 @@ class ScanGap:
         """The distances of the scan points to `surface` with the scan's pose re-fitted on the
         trimmed unoperated points (`fix_pose`; the baseline's pose without them): the rigid
         motion of the scan that `realign` fits to first order, solved by Gauss-Newton steps of
-        the same point-to-plane fit at fresh closest points (`REPOSE_STEPS`), as compare's ICP
-        does. Its first step is `realign`'s, so the two agree to first order
-        about the baseline, and the Jacobians (`linearised`) keep the linear map."""
+        the same point-to-plane fit at fresh closest points (`REPOSE_STEPS`, each compare's ICP
+        step `point_to_plane_step`, area-weighted). Its first step is `realign`'s, so the two
+        agree to first order about the baseline, and the Jacobians (`linearised`) keep the
+        linear map."""
         pose = getattr(self, "_pose", None)
         if pose is None:
             return surface.closest(self.points).signed
         _, idx, _ = pose
-        sw = np.sqrt(self.weights[idx])
         w = self.weights[idx] / self.weights[idx].sum()
         points = self.points
         for _ in range(REPOSE_STEPS):
             cp, u = _closest_with_direction(surface, points[idx])
-            centre = w @ points[idx]
-            A = _rigid_basis(points[idx] - centre, u) * sw[:, None]
-            x = np.linalg.lstsq(A, cp.signed * sw, rcond=None)[0]
-            rot = rotation_matrix(-x[:3])
-            points = (points - centre) @ rot.T + centre - x[3:]
-            step = np.cross(x[:3], points[idx] - centre) + x[3:]
-            if np.sqrt(w @ np.sum(step * step, axis=1)) < REPOSE_TOL_MM:
+            step = point_to_plane_step(points[idx], cp.signed, u, w)[0]
+            moved = apply(step, points)
+            motion = moved[idx] - points[idx]
+            points = moved
+            if np.sqrt(w @ np.sum(motion * motion, axis=1)) < REPOSE_TOL_MM:
                 break
         return surface.closest(points).signed
 
@@ -186,7 +184,7 @@ class ScanGap:
         cp, u = self._lin
         raw = cp.signed
         q = self.points - np.average(self.points[self.unoperated], axis=0, weights=self.weights[self.unoperated])
-        R = _rigid_basis(q, u)
+        R = rigid_basis(q, u)
         idx = np.nonzero(self.unoperated)[0]
         dev = np.abs(raw[idx] - np.median(raw[idx]))
         idx = idx[dev <= np.quantile(dev, REALIGN_KEEP)]
@@ -342,13 +340,6 @@ def _closest_with_direction(surface: TriangleSurface, points: np.ndarray):
     off = points - cp.point
     far = np.abs(cp.signed) > 1e-9
     return cp, np.where(far[:, None], off / np.where(far, cp.signed, 1.0)[:, None], cp.normal)
-
-
-def _rigid_basis(q: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """(n, 6) change of the signed distances per small rotation omega (about the origin of
-    q, the points' offsets) and translation t of the points: u . (omega x q + t) =
-    (q x u) . omega + u . t."""
-    return np.concatenate([np.cross(q, u), u], axis=1)
 
 
 def measure_gap(case, skin: np.ndarray, scan: Surface, max_residual_mm: float = 3.0) -> ScanGap:

@@ -102,6 +102,24 @@ h), with g and h of the same Matern kernel and m the mask of those points, so Si
 s_d^2 (K + rho M K M); rho is profiled over `BORDER_RATIOS` (0: the stationary field) with the
 amplitude and length of each model.
 
+The scan's pose. The gap is measured with the scan superimposed on the trimmed unoperated
+points (`gap.ScanGap.fix_pose`), a least-squares pose rho = M r_u of those points' gap; its error
+is M delta_u, the discrepancy there, which a correlated field does not average down with more
+points, and it moves the gap of the whole face by the rigid basis R (a small rotation and
+translation of the scan). A pose error that way is a field like any the model could leave, and
+an effect whose pattern resembles it (a bone rotation trades with the scan's tilt, a bone's
+vertical move with its slide along the face) would be fitted to it. The pose is therefore
+integrated out like the model's other nuisance inputs: with C = M_s Sigma_u M_s^T its covariance
+(Sigma_u the baseline's noise + discrepancy on the subsample's trimmed unoperated points, M_s the
+pose's estimator there; the scan noise's part sigma_n^2 M M^T on all of them), the six columns
+R C^(1/2) enter the error model with unit Gaussian coefficients and Sigma gains R C R^T
+(`pose_covariance`). C is set once per case from the baseline's error model, whose discrepancy
+holds whatever gap the data hold: the pose is taken to be as uncertain as the face's whole
+model-form error makes it, for every model alike. (The gap's exact covariance after a fitted
+pose, P Sigma P^T with P = I - R M_s, takes the pose error as the discrepancy's own on the
+unoperated points, which a stationary field makes small; it is not used, since a model's
+response there is what differs between models of one face, and that part is not stationary.)
+
 The likelihood is evaluated on an area-uniform subsample of the scan points (one per cube of
 side `spacing`, at most `MAX_POINTS`), small enough for a dense eigendecomposition of the
 correlation matrix per correlation length.
@@ -214,6 +232,7 @@ class Fit:
     layer_coef: np.ndarray | None = None      # its coefficients on the layer directions
     border_ratio: float = 0.0     # rho: the variance ratio of the field under the mandible
     border_share: float = 0.0     # the share of the points under the mandible
+    pose_mm: float = 0.0          # RMS of the estimated correction of the scan's pose over the points
 
     @property
     def discrepancy_mm(self) -> float:
@@ -251,7 +270,7 @@ class ErrorModel:
                  lengths: tuple[float, ...] = LENGTHS_MM, max_points: int = MAX_POINTS,
                  long_scale: bool = True, mesh_error: np.ndarray | None = None,
                  boundary: np.ndarray | None = None, layers: np.ndarray | None = None,
-                 border: np.ndarray | None = None):
+                 border: np.ndarray | None = None, pose: np.ndarray | None = None):
         self.idx = subsample(points, weights, max_points)
         self.points = np.asarray(points, float)[self.idx]
         self.area = float(np.sum(weights))
@@ -263,9 +282,10 @@ class ErrorModel:
         # the mesh-error direction (module text, "The mesh's own error"): one column on the
         # subsample, its coefficient under a fixed Gaussian prior
         # and the boundary-condition directions (module text, "Boundary conditions"), after it,
-        # then the layer-proportion directions ("Layer proportions")
+        # then the layer-proportion directions ("Layer proportions"), then the pose's ("The
+        # scan's pose": each column already scaled by its standard deviation)
         cols, sd2 = [], []
-        for field_, sd in ((mesh_error, MESH_ERROR_SD), (boundary, BOUNDARY_SD), (layers, LAYER_SD)):
+        for field_, sd in ((mesh_error, MESH_ERROR_SD), (boundary, BOUNDARY_SD), (layers, LAYER_SD), (pose, 1.0)):
             m = np.zeros((len(self.idx), 0))
             if field_ is not None:
                 m = np.asarray(field_, float).reshape(len(points), -1)[self.idx]
@@ -275,6 +295,8 @@ class ErrorModel:
             sd2.append(np.full(m.shape[1], sd ** 2))
         self.n_mesh = cols[0].shape[1]
         self.n_boundary = cols[1].shape[1]
+        self.n_layers = cols[2].shape[1]
+        self.n_pose = cols[3].shape[1]
         self.N = np.concatenate(cols, axis=1)
         self._nsd2 = np.concatenate(sd2)
         BN = np.concatenate([self.B, self.N], axis=1)
@@ -290,6 +312,39 @@ class ErrorModel:
             for rho in self.ratios:
                 lam, U = np.linalg.eigh(K + rho * self._mm * K if rho else K)
                 self._eig.append((ell, rho, np.clip(lam, 0.0, None), U, U.T @ BN))
+
+    def pose_covariance(self, fit: Fit, pose: tuple) -> np.ndarray | None:
+        """Covariance C of the scan's pose (module text, "The scan's pose") under the error
+        model `fit`: M_s (Sigma_u - sigma_n^2 I) M_s^T + sigma_n^2 M M^T, `pose` = (R, keep, M)
+        of `gap.ScanGap.fix_pose` (the rigid basis on all scan points, the trimmed unoperated
+        points, the pose's weighted estimator on them). Rotations (rad) about and translations
+        (mm) along x, y, z; None when the subsample holds too few of those points to fix it."""
+        R, keep, M = pose
+        u = np.isin(self.idx, keep)
+        A = np.asarray(R, float)[self.idx[u]]
+        if u.sum() < 12 or np.linalg.matrix_rank(A) < 6:
+            return None
+        Ms = np.linalg.pinv(A)
+        S = self.covariance(fit, u) - self.sigma_n ** 2 * np.eye(int(u.sum()))
+        C = Ms @ S @ Ms.T + self.sigma_n ** 2 * (np.asarray(M) @ np.asarray(M).T)
+        return 0.5 * (C + C.T)
+
+    def with_pose(self, pose: np.ndarray) -> "ErrorModel":
+        """This error model with the pose's directions (module text, "The scan's pose";
+        columns on all scan points, each scaled by its standard deviation) in place of any it
+        had: the eigendecompositions of the short scale are shared."""
+        import copy
+
+        out = copy.copy(self)
+        m = np.asarray(pose, float)[self.idx]
+        m = m[:, np.all(np.isfinite(m), axis=0) & (np.sqrt(np.mean(m * m, axis=0)) > 1e-9)]
+        n = self.N.shape[1] - self.n_pose
+        out.N = np.concatenate([self.N[:, :n], m], axis=1)
+        out._nsd2 = np.concatenate([self._nsd2[:n], np.ones(m.shape[1])])
+        out.n_pose = m.shape[1]
+        BN = np.concatenate([self.B, out.N], axis=1)
+        out._eig = [(ell, rho, lam, U, U.T @ BN) for ell, rho, lam, U, _ in self._eig]
+        return out
 
     def n_eff(self, ell: float) -> float:
         """Independent samples of the face for correlation length ell: area / (pi l^2)."""
@@ -405,13 +460,14 @@ class ErrorModel:
         long_mm = float(s_l * np.sqrt(np.mean(np.sum(self.B * self.B, axis=1)))) if self.B.size else 0.0
         nu = np.asarray(nu, float)
         q, b = self.n_mesh, self.n_mesh + self.n_boundary
+        y = b + self.n_layers
 
         def rms(lo, hi):
             return float(np.sqrt(np.mean((self.N[:, lo:hi] @ nu[lo:hi]) ** 2))) if hi > lo else 0.0
 
         return Fit(theta, float(s_d), float(ell), float(ll), nfree + int(extra_k), float(s_l), long_mm,
-                   rms(0, q), nu[:q], rms(q, b), nu[q:b], rms(b, self.N.shape[1]), nu[b:],
-                   float(rho), self.border_share if rho else 0.0)
+                   rms(0, q), nu[:q], rms(q, b), nu[q:b], rms(b, y), nu[b:y],
+                   float(rho), self.border_share if rho else 0.0, rms(y, self.N.shape[1]))
 
     def mesh_coefficient_sd(self, fit: Fit) -> np.ndarray:
         """Posterior standard deviations of the mesh-error coefficients under the error model

@@ -198,12 +198,14 @@ def write_diagnosis(result: dict, out_dir: Path, render_images: bool = True, say
             tables["Error model of the baseline gap (noise + model-form discrepancy)"] = (
                 ["noise (mm)", "short scale (mm)", "correlation length (mm)", "long scale (mm)",
                  "mesh error taken out (mm)", "boundary field (mm)", "layer-proportion field (mm)",
-                 "discrepancy (mm)", "level (mm)"],
+                 "scan's pose, 1 sd (deg; mm)", "discrepancy (mm)", "level (mm)"],
                 [[em["noise_mm"], em.get("short_scale_mm"), em["correlation_length_mm"], em.get("long_scale_mm"),
                   em.get("mesh_error_mm"),
                   None if em.get("boundary_mm") is None else f"{em['boundary_mm']} ({em.get('boundary_direction')})",
                   None if em.get("layer_mm") is None else
                   f"{em['layer_mm']} ({', '.join(em.get('layer_directions') or ())})",
+                  None if not em.get("pose_sd") else
+                  f"{max(em['pose_sd']['rotation_deg'])}; {max(em['pose_sd']['translation_mm'])}",
                   em["discrepancy_mm"], em["level_mm"]]])
         if shrink and "attributable_shrink_pct" in shrink.get("overall", {}):
             o = shrink["overall"]

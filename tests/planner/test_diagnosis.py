@@ -80,6 +80,11 @@ def test_withheld_muscle_tone_is_named(patient, forward):
     assert 0.0 <= em["boundary_mm"] <= em["discrepancy_mm"] + 1e-9
     # the layer-proportion directions are asked for (`layers=True`), not solved by default
     assert em["layer_directions"] is None and em["layer_mm"] is None
+    # the scan's pose is integrated out: its spread is reported, three rotations and three
+    # translations, each positive (a least-squares pose on the upper face is never exact)
+    sd = em["pose_sd"]
+    assert len(sd["rotation_deg"]) == 3 and len(sd["translation_mm"]) == 3
+    assert min(sd["rotation_deg"] + sd["translation_mm"]) > 0.0 and em["pose_mm"] is not None
     # the winning effect's fitted gap is smaller than the baseline's in every explained region
     for region in rec["verdict"]["regions"]:
         r = rec["shrinkage"]["regions"][region]

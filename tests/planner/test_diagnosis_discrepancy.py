@@ -943,3 +943,83 @@ def test_a_measured_effect_takes_the_measurements_prior_in_its_fit_and_errors(sh
     c.choices = [()]
     loose = analysis.evidence(c, [d])[0][0].theta[0]
     assert abs(measured) < 0.5 * abs(loose)
+
+
+# The scan's pose (`discrepancy`, "The scan's pose"): superimposed on the top third of the sheet
+# (the "unoperated" points), by area-weighted least squares of the point-to-plane residual.
+def _pose(P, w):
+    from planner.compare.alignment import rigid_basis
+
+    gx, gy = 0.008 * (P[:, 0] - 67.5), 0.004 * (P[:, 1] - 67.5)
+    n = np.stack([-gx, -gy, np.ones(len(P))], axis=1)
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    keep = np.nonzero(P[:, 1] > 90.0)[0]
+    R = rigid_basis(P - P[keep].mean(axis=0), n)
+    sw = np.sqrt(w[keep])
+    M = np.linalg.pinv(R[keep] * sw[:, None]) * sw[None, :]
+    return R, keep, M
+
+
+def _pose_draw(C, seed):
+    """A pose error drawn from its covariance C."""
+    return np.linalg.cholesky(C + 1e-15 * np.eye(6)) @ np.random.default_rng(seed).normal(size=6)
+
+
+def test_the_pose_covariance_is_the_spread_of_the_fitted_pose(sheet):
+    """`ErrorModel.pose_covariance` against Monte Carlo: the pose least squares fits to the
+    unoperated points of gaps drawn from noise + discrepancy. Every point of the sheet is in the
+    likelihood's subsample, so the two estimators are one; 3000 draws estimate a variance to
+    sqrt(2/3000) = 2.6 % (one standard deviation), so 10 % is about four of them."""
+    P, w, em = sheet
+    assert len(em.idx) == len(P)
+    R, keep, M = _pose(P, w)
+    f = discrepancy.Fit(None, SIGMA_D, ELL, 0.0, 0)
+    C = em.pose_covariance(f, (R, keep, M))
+    rng = np.random.default_rng(5)
+    d = np.linalg.norm(P[keep][:, None] - P[keep][None], axis=2)
+    L = np.linalg.cholesky(SIGMA_D ** 2 * discrepancy.matern32(d, ELL) + 1e-9 * np.eye(len(keep)))
+    draws = L @ rng.normal(size=(len(keep), 3000)) + rng.normal(0.0, NOISE, (len(keep), 3000))
+    rho = M @ draws
+    emp = np.cov(rho)
+    assert np.allclose(np.diag(C), np.diag(emp), rtol=0.10)
+    # the correlations too (the rotations and translations trade along the sheet), to 0.05
+    # absolute (a correlation's standard error is below 1/sqrt(3000) = 0.018)
+    corr = lambda c: c / np.sqrt(np.outer(np.diag(c), np.diag(c)))  # noqa: E731
+    assert np.allclose(corr(C), corr(emp), atol=0.05)
+    # the discrepancy does not average down: the pose is far less certain than under the
+    # scan noise alone
+    assert np.all(np.diag(C) > 10.0 * NOISE ** 2 * np.diag(M @ M.T))
+
+
+def test_an_effect_like_the_pose_keeps_only_what_the_pose_leaves(sheet):
+    """The pose integrated out (`ErrorModel.with_pose`): Sigma gains R C R^T, the likelihood is
+    the dense Gaussian's, and the information on a parameter whose pattern is a rigid motion of
+    the scan is the Woodbury identity's, e^T (G^-1 + C)^-1 e with G = R^T Sigma^-1 R: no more
+    than the pose's own spread lets it have (1e-6 relative, double precision on 900 points)."""
+    P, w, em = sheet
+    R, keep, M = _pose(P, w)
+    f0 = discrepancy.Fit(None, SIGMA_D, ELL, 0.0, 0)
+    C = em.pose_covariance(f0, (R, keep, M))
+    lam, V = np.linalg.eigh(C)
+    E = R @ (V * np.sqrt(lam))
+    ep = em.with_pose(E)
+    assert ep.n_pose == 6 and em.n_pose == 0
+    delta, eps = _gp_sample(P, 66)
+    r = delta + eps + R @ _pose_draw(C, 3)
+    f = ep.fit(r)
+    S = ep.covariance(f)
+    Rs = R[em.idx]
+    RCR = Rs @ C @ Rs.T
+    assert np.abs(S - em.covariance(f) - RCR).max() <= 1e-9 * np.abs(RCR).max()
+    dense = -0.5 * (r @ np.linalg.solve(S, r) + np.linalg.slogdet(S)[1] + len(r) * np.log(2 * np.pi))
+    assert f.loglik == pytest.approx(dense, rel=1e-6)
+    assert f.pose_mm > 0.0 and f.layer_mm == 0.0
+    # a pitch of the scan as an effect's pattern: its information under the pose
+    J = R[:, :1]
+    G = Rs.T @ np.linalg.solve(em.covariance(f), Rs)
+    expect = np.linalg.inv(np.linalg.inv(G) + C)[0, 0]
+    assert ep.information(J, f)[0, 0] == pytest.approx(expect, rel=1e-6)
+    # never more than the pose's conditional precision (C^-1)_00: the data cannot tell the
+    # effect from the pose beyond what the pose's prior does
+    assert ep.information(J, f)[0, 0] <= np.linalg.inv(C)[0, 0] * (1.0 + 1e-9)
+    assert ep.information(J, f)[0, 0] < 0.5 * em.information(J, f)[0, 0]

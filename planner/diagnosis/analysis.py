@@ -163,10 +163,8 @@ class CaseData:
     # (points, k), and their names; None when not solved
     layers: np.ndarray | None = None
     layer_directions: tuple = ()
-    # the scan's pose integrated out (`pose_uncertainty`): its directions on the scan points,
-    # each scaled by its standard deviation, (points, 6), and its covariance (rad, mm); None
-    # until estimated
-    pose: np.ndarray | None = None
+    # the covariance of the scan's pose under the baseline's error model (rad, mm;
+    # `discrepancy.ErrorModel.pose_covariance`); None until estimated
     pose_cov: np.ndarray | None = None
 
     @property
@@ -181,7 +179,8 @@ class CaseData:
             border = np.isin(self.gap.region, [names.index(r) for r in discrepancy.BORDER_REGIONS if r in names])
             self._error = discrepancy.ErrorModel(self.gap.points, self.gap.weights, self.gap.noise_floor_mm,
                                                  mesh_error=self.mesh_error, boundary=self.boundary,
-                                                 layers=self.layers, border=border, pose=self.pose)
+                                                 layers=self.layers, border=border,
+                                                 pose=getattr(self.gap, "_pose", None))
         return self._error
 
 
@@ -206,20 +205,6 @@ def remove_mesh_error(d: CaseData):
     d.r0 = d.r0 - off
     d.gap.correlation_mm = correlation_length(d.gap.points, d.r0, d.gap.weights)
     return f
-
-
-def pose_uncertainty(d: CaseData, f) -> None:
-    """Integrate the scan's pose out of every model of the case (`discrepancy`, "The scan's
-    pose"): its covariance C under the baseline's error model `f`, and the rigid basis R times
-    C^(1/2) as six more nuisance columns of the error model. Nothing without a pose fit."""
-    pose = getattr(d.gap, "_pose", None)
-    C = None if pose is None else d.error.pose_covariance(f, pose)
-    if C is None:
-        return
-    lam, V = np.linalg.eigh(C)
-    d.pose = pose[0] @ (V * np.sqrt(np.clip(lam, 0.0, None)))
-    d.pose_cov = C
-    d._error = d.error.with_pose(d.pose)
 
 
 @dataclass
@@ -1103,10 +1088,7 @@ def analyse(data: list[CaseData], effects: list[Effect], forward, say=lambda s: 
     say("noise + discrepancy error model of the baseline gap")
     base_fits, _ = evidence(None, data)
     for d, f in zip(data, base_fits):
-        pose_uncertainty(d, f)
-    if any(d.pose is not None for d in data):
-        base_fits, _ = evidence(None, data)
-    for d, f in zip(data, base_fits):
+        d.pose_cov = d.error.pose_covariance(f)
         d.gp_n_eff = d.error.n_eff(f.ell)
         d.gap.discrepancy_mm = f.discrepancy_mm
         d.gap.discrepancy_ell_mm = f.ell

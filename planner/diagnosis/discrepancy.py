@@ -104,21 +104,28 @@ amplitude and length of each model.
 
 The scan's pose. The gap is measured with the scan superimposed on the trimmed unoperated
 points (`gap.ScanGap.fix_pose`), a least-squares pose rho = M r_u of those points' gap; its error
-is M delta_u, the discrepancy there, which a correlated field does not average down with more
-points, and it moves the gap of the whole face by the rigid basis R (a small rotation and
-translation of the scan). A pose error that way is a field like any the model could leave, and
-an effect whose pattern resembles it (a bone rotation trades with the scan's tilt, a bone's
-vertical move with its slide along the face) would be fitted to it. The pose is therefore
-integrated out like the model's other nuisance inputs: with C = M_s Sigma_u M_s^T its covariance
-(Sigma_u the baseline's noise + discrepancy on the subsample's trimmed unoperated points, M_s the
-pose's estimator there; the scan noise's part sigma_n^2 M M^T on all of them), the six columns
-R C^(1/2) enter the error model with unit Gaussian coefficients and Sigma gains R C R^T
-(`pose_covariance`). C is set once per case from the baseline's error model, whose discrepancy
-holds whatever gap the data hold: the pose is taken to be as uncertain as the face's whole
-model-form error makes it, for every model alike. (The gap's exact covariance after a fitted
-pose, P Sigma P^T with P = I - R M_s, takes the pose error as the discrepancy's own on the
-unoperated points, which a stationary field makes small; it is not used, since a model's
-response there is what differs between models of one face, and that part is not stationary.)
+is M delta_u, the error of the gap there, which a correlated field does not average down with
+more points, and it moves the gap of the whole face by the rigid basis R (a small rotation and
+translation of the scan). A pose error is thus a field like any the model could leave, and an
+effect whose pattern resembles it (a bone rotation trades with the scan's tilt, a bone's
+vertical move with the scan's slide along the face) would be fitted to it. The pose is
+therefore integrated out: its error is taken as independent of the gap's other errors, with
+the covariance the model's own noise + discrepancy gives it,
+
+    C = M_s (s_d^2 K_uu + s_L^2 B_u B_u^T) M_s^T + s_n^2 M M^T,
+
+M_s the pose's estimator on the subsample's trimmed unoperated points u (area-uniform, so
+unweighted), M the whole scan's (for the white noise), and Sigma gains R C R^T
+(`pose_covariance`). With T = R_s M_s this is a second copy of each field through the pose:
+the short scale's kernel becomes K + T K_uu T^T (one eigendecomposition per length, as before),
+the long-scale basis gains the columns T B_u under the same amplitude, and the noise's part is
+six fixed columns (the mesh-error, boundary and layer directions are changes of gaps measured
+with the pose re-fitted already, and have no copy). So every model carries the pose uncertainty its own discrepancy implies: a
+model that explains the gap leaves a smaller discrepancy and a better-held pose. (The gap's
+exact covariance after a fitted pose, P Sigma P^T with P = I - T, takes the pose's error to be
+the discrepancy's own on the unoperated points and removes it there; a stationary field then
+makes it small. It is not used: what differs between models of one face on those points is
+each model's response to the operation, which is not stationary.)
 
 The likelihood is evaluated on an area-uniform subsample of the scan points (one per cube of
 side `spacing`, at most `MAX_POINTS`), small enough for a dense eigendecomposition of the
@@ -232,7 +239,6 @@ class Fit:
     layer_coef: np.ndarray | None = None      # its coefficients on the layer directions
     border_ratio: float = 0.0     # rho: the variance ratio of the field under the mandible
     border_share: float = 0.0     # the share of the points under the mandible
-    pose_mm: float = 0.0          # RMS of the estimated correction of the scan's pose over the points
 
     @property
     def discrepancy_mm(self) -> float:
@@ -270,7 +276,7 @@ class ErrorModel:
                  lengths: tuple[float, ...] = LENGTHS_MM, max_points: int = MAX_POINTS,
                  long_scale: bool = True, mesh_error: np.ndarray | None = None,
                  boundary: np.ndarray | None = None, layers: np.ndarray | None = None,
-                 border: np.ndarray | None = None, pose: np.ndarray | None = None):
+                 border: np.ndarray | None = None, pose: tuple | None = None):
         self.idx = subsample(points, weights, max_points)
         self.points = np.asarray(points, float)[self.idx]
         self.area = float(np.sum(weights))
@@ -278,14 +284,32 @@ class ErrorModel:
         self._d = np.linalg.norm(self.points[:, None] - self.points[None], axis=2)
         self.lengths = tuple(float(x) for x in lengths)
         self.B = smooth_basis(self.points) if long_scale else np.zeros((len(self.idx), 0))
+        self.n_long = self.B.shape[1]
+        # the scan's pose (module text, "The scan's pose"): T = R_s M_s carries an error of the
+        # gap on the subsample's trimmed unoperated points into the whole face's rigid field;
+        # the long scale's copy through it joins the basis, the scan noise's a fixed field
+        self._T = self._pose_u = self._noise_pose = None
+        noise_pose = None
+        if pose is not None:
+            R, keep, M = pose
+            Rs = np.asarray(R, float)[self.idx]
+            u = np.isin(self.idx, keep)
+            if u.sum() >= 12 and np.linalg.matrix_rank(Rs[u]) == 6:
+                self._Ms, self._pose_u = np.linalg.pinv(Rs[u]), u
+                self._T = Rs @ self._Ms
+                self._noise_pose = self.sigma_n ** 2 * (np.asarray(M, float) @ np.asarray(M, float).T)
+                lam, V = np.linalg.eigh(self._noise_pose)
+                noise_pose = np.zeros((len(points), 6))
+                noise_pose[self.idx] = Rs @ (V * np.sqrt(np.clip(lam, 0.0, None)))
+                self.B = np.concatenate([self.B, self._T @ self.B[u]], axis=1)
         self.long_amplitudes = _LONG_AMPLITUDES if long_scale else np.zeros(1)
         # the mesh-error direction (module text, "The mesh's own error"): one column on the
         # subsample, its coefficient under a fixed Gaussian prior
         # and the boundary-condition directions (module text, "Boundary conditions"), after it,
-        # then the layer-proportion directions ("Layer proportions"), then the pose's ("The
-        # scan's pose": each column already scaled by its standard deviation)
+        # then the layer-proportion directions ("Layer proportions"), then the scan noise's
+        # pose field ("The scan's pose": six columns scaled by their standard deviations)
         cols, sd2 = [], []
-        for field_, sd in ((mesh_error, MESH_ERROR_SD), (boundary, BOUNDARY_SD), (layers, LAYER_SD), (pose, 1.0)):
+        for field_, sd in ((mesh_error, MESH_ERROR_SD), (boundary, BOUNDARY_SD), (layers, LAYER_SD), (noise_pose, 1.0)):
             m = np.zeros((len(self.idx), 0))
             if field_ is not None:
                 m = np.asarray(field_, float).reshape(len(points), -1)[self.idx]
@@ -296,7 +320,6 @@ class ErrorModel:
         self.n_mesh = cols[0].shape[1]
         self.n_boundary = cols[1].shape[1]
         self.n_layers = cols[2].shape[1]
-        self.n_pose = cols[3].shape[1]
         self.N = np.concatenate(cols, axis=1)
         self._nsd2 = np.concatenate(sd2)
         BN = np.concatenate([self.B, self.N], axis=1)
@@ -308,43 +331,33 @@ class ErrorModel:
         self._mm = np.outer(m, m) if self.has_border else None
         self._eig = []                  # (ell, rho, eigenvalues, eigenvectors, U^T [B N])
         for ell in self.lengths:
-            K = matern32(self._d, ell)
             for rho in self.ratios:
-                lam, U = np.linalg.eigh(K + rho * self._mm * K if rho else K)
+                lam, U = np.linalg.eigh(self._kernel(ell, rho))
                 self._eig.append((ell, rho, np.clip(lam, 0.0, None), U, U.T @ BN))
 
-    def pose_covariance(self, fit: Fit, pose: tuple) -> np.ndarray | None:
-        """Covariance C of the scan's pose (module text, "The scan's pose") under the error
-        model `fit`: M_s (Sigma_u - sigma_n^2 I) M_s^T + sigma_n^2 M M^T, `pose` = (R, keep, M)
-        of `gap.ScanGap.fix_pose` (the rigid basis on all scan points, the trimmed unoperated
-        points, the pose's weighted estimator on them). Rotations (rad) about and translations
-        (mm) along x, y, z; None when the subsample holds too few of those points to fix it."""
-        R, keep, M = pose
-        u = np.isin(self.idx, keep)
-        A = np.asarray(R, float)[self.idx[u]]
-        if u.sum() < 12 or np.linalg.matrix_rank(A) < 6:
+    def _kernel(self, ell: float, rho: float, pose: bool = True) -> np.ndarray:
+        """The short scale's correlation on the subsample: K + rho M K M (module text, "Under
+        the mandible"), plus its copy through the scan's pose, T K_uu T^T ("The scan's pose";
+        `pose` False: without it)."""
+        K = matern32(self._d, ell)
+        if rho:
+            K = K + rho * self._mm * K
+        if pose and self._T is not None:
+            u = self._pose_u
+            K = K + self._T @ K[np.ix_(u, u)] @ self._T.T
+        return K
+
+    def pose_covariance(self, fit: Fit) -> np.ndarray | None:
+        """Covariance C of the scan's pose under the error model `fit` (module text, "The
+        scan's pose"): M_s (s_d^2 K_uu + s_L^2 B_u B_u^T) M_s^T + sigma_n^2 M M^T. Rotations
+        (rad) about and translations (mm) along x, y, z; None without a pose."""
+        if self._T is None:
             return None
-        Ms = np.linalg.pinv(A)
-        S = self.covariance(fit, u) - self.sigma_n ** 2 * np.eye(int(u.sum()))
-        C = Ms @ S @ Ms.T + self.sigma_n ** 2 * (np.asarray(M) @ np.asarray(M).T)
+        u = self._pose_u
+        K = self._kernel(fit.ell, fit.border_ratio, pose=False)[np.ix_(u, u)]
+        B = self.B[u, :self.n_long]
+        C = self._Ms @ (fit.sigma_d ** 2 * K + fit.sigma_long ** 2 * (B @ B.T)) @ self._Ms.T + self._noise_pose
         return 0.5 * (C + C.T)
-
-    def with_pose(self, pose: np.ndarray) -> "ErrorModel":
-        """This error model with the pose's directions (module text, "The scan's pose";
-        columns on all scan points, each scaled by its standard deviation) in place of any it
-        had: the eigendecompositions of the short scale are shared."""
-        import copy
-
-        out = copy.copy(self)
-        m = np.asarray(pose, float)[self.idx]
-        m = m[:, np.all(np.isfinite(m), axis=0) & (np.sqrt(np.mean(m * m, axis=0)) > 1e-9)]
-        n = self.N.shape[1] - self.n_pose
-        out.N = np.concatenate([self.N[:, :n], m], axis=1)
-        out._nsd2 = np.concatenate([self._nsd2[:n], np.ones(m.shape[1])])
-        out.n_pose = m.shape[1]
-        BN = np.concatenate([self.B, out.N], axis=1)
-        out._eig = [(ell, rho, lam, U, U.T @ BN) for ell, rho, lam, U, _ in self._eig]
-        return out
 
     def n_eff(self, ell: float) -> float:
         """Independent samples of the face for correlation length ell: area / (pi l^2)."""
@@ -353,10 +366,13 @@ class ErrorModel:
     def covariance(self, fit: Fit, sel: np.ndarray | None = None) -> np.ndarray:
         """Sigma on the subsample (rows/columns `sel`) under the error model `fit`."""
         sel = np.ones(len(self.idx), bool) if sel is None else np.asarray(sel, bool)
-        d, B, N = self._d[np.ix_(sel, sel)], self.B[sel], self.N[sel]
-        K = matern32(d, fit.ell)
-        if fit.border_ratio:
-            K = K + fit.border_ratio * self._mm[np.ix_(sel, sel)] * K
+        B, N = self.B[sel], self.N[sel]
+        if self._T is None:
+            K = matern32(self._d[np.ix_(sel, sel)], fit.ell)
+            if fit.border_ratio:
+                K = K + fit.border_ratio * self._mm[np.ix_(sel, sel)] * K
+        else:
+            K = self._kernel(fit.ell, fit.border_ratio)[np.ix_(sel, sel)]
         return (fit.sigma_d ** 2 * K + fit.sigma_long ** 2 * (B @ B.T)
                 + (N * self._nsd2) @ N.T + self.sigma_n ** 2 * np.eye(int(sel.sum())))
 
@@ -457,7 +473,8 @@ class ErrorModel:
             theta = np.array(theta_a, float)
             if nfree:
                 theta[free] = theta_a[free] + x
-        long_mm = float(s_l * np.sqrt(np.mean(np.sum(self.B * self.B, axis=1)))) if self.B.size else 0.0
+        B = self.B[:, :self.n_long]
+        long_mm = float(s_l * np.sqrt(np.mean(np.sum(B * B, axis=1)))) if B.size else 0.0
         nu = np.asarray(nu, float)
         q, b = self.n_mesh, self.n_mesh + self.n_boundary
         y = b + self.n_layers
@@ -467,7 +484,7 @@ class ErrorModel:
 
         return Fit(theta, float(s_d), float(ell), float(ll), nfree + int(extra_k), float(s_l), long_mm,
                    rms(0, q), nu[:q], rms(q, b), nu[q:b], rms(b, y), nu[b:y],
-                   float(rho), self.border_share if rho else 0.0, rms(y, self.N.shape[1]))
+                   float(rho), self.border_share if rho else 0.0)
 
     def mesh_coefficient_sd(self, fit: Fit) -> np.ndarray:
         """Posterior standard deviations of the mesh-error coefficients under the error model

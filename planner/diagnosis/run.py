@@ -574,11 +574,10 @@ def _error_entry(d, f) -> dict:
             "layer_mm": _r(f.layer_mm) if d.layers is not None else None,
             "layer_directions": list(d.layer_directions) or None,
             # the scan's pose integrated out (`discrepancy`, "The scan's pose"): its standard
-            # deviations, and the RMS of the correction the baseline's estimate makes
+            # deviations under the baseline's error model
             "pose_sd": None if d.pose_cov is None else
             {"rotation_deg": [_r(float(x), 3) for x in np.degrees(np.sqrt(np.diag(d.pose_cov)[:3]))],
              "translation_mm": [_r(float(x), 3) for x in np.sqrt(np.diag(d.pose_cov)[3:])]},
-            "pose_mm": _r(f.pose_mm) if d.pose_cov is not None else None,
             "level_mm": _r(float(np.hypot(f.discrepancy_mm, d.gap.noise_floor_mm))),
             "points": int(len(d.error.idx))}
 

@@ -973,8 +973,10 @@ def test_the_pose_covariance_is_the_spread_of_the_fitted_pose(sheet):
     P, w, em = sheet
     assert len(em.idx) == len(P)
     R, keep, M = _pose(P, w)
+    ep = discrepancy.ErrorModel(P, w, NOISE, pose=(R, keep, M))
     f = discrepancy.Fit(None, SIGMA_D, ELL, 0.0, 0)
-    C = em.pose_covariance(f, (R, keep, M))
+    C = ep.pose_covariance(f)
+    assert em.pose_covariance(f) is None
     rng = np.random.default_rng(5)
     d = np.linalg.norm(P[keep][:, None] - P[keep][None], axis=2)
     L = np.linalg.cholesky(SIGMA_D ** 2 * discrepancy.matern32(d, ELL) + 1e-9 * np.eye(len(keep)))
@@ -991,35 +993,35 @@ def test_the_pose_covariance_is_the_spread_of_the_fitted_pose(sheet):
     assert np.all(np.diag(C) > 10.0 * NOISE ** 2 * np.diag(M @ M.T))
 
 
-def test_an_effect_like_the_pose_keeps_only_what_the_pose_leaves(sheet):
-    """The pose integrated out (`ErrorModel.with_pose`): Sigma gains R C R^T, the likelihood is
-    the dense Gaussian's, and the information on a parameter whose pattern is a rigid motion of
-    the scan is the Woodbury identity's, e^T (G^-1 + C)^-1 e with G = R^T Sigma^-1 R: no more
-    than the pose's own spread lets it have (1e-6 relative, double precision on 900 points)."""
+@pytest.mark.parametrize("long_scale", [0.0, 0.3])
+def test_an_effect_like_the_pose_keeps_only_what_the_pose_leaves(sheet, long_scale):
+    """The pose integrated out (`ErrorModel(pose=...)`): under every model's own amplitudes
+    Sigma gains R C R^T with C that model's `pose_covariance`, the likelihood is the dense
+    Gaussian's, and the information on a parameter whose pattern is a rigid motion of the scan
+    is the Woodbury identity's, e^T (G^-1 + C)^-1 e with G = R^T Sigma^-1 R, never above the
+    pose's own conditional precision (1e-6 relative, double precision on 900 points)."""
     P, w, em = sheet
     R, keep, M = _pose(P, w)
-    f0 = discrepancy.Fit(None, SIGMA_D, ELL, 0.0, 0)
-    C = em.pose_covariance(f0, (R, keep, M))
-    lam, V = np.linalg.eigh(C)
-    E = R @ (V * np.sqrt(lam))
-    ep = em.with_pose(E)
-    assert ep.n_pose == 6 and em.n_pose == 0
-    delta, eps = _gp_sample(P, 66)
-    r = delta + eps + R @ _pose_draw(C, 3)
-    f = ep.fit(r)
-    S = ep.covariance(f)
+    ep = discrepancy.ErrorModel(P, w, NOISE, pose=(R, keep, M))
     Rs = R[em.idx]
+    f = dataclasses.replace(discrepancy.Fit(None, SIGMA_D, ELL, 0.0, 0), sigma_long=long_scale)
+    C = ep.pose_covariance(f)
+    S = ep.covariance(f)
     RCR = Rs @ C @ Rs.T
     assert np.abs(S - em.covariance(f) - RCR).max() <= 1e-9 * np.abs(RCR).max()
-    dense = -0.5 * (r @ np.linalg.solve(S, r) + np.linalg.slogdet(S)[1] + len(r) * np.log(2 * np.pi))
-    assert f.loglik == pytest.approx(dense, rel=1e-6)
-    assert f.pose_mm > 0.0 and f.layer_mm == 0.0
+    # the fitted model's likelihood is the dense Gaussian's under its own amplitudes
+    delta, eps = _gp_sample(P, 66)
+    r = delta + eps + R @ _pose_draw(C, 3)
+    g = ep.fit(r)
+    Sg = ep.covariance(g)
+    dense = -0.5 * (r @ np.linalg.solve(Sg, r) + np.linalg.slogdet(Sg)[1] + len(r) * np.log(2 * np.pi))
+    assert g.loglik == pytest.approx(dense, rel=1e-6)
+    # the long scale's reported size is the face's field alone, not its copy through the pose
+    assert g.long_mm == pytest.approx(g.sigma_long * np.sqrt(np.mean(np.sum(em.B ** 2, axis=1))), rel=1e-9)
     # a pitch of the scan as an effect's pattern: its information under the pose
     J = R[:, :1]
     G = Rs.T @ np.linalg.solve(em.covariance(f), Rs)
-    expect = np.linalg.inv(np.linalg.inv(G) + C)[0, 0]
-    assert ep.information(J, f)[0, 0] == pytest.approx(expect, rel=1e-6)
-    # never more than the pose's conditional precision (C^-1)_00: the data cannot tell the
-    # effect from the pose beyond what the pose's prior does
-    assert ep.information(J, f)[0, 0] <= np.linalg.inv(C)[0, 0] * (1.0 + 1e-9)
-    assert ep.information(J, f)[0, 0] < 0.5 * em.information(J, f)[0, 0]
+    info = ep.information(J, f)[0, 0]
+    assert info == pytest.approx(np.linalg.inv(np.linalg.inv(G) + C)[0, 0], rel=1e-6)
+    assert info <= np.linalg.inv(C)[0, 0] * (1.0 + 1e-9)
+    assert info < 0.5 * em.information(J, f)[0, 0]

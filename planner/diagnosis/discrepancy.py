@@ -120,8 +120,9 @@ unweighted), M the whole scan's (for the white noise), and Sigma gains R C R^T
 the short scale's kernel becomes K + T K_uu T^T (one eigendecomposition per length, as before),
 the long-scale basis gains the columns T B_u under the same amplitude, and the noise's part is
 six fixed columns (the mesh-error, boundary and layer directions are changes of gaps measured
-with the pose re-fitted already, and have no copy). So every model carries the pose uncertainty its own discrepancy implies: a
-model that explains the gap leaves a smaller discrepancy and a better-held pose. (The gap's
+with the pose re-fitted already, and have no copy). So every model carries the pose
+uncertainty its own discrepancy implies: a model that explains the gap leaves a smaller
+discrepancy and a better-held pose. (The gap's
 exact covariance after a fitted pose, P Sigma P^T with P = I - T, takes the pose's error to be
 the discrepancy's own on the unoperated points and removes it there; a stationary field then
 makes it small. It is not used: what differs between models of one face on those points is

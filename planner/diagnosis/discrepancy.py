@@ -368,12 +368,7 @@ class ErrorModel:
         """Sigma on the subsample (rows/columns `sel`) under the error model `fit`."""
         sel = np.ones(len(self.idx), bool) if sel is None else np.asarray(sel, bool)
         B, N = self.B[sel], self.N[sel]
-        if self._T is None:
-            K = matern32(self._d[np.ix_(sel, sel)], fit.ell)
-            if fit.border_ratio:
-                K = K + fit.border_ratio * self._mm[np.ix_(sel, sel)] * K
-        else:
-            K = self._kernel(fit.ell, fit.border_ratio)[np.ix_(sel, sel)]
+        K = self._kernel(fit.ell, fit.border_ratio)[np.ix_(sel, sel)]
         return (fit.sigma_d ** 2 * K + fit.sigma_long ** 2 * (B @ B.T)
                 + (N * self._nsd2) @ N.T + self.sigma_n ** 2 * np.eye(int(sel.sum())))
 
